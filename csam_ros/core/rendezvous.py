@@ -1,0 +1,153 @@
+"""Rendezvous measurement model through base nodes (paper eq. 22-24, METHOD section 5).
+
+A rendezvous measurement is the position of the observed robot in the observer's body frame.
+With every robot's local frame ``G_r`` placed in the reference frame by its base node ``B_r``
+(the identity for the reference robot), the prediction is
+
+    c = translation of ( (-)(B_o (+) x_o) (+) B_t (+) x_t )
+
+for observer pose ``x_o`` in ``G_o`` and observed pose ``x_t`` in ``G_t``. Between two robots
+``p`` (reference) and ``q`` with ``b_pq = B_q`` this is the paper's eq. 22 when ``p`` observes
+``q``, ``translation((-)x_p (+) b_pq (+) x_q)``, and its mirror ``translation((-)x_q (+) (-)b_pq
+(+) x_p)`` when ``q`` observes ``p``: one function covers both directions and measurements
+between two non-reference robots (METHOD section 7).
+
+The same model with points instead of poses gives the feature association residual of
+Algorithm 2: ``r = B_a (+) l_a - B_c (+) l_c`` (see :func:`point_difference`).
+
+Every function is vectorised over a leading axis of ``K`` measurements.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from csam_ros.core import se2
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class RendezvousPrediction:
+    """Predicted relative positions and their Jacobians, all vectorised over ``K``.
+
+    ``position`` (K, 2) is the observed robot's position in the observer's body frame;
+    ``d_observer_pose`` (K, 2, 3), ``d_observer_base`` (K, 2, 3), ``d_observed_position``
+    (K, 2, 2) and ``d_observed_base`` (K, 2, 3) are its derivatives (the paper's ``C^p``,
+    ``C^q`` and ``B^pq`` blocks of eq. 24 before whitening).
+    """
+
+    position: Array
+    d_observer_pose: Array
+    d_observer_base: Array
+    d_observed_position: Array
+    d_observed_base: Array
+
+
+def _point_in_parent(base: Array, point: Array) -> tuple[Array, Array, Array]:
+    """``base (+) point`` with its Jacobians with respect to ``base`` (K,2,3) and ``point``."""
+    c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
+    rot = se2.rotation(base[:, 2])
+    out = se2.transform_point(base, point)
+    d_base = np.zeros((len(base), 2, 3))
+    d_base[:, 0, 0] = 1.0
+    d_base[:, 1, 1] = 1.0
+    d_base[:, 0, 2] = -s * point[:, 0] - c * point[:, 1]
+    d_base[:, 1, 2] = c * point[:, 0] - s * point[:, 1]
+    return out, d_base, rot
+
+
+def predict(
+    observer_pose: ArrayLike,
+    observer_base: ArrayLike,
+    observed_position: ArrayLike,
+    observed_base: ArrayLike,
+) -> RendezvousPrediction:
+    """Position of the observed robot in the observer's body frame, with Jacobians (eq. 22).
+
+    ``observer_pose`` (K, 3) is in the observer's frame ``G_o``, ``observed_position`` (K, 2)
+    (the first two components of the observed pose; the prediction does not depend on its
+    heading) in ``G_t``; ``observer_base`` and ``observed_base`` (K, 3) place those frames in
+    the reference frame (pass zeros for the reference robot).
+    """
+    x_o = np.atleast_2d(np.asarray(observer_pose, dtype=float))
+    b_o = np.atleast_2d(np.asarray(observer_base, dtype=float))
+    t = np.atleast_2d(np.asarray(observed_position, dtype=float))[:, :2]
+    b_t = np.atleast_2d(np.asarray(observed_base, dtype=float))
+    k = max(len(x_o), len(b_o), len(t), len(b_t))
+    x_o, b_o, b_t = (np.broadcast_to(a, (k, 3)) for a in (x_o, b_o, b_t))
+    t = np.broadcast_to(t, (k, 2))
+
+    observer_global = se2.compose(b_o, x_o)
+    observed_global, d_target_base, d_target_point = _point_in_parent(b_t, t)
+    position = se2.inverse_transform_point(observer_global, observed_global)
+
+    rot_t = np.swapaxes(se2.rotation(observer_global[:, 2]), -1, -2)  # R(phi)^T
+    d_global = np.zeros((k, 2, 3))  # d position / d observer_global
+    d_global[:, :, :2] = -rot_t
+    d_global[:, 0, 2] = position[:, 1]
+    d_global[:, 1, 2] = -position[:, 0]
+    j_base, j_pose = se2.compose_jacobians(b_o, x_o)
+    return RendezvousPrediction(
+        position=position,
+        d_observer_pose=d_global @ j_pose,
+        d_observer_base=d_global @ j_base,
+        d_observed_position=rot_t @ d_target_point,
+        d_observed_base=rot_t @ d_target_base,
+    )
+
+
+def predict_pair(
+    pose_p: ArrayLike, base_node: ArrayLike, pose_q: ArrayLike, p_observes_q: ArrayLike
+) -> tuple[Array, Array, Array, Array]:
+    """The paper's two-robot connector ``c_m(x_p, b_pq, x_q)`` in either direction.
+
+    ``p_observes_q`` (K,) selects ``translation((-)x_p (+) b_pq (+) x_q)`` (True) or
+    ``translation((-)x_q (+) (-)b_pq (+) x_p)`` (False, ``q`` observes ``p``). Returns the
+    prediction (K, 2) and its Jacobians with respect to ``x_p``, ``b_pq`` and ``x_q``, each
+    (K, 2, 3).
+    """
+    x_p = np.atleast_2d(np.asarray(pose_p, dtype=float))
+    x_q = np.atleast_2d(np.asarray(pose_q, dtype=float))
+    b = np.atleast_2d(np.asarray(base_node, dtype=float))
+    k = max(len(x_p), len(x_q), len(b))
+    x_p, x_q, b = (np.broadcast_to(a, (k, 3)) for a in (x_p, x_q, b))
+    forward = np.broadcast_to(np.asarray(p_observes_q, dtype=bool), (k,))
+    zero = np.zeros((k, 3))
+    fwd = predict(x_p, zero, x_q[:, :2], b)
+    bwd = predict(x_q, b, x_p[:, :2], zero)
+    sel = forward[:, None]
+    position = np.where(sel, fwd.position, bwd.position)
+    sel3 = forward[:, None, None]
+    d_p = np.zeros((k, 2, 3))
+    d_q = np.zeros((k, 2, 3))
+    d_p[:] = np.where(sel3, fwd.d_observer_pose, 0.0)
+    d_p[:, :, :2] += np.where(sel3, 0.0, bwd.d_observed_position)
+    d_q[:] = np.where(sel3, 0.0, bwd.d_observer_pose)
+    d_q[:, :, :2] += np.where(sel3, fwd.d_observed_position, 0.0)
+    d_b = np.where(sel3, fwd.d_observed_base, bwd.d_observer_base)
+    return position, d_p, d_b, d_q
+
+
+def point_difference(
+    point_a: ArrayLike, base_a: ArrayLike, point_c: ArrayLike, base_c: ArrayLike
+) -> tuple[Array, Array, Array, Array, Array]:
+    """Association residual ``r = B_a (+) l_a - B_c (+) l_c`` (Algorithm 2) with Jacobians.
+
+    Returns ``r`` (K, 2) and its Jacobians with respect to ``l_a`` (K,2,2), ``B_a`` (K,2,3),
+    ``l_c`` (K,2,2) and ``B_c`` (K,2,3). For two robots with ``p`` the reference this is the
+    paper's ``l_i^p - b_pq (+) l_j^q``.
+    """
+    la = np.atleast_2d(np.asarray(point_a, dtype=float))
+    lc = np.atleast_2d(np.asarray(point_c, dtype=float))
+    ba = np.atleast_2d(np.asarray(base_a, dtype=float))
+    bc = np.atleast_2d(np.asarray(base_c, dtype=float))
+    k = max(len(la), len(lc), len(ba), len(bc))
+    la, lc = (np.broadcast_to(a, (k, 2)) for a in (la, lc))
+    ba, bc = (np.broadcast_to(a, (k, 3)) for a in (ba, bc))
+    ga, d_ba, d_la = _point_in_parent(ba, la)
+    gc, d_bc, d_lc = _point_in_parent(bc, lc)
+    return ga - gc, d_la, d_ba, -d_lc, -d_bc
