@@ -1,0 +1,579 @@
+"""Import the UTIAS MR.CLAM data set (Leung et al., IJRR 2011) into a :class:`MultiRobotLog`.
+
+A data set directory holds ``Barcodes.dat`` (subject, barcode), ``Landmark_Groundtruth.dat``
+(subject, x, y, sx, sy), and per robot ``RobotN_Odometry.dat`` (t, v, omega) and
+``RobotN_Measurement.dat`` (t, barcode, range, bearing). Subjects 1..N are the robots
+(``robot1``..), the landmark subjects are those with ground truth.
+
+Policies (every dropped or repaired row is counted in :class:`ImportReport`, with the first
+offending lines quoted in ``ImportReport.notes``; no row ever raises):
+
+- Stamps. Log stamps are seconds relative to ``ImportReport.epoch``, the earliest valid stamp
+  in any robot file of the data set (all robots, whatever the selection), so a window
+  ``[start, start + duration]`` means the same for every robot subset.
+- Malformed rows (wrong column count, non-numeric, NaN/inf, barcode not an integer,
+  range <= 0, |bearing| > pi) are dropped.
+- Out-of-order rows are put in place by a stable sort on the stamp and counted.
+- Odometry rows sharing a stamp: the last one in file order is kept (the earlier ones would
+  hold for zero seconds); the others are counted as duplicates.
+- Odometry convention. A file row ``(t_k, v_k, omega_k)`` is the velocity applied from ``t_k``
+  until the next row, i.e. a piecewise-constant input ``u(t)``. The log's sample ``i`` holds
+  the mean input over ``(s_{i-1}, s_i]`` (:mod:`csam_ros.core.log`), so the log takes the
+  file's stamps inside the window as its stamps and gives sample ``i`` the row active at
+  ``s_{i-1}``: the input is constant over each sample, and the mean is exact. The first sample
+  sits at the window start (or the robot's first row) and the last at the window end (or the
+  robot's last row; the last row's command has no end and is not extrapolated).
+  ``v_lat = 0`` always; its noise is its own sigma.
+- Odometry noise is a white velocity noise of density ``q`` (per sqrt-second): a sample of
+  duration ``T`` gets ``sigma = q / sqrt(T)``, so the pose noise over any interval grows as
+  ``q^2 * duration`` whatever the sampling (``OdometryLog.sigmas`` holds per-sample sigmas of
+  the mean input; the first sample, unused, copies the second's).
+- Measurements: barcodes map to subjects through ``Barcodes.dat``. A barcode in no table is a
+  misread (dropped); a robot barcode makes a rendezvous measurement, dropped when it names the
+  observer itself or a robot outside the selection; a landmark barcode becomes a feature
+  observation with the observer's own label. Measurements outside the observer's odometry
+  span in the window (or, for rendezvous, outside the observed robot's) are dropped.
+- Labels are local: robot ``k`` numbers the landmarks ``k + permutation_k(index)`` with a
+  permutation seeded by ``(label_seed, k)``, so label ranges overlap across robots and equal
+  labels mean nothing across robots. :class:`GroundTruth` keeps each robot's label -> subject.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from csam_ros.core.log import (
+    FeatureLog,
+    GroundTruth,
+    MultiRobotLog,
+    OdometryLog,
+    RendezvousLog,
+    RobotLog,
+)
+
+FloatArray = NDArray[np.float64]
+
+BARCODES_FILE = "Barcodes.dat"
+LANDMARKS_FILE = "Landmark_Groundtruth.dat"
+_ROBOT_FILE = re.compile(r"^Robot(\d+)_Odometry\.dat$")
+_MAX_NOTES = 40
+
+
+class MrclamFormatError(ValueError):
+    """A data set that cannot be imported at all (missing file, ambiguous table)."""
+
+
+@dataclass(frozen=True)
+class MrclamNoise:
+    """Sensor and odometry noise of the MR.CLAM robots (values: ``config/mrclam.yaml``).
+
+    ``sigma_range(r) = sigma_range + sigma_range_per_m * r``; odometry densities are per
+    sqrt-second (see the module docstring for the per-sample sigmas).
+    """
+
+    sigma_range: float = 0.1
+    sigma_range_per_m: float = 0.0
+    sigma_bearing: float = 0.03
+    q_v: float = 0.01
+    q_vlat: float = 0.01
+    q_omega: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_range", "sigma_bearing", "q_v", "q_vlat", "q_omega"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"MrclamNoise.{name} must be finite and > 0, got {value!r}")
+        if not (np.isfinite(self.sigma_range_per_m) and self.sigma_range_per_m >= 0):
+            raise ValueError(
+                f"MrclamNoise.sigma_range_per_m must be finite and >= 0, "
+                f"got {self.sigma_range_per_m!r}"
+            )
+
+    @classmethod
+    def from_dict(cls, values: dict) -> MrclamNoise:
+        """Build from a mapping (e.g. the ``noise`` section of ``config/mrclam.yaml``)."""
+        known = set(cls.__dataclass_fields__)
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(
+                f"unknown MR.CLAM noise keys {sorted(unknown)}; known: {sorted(known)}"
+            )
+        return cls(**{k: float(v) for k, v in values.items()})
+
+
+def load_config(path: str | Path) -> dict:
+    """Read ``config/mrclam.yaml`` (top-level key ``mrclam``) and return that section, with
+    ``noise`` turned into a :class:`MrclamNoise`."""
+    import yaml
+
+    with open(path) as stream:
+        data = yaml.safe_load(stream)
+    if not isinstance(data, dict) or "mrclam" not in data:
+        raise ValueError(f"{path}: expected a top-level key 'mrclam'")
+    section = dict(data["mrclam"])
+    section["noise"] = MrclamNoise.from_dict(section.get("noise") or {})
+    return section
+
+
+@dataclass
+class ImportReport:
+    """What the import kept, dropped and repaired, per robot and reason."""
+
+    dataset: str
+    epoch: float  # absolute stamp [s] that log stamps are relative to
+    start: float  # window start, relative to epoch
+    end: float  # window end, relative to epoch
+    robots: list[str]
+    counts: dict[str, dict[str, int]] = field(default_factory=dict)  # robot -> reason -> n
+    notes: list[str] = field(default_factory=list)  # first offending lines, "file:line: why"
+
+    def total(self, reason: str) -> int:
+        """Sum of one count over all robots."""
+        return sum(c.get(reason, 0) for c in self.counts.values())
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return {
+            "dataset": self.dataset,
+            "epoch": self.epoch,
+            "start": self.start,
+            "end": self.end,
+            "robots": list(self.robots),
+            "counts": {r: dict(c) for r, c in self.counts.items()},
+            "notes": list(self.notes),
+        }
+
+    def summary(self) -> str:
+        """A short human-readable table of the non-zero counts."""
+        reasons = sorted({k for c in self.counts.values() for k, v in c.items() if v})
+        lines = [f"MR.CLAM import of {self.dataset}: window [{self.start:.3f}, {self.end:.3f}] s"]
+        lines.append("  " + " ".join(f"{r:>8}" for r in self.robots) + "  reason")
+        for reason in reasons:
+            row = " ".join(f"{self.counts[r].get(reason, 0):>8}" for r in self.robots)
+            lines.append(f"  {row}  {reason}")
+        return "\n".join(lines)
+
+
+class _Counter:
+    """Counts per robot and reason plus the first offending lines."""
+
+    def __init__(self, robots: list[str]) -> None:
+        self.counts: dict[str, dict[str, int]] = {r: {} for r in robots}
+        self.notes: list[str] = []
+
+    def add(self, robot: str | None, reason: str, n: int, note: str | None = None) -> None:
+        if n <= 0:
+            return
+        if robot is not None and robot in self.counts:
+            self.counts[robot][reason] = self.counts[robot].get(reason, 0) + int(n)
+        if note is not None:
+            self.note(note)
+
+    def note(self, text: str) -> None:
+        if len(self.notes) < _MAX_NOTES:
+            self.notes.append(text)
+
+
+@dataclass
+class _Table:
+    """Numeric rows of one text file with their 1-based line numbers."""
+
+    values: FloatArray  # (n, ncols)
+    lines: NDArray[np.int64]  # (n,)
+
+
+def _read_table(
+    path: Path, ncols: int, counter: _Counter, robot: str | None, prefix: str
+) -> _Table:
+    """Parse whitespace-separated numeric rows; drop and count malformed ones.
+
+    Comment lines (``#``) and blank lines are skipped. Counted reasons:
+    ``{prefix}_wrong_columns``, ``{prefix}_non_numeric``, ``{prefix}_non_finite``.
+    """
+    text = path.read_text(errors="replace")
+    rows: list[list[str]] = []
+    line_numbers: list[int] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        if len(tokens) != ncols:
+            counter.add(
+                robot,
+                f"{prefix}_wrong_columns",
+                1,
+                f"{path.name}:{number}: {len(tokens)} columns, expected {ncols}",
+            )
+            continue
+        rows.append(tokens)
+        line_numbers.append(number)
+    counter.add(robot, f"{prefix}_rows", len(rows))
+    lines = np.asarray(line_numbers, dtype=np.int64)
+    try:
+        values = np.array(rows, dtype=float).reshape(len(rows), ncols)
+    except ValueError:
+        values, ok = _parse_slow(rows, ncols)
+        for number in lines[~ok]:
+            row = rows[int(np.searchsorted(lines, number))]
+            counter.add(
+                robot,
+                f"{prefix}_non_numeric",
+                1,
+                f"{path.name}:{number}: non-numeric value in {' '.join(row)!r}",
+            )
+        values, lines = values[ok], lines[ok]
+    finite = np.isfinite(values).all(axis=1)
+    for number in lines[~finite][:_MAX_NOTES]:
+        counter.note(f"{path.name}:{number}: NaN or inf")
+    counter.add(robot, f"{prefix}_non_finite", int((~finite).sum()))
+    return _Table(values[finite], lines[finite])
+
+
+def _parse_slow(rows: list[list[str]], ncols: int) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Row-by-row conversion, only used when the fast path met a non-numeric token."""
+    values = np.zeros((len(rows), ncols))
+    ok = np.ones(len(rows), dtype=bool)
+    for i, row in enumerate(rows):
+        try:
+            values[i] = [float(token) for token in row]
+        except ValueError:
+            ok[i] = False
+    return values, ok
+
+
+def _sort_by_stamp(table: _Table, counter: _Counter, robot: str, prefix: str, name: str) -> _Table:
+    """Stable sort on column 0; count rows stamped before an earlier row of the file."""
+    stamps = table.values[:, 0]
+    if stamps.size == 0:
+        return table
+    out_of_order = stamps < np.maximum.accumulate(stamps)
+    n = int(out_of_order.sum())
+    if n:
+        first = int(table.lines[out_of_order][0])
+        counter.add(
+            robot,
+            f"{prefix}_out_of_order",
+            n,
+            f"{name}:{first}: stamp earlier than a previous row ({n} such rows, sorted)",
+        )
+        order = np.argsort(stamps, kind="stable")
+        table = _Table(table.values[order], table.lines[order])
+    return table
+
+
+def _read_barcodes(directory: Path, counter: _Counter) -> dict[int, int]:
+    table = _read_table(directory / BARCODES_FILE, 2, counter, None, "barcode")
+    values = table.values
+    integral = (values == np.round(values)).all(axis=1)
+    barcode_to_subject: dict[int, int] = {}
+    for (subject, code), line in zip(
+        values[integral].astype(np.int64), table.lines[integral], strict=True
+    ):
+        previous = barcode_to_subject.get(int(code))
+        if previous is not None and previous != subject:
+            raise MrclamFormatError(
+                f"{directory / BARCODES_FILE}:{line}: barcode {code} names subject {subject} "
+                f"and subject {previous}"
+            )
+        barcode_to_subject[int(code)] = int(subject)
+    return barcode_to_subject
+
+
+def _read_landmarks(directory: Path, counter: _Counter) -> tuple[NDArray[np.int64], FloatArray]:
+    table = _read_table(directory / LANDMARKS_FILE, 5, counter, None, "landmark")
+    subjects = table.values[:, 0]
+    keep = subjects == np.round(subjects)
+    subjects = subjects[keep].astype(np.int64)
+    unique, first = np.unique(subjects, return_index=True)
+    if unique.size != subjects.size:
+        raise MrclamFormatError(f"{directory / LANDMARKS_FILE}: a landmark subject appears twice")
+    return unique, table.values[keep][first, 1:3]
+
+
+def _local_labels(subjects: NDArray[np.int64], robot_number: int, seed: int) -> dict[int, int]:
+    """Subject -> the robot's own label: ``robot_number + permutation(index)``."""
+    permutation = np.random.default_rng([seed, robot_number]).permutation(subjects.size)
+    return {int(s): int(robot_number + p) for s, p in zip(subjects, permutation, strict=True)}
+
+
+@dataclass
+class _RobotFiles:
+    odometry: _Table
+    measurements: _Table
+
+
+def _robot_numbers(directory: Path) -> list[int]:
+    numbers = []
+    for path in directory.iterdir():
+        match = _ROBOT_FILE.match(path.name)
+        if match:
+            numbers.append(int(match.group(1)))
+    return sorted(numbers)
+
+
+def _read_robot(directory: Path, number: int, counter: _Counter) -> _RobotFiles:
+    name = f"robot{number}"
+    odometry_path = directory / f"Robot{number}_Odometry.dat"
+    measurement_path = directory / f"Robot{number}_Measurement.dat"
+    odometry = _read_table(odometry_path, 3, counter, name, "odometry")
+    odometry = _sort_by_stamp(odometry, counter, name, "odometry", odometry_path.name)
+    if measurement_path.exists():
+        measurements = _read_table(measurement_path, 4, counter, name, "measurement")
+        measurements = _sort_by_stamp(
+            measurements, counter, name, "measurement", measurement_path.name
+        )
+    else:
+        counter.add(name, "measurement_file_missing", 1, f"{measurement_path.name}: missing")
+        measurements = _Table(np.zeros((0, 4)), np.zeros(0, dtype=np.int64))
+    return _RobotFiles(odometry, measurements)
+
+
+def _odometry_log(
+    odometry: _Table,
+    epoch: float,
+    window: tuple[float, float],
+    noise: MrclamNoise,
+    counter: _Counter,
+    robot: str,
+) -> OdometryLog | None:
+    """Turn the piecewise-constant command rows into log samples (module docstring)."""
+    stamps = odometry.values[:, 0] - epoch
+    commands = odometry.values[:, 1:3]
+    # Duplicate stamps: keep the last row of each run of equal stamps.
+    last_of_run = np.append(stamps[1:] != stamps[:-1], True)
+    duplicates = int((~last_of_run).sum())
+    if duplicates:
+        line = int(odometry.lines[~last_of_run][0])
+        counter.add(
+            robot,
+            "odometry_duplicate_stamps",
+            duplicates,
+            f"Robot{robot[5:]}_Odometry.dat:{line}: stamp repeated ({duplicates} rows superseded "
+            "by the last row with the same stamp)",
+        )
+    stamps, commands = stamps[last_of_run], commands[last_of_run]
+    if stamps.size == 0:
+        return None
+    begin = max(window[0], stamps[0])
+    end = min(window[1], stamps[-1])
+    if not end > begin:
+        return None
+    inner = stamps[(stamps > begin) & (stamps < end)]
+    sample_stamps = np.concatenate([[begin], inner, [end]])
+    active = np.searchsorted(stamps, sample_stamps, side="right") - 1  # row active at s_i
+    inputs = np.zeros((sample_stamps.size, 3))
+    inputs[0, [0, 2]] = commands[active[0]]
+    inputs[1:, [0, 2]] = commands[active[:-1]]
+    durations = np.diff(sample_stamps)
+    density = np.array([noise.q_v, noise.q_vlat, noise.q_omega])
+    sigmas = np.empty_like(inputs)
+    sigmas[1:] = density / np.sqrt(durations)[:, None]
+    sigmas[0] = sigmas[1]
+    counter.add(robot, "odometry_samples", sample_stamps.size)
+    return OdometryLog(sample_stamps, inputs, sigmas)
+
+
+def import_mrclam(
+    directory: str | Path,
+    robots: list[int] | None = None,
+    start: float = 0.0,
+    duration: float | None = None,
+    noise: MrclamNoise | None = None,
+    label_seed: int = 0,
+) -> tuple[MultiRobotLog, ImportReport]:
+    """Read an MR.CLAM data set directory into a :class:`MultiRobotLog`.
+
+    ``robots`` selects robot numbers (default: all with an odometry file); ``start`` and
+    ``duration`` [s] cut a window relative to the data set's first stamp. Returns the log
+    (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
+    label -> subject map) and the :class:`ImportReport`.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise MrclamFormatError(f"MR.CLAM data set directory {directory} does not exist")
+    for required in (BARCODES_FILE, LANDMARKS_FILE):
+        if not (directory / required).is_file():
+            raise MrclamFormatError(f"{directory}: missing {required}")
+    available = _robot_numbers(directory)
+    if not available:
+        raise MrclamFormatError(f"{directory}: no RobotN_Odometry.dat file")
+    selected = available if robots is None else sorted({int(r) for r in robots})
+    missing = [r for r in selected if r not in available]
+    if missing:
+        raise MrclamFormatError(
+            f"robots {missing} requested but {directory} has odometry only for {available}"
+        )
+    if not np.isfinite(start) or (duration is not None and not duration > 0):
+        raise ValueError(f"bad window: start={start!r}, duration={duration!r} (need > 0)")
+    noise = noise or MrclamNoise()
+    names = [f"robot{r}" for r in selected]
+    counter = _Counter(names)
+
+    barcode_to_subject = _read_barcodes(directory, counter)
+    landmark_subjects, landmark_xy = _read_landmarks(directory, counter)
+    files = {
+        r: _read_robot(directory, r, counter if r in selected else _Counter([])) for r in available
+    }
+    first_stamps = [
+        t.values[0, 0]
+        for f in files.values()
+        for t in (f.odometry, f.measurements)
+        if t.values.shape[0]
+    ]
+    if not first_stamps:
+        raise MrclamFormatError(f"{directory}: no valid stamp in any robot file")
+    epoch = float(min(first_stamps))
+    window = (float(start), float(start + duration) if duration is not None else np.inf)
+
+    odometry: dict[str, OdometryLog] = {}
+    for number, name in zip(selected, names, strict=True):
+        log = _odometry_log(files[number].odometry, epoch, window, noise, counter, name)
+        if log is None:
+            raise MrclamFormatError(
+                f"{name} has no odometry in the window [{window[0]}, {window[1]}] s "
+                f"(relative to the data set's first stamp {epoch:.3f})"
+            )
+        odometry[name] = log
+    spans = {name: (log.stamps[0], log.stamps[-1]) for name, log in odometry.items()}
+
+    labels = {
+        name: _local_labels(landmark_subjects, number, label_seed)
+        for number, name in zip(selected, names, strict=True)
+    }
+    robot_subjects = set(available)
+    logs: dict[str, RobotLog] = {}
+    for number, name in zip(selected, names, strict=True):
+        features, rendezvous = _measurement_logs(
+            files[number].measurements,
+            number,
+            epoch,
+            spans,
+            barcode_to_subject,
+            robot_subjects,
+            labels[name],
+            noise,
+            counter,
+        )
+        logs[name] = RobotLog(name, odometry[name], features, rendezvous)
+
+    truth = GroundTruth(
+        feature_ids=landmark_subjects,
+        feature_positions=landmark_xy,
+        label_to_feature={
+            name: {label: subject for subject, label in labels[name].items()} for name in names
+        },
+    )
+    report = ImportReport(
+        dataset=str(directory),
+        epoch=epoch,
+        start=window[0],
+        end=float(min(window[1], max(s[1] for s in spans.values()))),
+        robots=names,
+        counts=counter.counts,
+        notes=counter.notes,
+    )
+    return MultiRobotLog(logs, truth), report
+
+
+def _measurement_logs(
+    table: _Table,
+    number: int,
+    epoch: float,
+    spans: dict[str, tuple[float, float]],
+    barcode_to_subject: dict[int, int],
+    robot_subjects: set[int],
+    labels: dict[int, int],
+    noise: MrclamNoise,
+    counter: _Counter,
+) -> tuple[FeatureLog, RendezvousLog]:
+    """Split one robot's measurement rows into feature and rendezvous logs (module docstring)."""
+    name = f"robot{number}"
+    file_name = f"Robot{number}_Measurement.dat"
+    values, lines = table.values, table.lines
+
+    def drop(mask: NDArray[np.bool_], reason: str, why: str) -> None:
+        if mask.any():
+            counter.add(name, reason, int(mask.sum()), f"{file_name}:{lines[mask][0]}: {why}")
+
+    codes = values[:, 1]
+    ok = codes == np.round(codes)
+    drop(~ok, "measurement_bad_barcode", "barcode is not an integer")
+    bad_range = ok & ~(values[:, 2] > 0)
+    drop(bad_range, "measurement_non_positive_range", "range <= 0")
+    ok &= ~bad_range
+    bad_bearing = ok & (np.abs(values[:, 3]) > np.pi)
+    drop(bad_bearing, "measurement_bearing_out_of_range", "|bearing| > pi")
+    ok &= ~bad_bearing
+
+    code_keys = np.array(sorted(barcode_to_subject), dtype=np.int64)
+    code_subjects = np.array([barcode_to_subject[c] for c in code_keys], dtype=np.int64)
+    integer_codes = np.where(ok, codes, -1).astype(np.int64)
+    where = np.clip(np.searchsorted(code_keys, integer_codes), 0, max(code_keys.size - 1, 0))
+    known = ok & (code_keys.size > 0) & (code_keys[where] == integer_codes)
+    drop(ok & ~known, "measurement_unknown_barcode", "barcode in no table (misread)")
+    subject = np.where(known, code_subjects[where] if code_keys.size else -1, -1)
+
+    is_robot = known & np.isin(subject, list(robot_subjects))
+    is_landmark = known & np.isin(subject, list(labels))
+    drop(
+        known & ~is_robot & ~is_landmark,
+        "measurement_unknown_subject",
+        "barcode names a subject that is neither a robot nor a landmark with ground truth",
+    )
+    self_measurement = is_robot & (subject == number)
+    drop(self_measurement, "measurement_self", "robot measured its own barcode")
+    selected_numbers = [int(n[5:]) for n in spans]
+    unselected = is_robot & ~self_measurement & ~np.isin(subject, selected_numbers)
+    drop(unselected, "measurement_unselected_robot", "measured robot is not in the selection")
+    is_rendezvous = is_robot & ~self_measurement & ~unselected
+
+    stamps = values[:, 0] - epoch
+    begin, end = spans[name]
+    outside = (is_landmark | is_rendezvous) & ((stamps < begin) | (stamps > end))
+    drop(outside, "measurement_outside_window", "outside the robot's odometry in the window")
+    is_landmark &= ~outside
+    is_rendezvous &= ~outside
+    observed_outside = np.zeros_like(is_rendezvous)
+    for other in selected_numbers:
+        o_begin, o_end = spans[f"robot{other}"]
+        observed_outside |= (
+            is_rendezvous & (subject == other) & ((stamps < o_begin) | (stamps > o_end))
+        )
+    drop(
+        observed_outside,
+        "measurement_observed_outside_window",
+        "observed robot has no odometry at this stamp",
+    )
+    is_rendezvous &= ~observed_outside
+
+    ranges, bearings = values[:, 2], values[:, 3]
+    sigma_range = noise.sigma_range + noise.sigma_range_per_m * ranges
+    label_keys = np.array(sorted(labels), dtype=np.int64)
+    label_values = np.array([labels[s] for s in label_keys], dtype=np.int64)
+    f = is_landmark
+    feature_labels = label_values[np.searchsorted(label_keys, subject[f])]
+    features = FeatureLog(
+        stamps[f],
+        feature_labels,
+        ranges[f],
+        bearings[f],
+        sigma_range[f],
+        np.full(int(f.sum()), noise.sigma_bearing),
+    )
+    g = is_rendezvous
+    rendezvous = RendezvousLog(
+        stamps[g],
+        [f"robot{s}" for s in subject[g]],
+        ranges[g],
+        bearings[g],
+        sigma_range[g],
+        np.full(int(g.sum()), noise.sigma_bearing),
+    )
+    counter.add(name, "feature_measurements", int(f.sum()))
+    counter.add(name, "rendezvous_measurements", int(g.sum()))
+    return features, rendezvous
