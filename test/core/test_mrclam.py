@@ -1,0 +1,290 @@
+"""Tests of the MR.CLAM importer on small files written here (and a smoke test on the data)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from csam_ros.core.mrclam import (
+    MrclamFormatError,
+    MrclamNoise,
+    import_mrclam,
+    load_config,
+)
+
+DATASET = Path("/work/shared/data/mrclam/MRCLAM_Dataset1")
+ROOT = Path(__file__).resolve().parents[2]
+HEADER = "# a comment line\n# another one\n"
+# subjects 1-3 robots, 6-9 landmarks
+BARCODES = {1: 5, 2: 14, 3: 41, 6: 72, 7: 27, 8: 54, 9: 70}
+LANDMARKS = {6: (1.0, 2.0), 7: (3.0, -1.0), 8: (-2.0, 0.5), 9: (0.0, 4.0)}
+
+
+def write_dataset(
+    directory: Path,
+    odometry: dict[int, list[str]],
+    measurements: dict[int, list[str]],
+) -> Path:
+    """Write a data set; rows are given as raw text lines so that tests can corrupt them."""
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "Barcodes.dat").write_text(
+        HEADER + "".join(f"  {s} \t {b}\n" for s, b in BARCODES.items())
+    )
+    (directory / "Landmark_Groundtruth.dat").write_text(
+        HEADER + "".join(f"{s} {x} {y} 0.001 0.001\n" for s, (x, y) in LANDMARKS.items())
+    )
+    for robot, rows in odometry.items():
+        (directory / f"Robot{robot}_Odometry.dat").write_text(HEADER + "\n".join(rows) + "\n")
+    for robot, rows in measurements.items():
+        (directory / f"Robot{robot}_Measurement.dat").write_text(HEADER + "\n".join(rows) + "\n")
+    return directory
+
+
+def clean_odometry(t0: float = 1000.0, n: int = 11, v: float = 0.1) -> list[str]:
+    return [f"{t0 + 0.5 * i:.3f} {v} 0.0" for i in range(n)]
+
+
+def test_clean_import_labels_and_truth(tmp_path: Path) -> None:
+    meas = {
+        1: ["1001.0 72 2.0 0.1", "1001.5 27 3.0 -0.2", "1002.0 14 1.5 0.0", "1002.5 54 2.5 0.3"],
+        2: ["1001.2 72 2.1 0.1", "1001.7 70 3.5 -0.2", "1002.2 5 1.4 0.05"],
+        3: ["1001.3 27 2.2 0.0", "1003.0 54 1.0 0.2"],
+    }
+    d = write_dataset(tmp_path / "ds", {r: clean_odometry() for r in (1, 2, 3)}, meas)
+    log, report = import_mrclam(d)
+    assert list(log.robots) == ["robot1", "robot2", "robot3"]
+    assert report.epoch == pytest.approx(1000.0)
+    truth = log.truth
+    assert truth is not None
+    assert sorted(truth.feature_ids.tolist()) == [6, 7, 8, 9]
+    np.testing.assert_allclose(
+        truth.feature_positions[truth.feature_ids.tolist().index(7)], [3, -1]
+    )
+    code_to_subject = {b: s for s, b in BARCODES.items()}
+    for number, rows in meas.items():
+        name = f"robot{number}"
+        labels = truth.label_to_feature[name]
+        # per-robot numbering: robot k labels the 4 landmarks k..k+3
+        assert sorted(labels) == list(range(number, number + 4))
+        assert sorted(labels.values()) == [6, 7, 8, 9]
+        features = log.robots[name].features
+        expected = [
+            (float(r.split()[0]) - 1000.0, code_to_subject[int(r.split()[1])])
+            for r in rows
+            if code_to_subject[int(r.split()[1])] >= 6
+        ]
+        assert features.stamps.tolist() == pytest.approx([e[0] for e in expected])
+        assert [labels[int(lab)] for lab in features.labels] == [e[1] for e in expected]
+    # labels are local: the same subject gets different labels on different robots
+    inverse = {name: {s: lab for lab, s in m.items()} for name, m in truth.label_to_feature.items()}
+    for subject in (6, 7, 8, 9):
+        assert len({inverse[name][subject] for name in inverse}) > 1
+    assert log.robots["robot1"].rendezvous.observed == ["robot2"]
+    assert log.robots["robot2"].rendezvous.observed == ["robot1"]
+    assert report.total("feature_measurements") == 7
+    assert report.total("rendezvous_measurements") == 2
+    json.dumps(report.to_dict())
+
+
+def test_labels_differ_between_seeds_but_are_deterministic(tmp_path: Path) -> None:
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry(), 2: clean_odometry()}, {})
+    a, _ = import_mrclam(d, label_seed=0)
+    b, _ = import_mrclam(d, label_seed=0)
+    c, _ = import_mrclam(d, label_seed=1)
+    assert a.truth.label_to_feature == b.truth.label_to_feature
+    maps = [a.truth.label_to_feature, c.truth.label_to_feature]
+    assert maps[0] != maps[1]
+
+
+def test_malformed_odometry_rows_counted(tmp_path: Path) -> None:
+    rows = clean_odometry(n=8)
+    rows[1] = "1000.500 0.1"  # wrong column count
+    rows[2] = "1001.000 abc 0.0"  # non-numeric
+    rows[3] = "1001.500 nan 0.0"  # NaN
+    rows[4] = "1002.000 0.1 inf"  # inf
+    rows.insert(5, "")  # blank line: skipped, not counted
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    log, report = import_mrclam(d)
+    counts = report.counts["robot1"]
+    assert counts["odometry_wrong_columns"] == 1
+    assert counts["odometry_non_numeric"] == 1
+    assert counts["odometry_non_finite"] == 2
+    assert counts["odometry_rows"] == 7  # rows with 3 columns
+    assert log.robots["robot1"].odometry.stamps.tolist() == pytest.approx([0, 2.5, 3.0, 3.5])
+    assert any("Robot1_Odometry.dat:4" in n and "columns" in n for n in report.notes)
+    assert any("Robot1_Odometry.dat:5" in n and "non-numeric" in n for n in report.notes)
+
+
+def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
+    meas = [
+        "1001.0 72 2.0 0.1",  # good
+        "1001.1 72 2.0",  # wrong column count
+        "1001.2 72 x 0.1",  # non-numeric
+        "1001.3 72 nan 0.1",  # NaN
+        "1001.4 72 -1.0 0.1",  # negative range
+        "1001.5 72 0.0 0.1",  # zero range
+        "1001.6 72.5 2.0 0.1",  # barcode not an integer
+        "1001.7 72 2.0 4.0",  # bearing beyond pi
+        "1001.8 43 2.0 0.1",  # misread barcode (in no table)
+        "1001.9 5 2.0 0.1",  # robot1 measuring itself
+        "1002.0 41 2.0 0.1",  # robot3, not selected
+        "1002.1 14 2.0 0.1",  # robot2: a rendezvous measurement
+        "999.0 72 2.0 0.1",  # before robot1's odometry
+    ]
+    d = write_dataset(
+        tmp_path / "ds",
+        {1: clean_odometry(), 2: clean_odometry(), 3: clean_odometry()},
+        {1: meas},
+    )
+    log, report = import_mrclam(d, robots=[1, 2])
+    c = report.counts["robot1"]
+    assert c["measurement_wrong_columns"] == 1
+    assert c["measurement_non_numeric"] == 1
+    assert c["measurement_non_finite"] == 1
+    assert c["measurement_non_positive_range"] == 2
+    assert c["measurement_bad_barcode"] == 1
+    assert c["measurement_bearing_out_of_range"] == 1
+    assert c["measurement_unknown_barcode"] == 1
+    assert c["measurement_self"] == 1
+    assert c["measurement_unselected_robot"] == 1
+    assert c["measurement_outside_window"] == 1
+    assert c["feature_measurements"] == 1
+    assert c["rendezvous_measurements"] == 1
+    robot1 = log.robots["robot1"]
+    assert robot1.features.ranges.tolist() == [2.0]
+    assert robot1.rendezvous.observed == ["robot2"]
+    assert "robot3" not in log.robots
+    # epoch counts the unselected robot's files too: the measurement at 999.0 of robot1
+    assert report.epoch == pytest.approx(999.0)
+
+
+def test_duplicate_odometry_stamps_keep_last(tmp_path: Path) -> None:
+    rows = ["1000.0 0.1 0.0", "1001.0 0.2 0.0", "1001.0 0.3 0.0", "1002.0 0.4 0.0"]
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    log, report = import_mrclam(d)
+    odo = log.robots["robot1"].odometry
+    assert report.counts["robot1"]["odometry_duplicate_stamps"] == 1
+    assert odo.stamps.tolist() == [0.0, 1.0, 2.0]
+    # the row applied over (1, 2] is the last row stamped 1.0
+    assert odo.inputs[1:, 0].tolist() == [0.1, 0.3]
+
+
+def test_out_of_order_odometry_sorted_and_counted(tmp_path: Path) -> None:
+    rows = ["1000.0 0.1 0.0", "1002.0 0.3 0.0", "1001.0 0.2 0.0", "1003.0 0.4 0.0"]
+    meas = ["1002.5 72 2.0 0.1", "1001.5 27 2.0 0.1"]
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: meas})
+    log, report = import_mrclam(d)
+    c = report.counts["robot1"]
+    assert c["odometry_out_of_order"] == 1
+    assert c["measurement_out_of_order"] == 1
+    odo = log.robots["robot1"].odometry
+    assert odo.stamps.tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert odo.inputs[1:, 0].tolist() == [0.1, 0.2, 0.3]
+    assert log.robots["robot1"].features.stamps.tolist() == [1.5, 2.5]
+
+
+def integrate_distance(stamps: np.ndarray, inputs: np.ndarray) -> float:
+    return float(np.sum(inputs[1:, 0] * np.diff(stamps)))
+
+
+def test_constant_velocity_straight_line_distance(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    stamps = 1000.0 + np.cumsum(rng.uniform(0.005, 0.05, 400))
+    rows = [f"{t:.4f} 0.25 0.0" for t in stamps]
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    log, _ = import_mrclam(d, start=1.0, duration=3.0)
+    odo = log.robots["robot1"].odometry
+    assert odo.stamps[0] == pytest.approx(1.0)
+    assert odo.stamps[-1] == pytest.approx(4.0)
+    assert np.all(np.diff(odo.stamps) > 0)
+    assert np.all(odo.inputs[:, 1] == 0.0)  # v_lat
+    assert integrate_distance(odo.stamps, odo.inputs) == pytest.approx(0.25 * 3.0)
+
+
+def test_piecewise_velocity_uses_the_row_active_before_each_sample(tmp_path: Path) -> None:
+    rows = ["1000.0 1.0 0.1", "1001.0 2.0 0.2", "1003.0 5.0 0.3"]
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    log, _ = import_mrclam(d)
+    odo = log.robots["robot1"].odometry
+    # the last row has no end: not extrapolated
+    assert odo.stamps.tolist() == [0.0, 1.0, 3.0]
+    assert integrate_distance(odo.stamps, odo.inputs) == pytest.approx(1.0 * 1 + 2.0 * 2)
+    assert float(np.sum(odo.inputs[1:, 2] * np.diff(odo.stamps))) == pytest.approx(0.1 + 0.4)
+    log, _ = import_mrclam(d, start=0.5, duration=2.0)
+    odo = log.robots["robot1"].odometry
+    assert odo.stamps.tolist() == [0.5, 1.0, 2.5]
+    assert integrate_distance(odo.stamps, odo.inputs) == pytest.approx(0.5 * 1 + 1.5 * 2)
+
+
+def test_noise_sigmas(tmp_path: Path) -> None:
+    rows = ["1000.0 0.1 0.0", "1000.25 0.1 0.0", "1001.25 0.1 0.0"]
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: ["1000.5 72 2.0 0.1"]})
+    noise = MrclamNoise(
+        sigma_range=0.05,
+        sigma_range_per_m=0.02,
+        sigma_bearing=0.01,
+        q_v=0.1,
+        q_vlat=0.2,
+        q_omega=0.3,
+    )
+    log, _ = import_mrclam(d, noise=noise)
+    odo = log.robots["robot1"].odometry
+    np.testing.assert_allclose(odo.sigmas[1], np.array([0.1, 0.2, 0.3]) / 0.5)
+    np.testing.assert_allclose(odo.sigmas[2], [0.1, 0.2, 0.3])
+    features = log.robots["robot1"].features
+    assert features.sigma_range.tolist() == pytest.approx([0.05 + 0.02 * 2.0])
+    assert features.sigma_bearing.tolist() == pytest.approx([0.01])
+    with pytest.raises(ValueError, match="sigma_bearing"):
+        MrclamNoise(sigma_bearing=0.0)
+
+
+def test_rendezvous_to_robot_without_odometry_then(tmp_path: Path) -> None:
+    d = write_dataset(
+        tmp_path / "ds",
+        {1: clean_odometry(), 2: clean_odometry(t0=1003.0)},
+        {1: ["1001.0 14 2.0 0.1", "1004.0 14 2.0 0.1"]},
+    )
+    log, report = import_mrclam(d)
+    assert report.counts["robot1"]["measurement_observed_outside_window"] == 1
+    assert log.robots["robot1"].rendezvous.stamps.tolist() == [4.0]
+
+
+def test_bad_requests_raise_clear_errors(tmp_path: Path) -> None:
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {1: []})
+    with pytest.raises(MrclamFormatError, match=r"robots \[4\]"):
+        import_mrclam(d, robots=[1, 4])
+    with pytest.raises(MrclamFormatError, match="no odometry in the window"):
+        import_mrclam(d, start=100.0, duration=1.0)
+    with pytest.raises(ValueError, match="duration"):
+        import_mrclam(d, duration=-1.0)
+    with pytest.raises(MrclamFormatError, match="does not exist"):
+        import_mrclam(tmp_path / "nowhere")
+
+
+def test_missing_measurement_file_counted(tmp_path: Path) -> None:
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {})
+    log, report = import_mrclam(d)
+    assert report.counts["robot1"]["measurement_file_missing"] == 1
+    assert log.robots["robot1"].features.stamps.size == 0
+
+
+def test_config_file_loads() -> None:
+    config = load_config(ROOT / "config" / "mrclam.yaml")
+    assert isinstance(config["noise"], MrclamNoise)
+
+
+@pytest.mark.skipif(not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
+def test_real_dataset_imports() -> None:
+    log, report = import_mrclam(DATASET)
+    assert list(log.robots) == [f"robot{k}" for k in range(1, 6)]
+    assert report.total("odometry_rows") == 97890 + 94826 + 97351 + 100012 + 100726
+    assert report.total("measurement_unknown_barcode") == 3
+    assert report.total("odometry_duplicate_stamps") == 9 + 22 + 19 + 16
+    for robot in log.robots.values():
+        assert 3000 < robot.features.stamps.size < 7200
+        assert 700 <= robot.rendezvous.stamps.size <= 2000
+        assert np.all(np.diff(robot.odometry.stamps) > 0)
+    assert report.end - report.start == pytest.approx(1490.6, abs=0.1)
