@@ -1,0 +1,51 @@
+# csam_ros: `make run` runs the demo, `make test` runs the tests. Either sets up .venv first:
+# the pinned ROS 2 Jazzy wheels and Python dependencies, the csam_msgs interface package
+# (built with cmake into .venv) and csam_ros itself (editable). A second run reuses all of it.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
+# this machine's pip configuration names index folders that may not exist: hide that noise
+QUIET_PIP := 2>&1 | { grep -v 'is ignored: it is neither a file nor a directory' || true; }
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+BUILD := build/csam_msgs
+MSG_SOURCES := $(wildcard msg_defs/msg/*.msg) msg_defs/CMakeLists.txt msg_defs/package.xml
+RUN_ARGS ?=
+PYTEST_ARGS ?=
+
+.PHONY: run test bench lint setup clean
+
+run: setup
+	$(VENV)/bin/csam demo $(RUN_ARGS)
+
+test: setup
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench: setup
+	$(PY) -m csam_ros.bench.smoothing
+	$(PY) -m csam_ros.bench.joining
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+setup: $(VENV)/.csam-installed
+
+$(VENV)/.deps-installed: requirements.txt requirements-dev.txt
+	@test -x $(PY) || { echo "creating $(VENV)"; $(PYTHON) -m venv $(VENV); }
+	@echo "installing pinned dependencies into $(VENV) (first time: about 2 minutes)"
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt -r requirements-dev.txt $(QUIET_PIP)
+	@touch $@
+
+$(VENV)/.msgs-installed: $(VENV)/.deps-installed $(MSG_SOURCES) scripts/build_msgs.sh
+	scripts/build_msgs.sh $(VENV) $(BUILD)
+	@touch $@
+
+$(VENV)/.csam-installed: $(VENV)/.msgs-installed setup.py setup.cfg package.xml scripts/install_layout.sh
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . $(QUIET_PIP)
+	scripts/install_layout.sh $(VENV)
+	@touch $@
+
+clean:
+	rm -rf $(VENV) build

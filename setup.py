@@ -1,0 +1,35 @@
+"""ament_python package csam_ros: `colcon build` on a ROS 2 Jazzy installation, or `make` here."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "csam_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(include=[package_name, f"{package_name}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
+        (f"share/{package_name}", ["package.xml"]),
+        (f"share/{package_name}/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="csam_ros maintainers",
+    maintainer_email="maintainers@csam-ros.org",
+    description="C-SAM multi-robot SLAM by square-root information smoothing, on ROS 2 Jazzy",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "simulator = csam_ros.nodes.simulator:main",
+            "smoother = csam_ros.nodes.smoother:main",
+            "merger = csam_ros.nodes.merger:main",
+            "recorder = csam_ros.nodes.recorder:main",
+            "player = csam_ros.nodes.player:main",
+            "csam = csam_ros.cli:main",
+        ],
+    },
+)
