@@ -1,0 +1,199 @@
+"""Closed-form cases of the run evaluation against ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from csam_ros.core.evaluation import evaluate, kabsch_2d
+from csam_ros.core.log import GroundTruth
+from csam_ros.core.se2 import rotation
+
+IDS = np.array([10, 11, 12, 13, 14])
+POSITIONS = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 3.0], [2.0, 5.0]])
+# robot1 labels subject s as s - 9 (1..5), robot2 as 15 - s (5..1): equal labels mean nothing
+LABELS = {
+    "robot1": {int(s) - 9: int(s) for s in IDS},
+    "robot2": {15 - int(s): int(s) for s in IDS},
+}
+
+
+def truth(trajectories: bool = False) -> GroundTruth:
+    gt = GroundTruth(IDS, POSITIONS, LABELS)
+    if trajectories:
+        stamps = np.linspace(0.0, 10.0, 11)
+        gt.trajectory_stamps = {"robot1": stamps}
+        gt.trajectories = {"robot1": np.stack([stamps, 0.5 * stamps, 0.1 * stamps], -1)}
+    return gt
+
+
+def rigid(points: np.ndarray, phi: float, t: tuple[float, float]) -> np.ndarray:
+    return points @ rotation(phi).T + np.array(t)
+
+
+def summary(features: list[dict], status: dict[str, str] | None = None) -> dict:
+    status = status or {"robot1": "reference", "robot2": "aligned"}
+    return {
+        "reference_frame": "robot1/map",
+        "robots": {name: {"alignment": s} for name, s in status.items()},
+        "features": features,
+        "associations": [],
+        "timing_s": {"total": 1.5},
+    }
+
+
+def joined_features(xy: np.ndarray) -> list[dict]:
+    """Each subject one feature with both robots' labels."""
+    return [
+        {"members": [f"robot1/{s - 9}", f"robot2/{15 - s}"], "xy": p.tolist(), "cov": np.eye(2)}
+        for s, p in zip(IDS, xy, strict=True)
+    ]
+
+
+def test_kabsch_recovers_a_rigid_motion() -> None:
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(20, 2))
+    target = rigid(source, 2.5, (3.0, -1.0))
+    r, t = kabsch_2d(source, target)
+    np.testing.assert_allclose(r, rotation(2.5), atol=1e-12)
+    np.testing.assert_allclose(t, [3.0, -1.0], atol=1e-12)
+    # a mirror image is not a rotation: the best proper rotation leaves residuals
+    r, _ = kabsch_2d(source, source * np.array([1.0, -1.0]))
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="no point"):
+        kabsch_2d(np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+def test_rotated_translated_copy_has_zero_error() -> None:
+    estimate = rigid(POSITIONS, -0.7, (10.0, 5.0))
+    metrics = evaluate(summary(joined_features(estimate)), truth())
+    landmark = metrics["landmark_error"]
+    assert landmark["rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert landmark["max_m"] == pytest.approx(0.0, abs=1e-12)
+    assert landmark["n_features"] == 5
+    assert "Kabsch" in landmark["method"] and "no scale" in landmark["method"]
+    assert landmark["transform"][2] == pytest.approx(0.7)
+    association = metrics["association"]
+    assert association["precision"] == 1.0 and association["recall"] == 1.0
+    assert association["true_pairs"] == 5
+    assert metrics["timing_s"] == {"total": 1.5}
+    json.dumps(metrics)
+
+
+def test_known_offsets_give_known_rmse() -> None:
+    # Offsets with zero mean and zero "torque" about the centroid leave the alignment at
+    # identity: +d and -d along x on two features symmetric about the centroid's y.
+    offsets = np.zeros((5, 2))
+    offsets[1] = [0.0, 0.3]  # (4, 0)
+    offsets[3] = [0.0, 0.3]  # (0, 3)
+    offsets[0] = [0.0, -0.3]  # (0, 0)
+    offsets[2] = [0.0, -0.3]  # (4, 3)
+    estimate = POSITIONS + offsets
+    # check that the optimal alignment is the identity for these offsets
+    r, t = kabsch_2d(estimate, POSITIONS)
+    np.testing.assert_allclose(r, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(t, [0.0, 0.0], atol=1e-12)
+    metrics = evaluate(summary(joined_features(rigid(estimate, 1.0, (2.0, 2.0)))), truth())
+    assert metrics["landmark_error"]["rmse_m"] == pytest.approx(np.sqrt(4 * 0.09 / 5))
+    assert metrics["landmark_error"]["max_m"] == pytest.approx(0.3)
+
+
+def test_precision_recall_hand_made() -> None:
+    xy = POSITIONS
+    features = [
+        # 10 correct pair
+        {"members": ["robot1/1", "robot2/5"], "xy": xy[0].tolist()},
+        # wrong: robot1's 11 with robot2's 12
+        {"members": ["robot1/2", "robot2/3"], "xy": xy[1].tolist()},
+        # 12 and 11 left unassociated on their other side
+        {"members": ["robot1/3"], "xy": xy[2].tolist()},
+        {"members": ["robot2/4"], "xy": xy[1].tolist()},
+        # 13 correct pair
+        {"members": ["robot1/4", "robot2/2"], "xy": xy[3].tolist()},
+        # 14 only seen by robot1
+        {"members": ["robot1/5"], "xy": xy[4].tolist()},
+    ]
+    association = evaluate(summary(features), truth())["association"]
+    # predicted pairs: 3, true positives 2; true pairs: subjects 10, 11, 12, 13 = 4
+    assert association["predicted_pairs"] == 3
+    assert association["true_positives"] == 2
+    assert association["false_positives"] == 1
+    assert association["true_pairs"] == 4
+    assert association["false_negatives"] == 2
+    assert association["precision"] == pytest.approx(2 / 3)
+    assert association["recall"] == pytest.approx(2 / 4)
+
+
+def test_three_member_feature_counts_all_pairs() -> None:
+    gt = truth()
+    gt.label_to_feature["robot3"] = {7: 10}
+    features = [{"members": ["robot1/1", "robot2/5", "robot3/7"], "xy": [0.0, 0.0]}]
+    status = {"robot1": "reference", "robot2": "aligned", "robot3": "aligned"}
+    association = evaluate(summary(features, status), gt)["association"]
+    assert association["true_positives"] == 3
+    assert association["true_pairs"] == 3
+    assert association["recall"] == 1.0
+
+
+def test_pending_robot_scored_in_its_own_frame() -> None:
+    features = [
+        {"members": [f"robot1/{s - 9}"], "xy": p.tolist()}
+        for s, p in zip(IDS, rigid(POSITIONS, 0.3, (1.0, 0.0)), strict=True)
+    ]
+    # robot2's map is in its own frame, far away and rotated: it must not spoil robot1's score
+    features += [
+        {"members": [f"robot2/{15 - s}"], "xy": p.tolist()}
+        for s, p in zip(IDS[:3], rigid(POSITIONS[:3], 2.0, (50.0, 50.0)), strict=True)
+    ]
+    status = {"robot1": "reference", "robot2": "pending: one rendezvous measurement"}
+    metrics = evaluate(summary(features, status), truth())
+    assert metrics["landmark_error"]["n_features"] == 5
+    assert metrics["landmark_error"]["rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert metrics["pending_frames"]["robot2"]["rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert metrics["robots"]["robot2"] == {
+        "alignment": "pending: one rendezvous measurement",
+        "joined": False,
+    }
+    assert metrics["n_joined"] == 1
+    association = metrics["association"]
+    assert association["true_pairs"] == 3 and association["recall"] == 0.0
+    assert association["recall_aligned"] is None
+    assert association["precision"] is None
+
+
+def test_impure_and_unknown_features() -> None:
+    features = joined_features(POSITIONS)
+    features[0]["members"].append("robot1/2")  # robot1's subject 11 wrongly merged into 10
+    features.append({"members": ["robot1/99"], "xy": [0.0, 0.0]})  # no truth for label 99
+    landmark = evaluate(summary(features), truth())["landmark_error"]
+    assert landmark["impure_features"] == 1
+    assert landmark["unscored_features"] == 1
+    assert landmark["per_feature"][0]["subject"] == 10
+
+
+def test_trajectory_error_uses_the_landmark_alignment() -> None:
+    phi, t = 0.4, (3.0, -2.0)
+    # estimate = truth expressed in a frame G with G (+) estimate = truth
+    features = joined_features(rigid(POSITIONS - np.array(t), 0.0, (0.0, 0.0)) @ rotation(phi))
+    gt = truth(trajectories=True)
+    stamps = np.array([0.5, 2.0, 7.25])
+    true_poses = np.stack([stamps, 0.5 * stamps, 0.1 * stamps], -1)
+    local_xy = (true_poses[:, :2] - np.array(t)) @ rotation(phi)
+    poses = np.column_stack([local_xy, true_poses[:, 2] - phi]) + np.array([0.1, 0.0, 0.0])
+    s = summary(features)
+    s["robots"]["robot1"].update(stamps=stamps.tolist(), poses_joined=poses.tolist())
+    error = evaluate(s, gt)["trajectory_error"]["robot1"]
+    assert error["n_poses"] == 3
+    assert error["position_rmse_m"] == pytest.approx(0.1)
+    assert error["heading_rmse_rad"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_bad_summary_gives_clear_errors() -> None:
+    with pytest.raises(ValueError, match="'features'"):
+        evaluate({"robots": {}}, truth())
+    with pytest.raises(ValueError, match="not '<robot>/<label>'"):
+        evaluate(summary([{"members": ["seven"], "xy": [0, 0]}]), truth())
+    with pytest.raises(ValueError, match="features\\[0\\]"):
+        evaluate(summary([{"members": [], "xy": [0, 0]}]), truth())
