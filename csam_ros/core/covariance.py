@@ -1,0 +1,114 @@
+"""Marginal covariances and marginal square-root information of selected variables.
+
+With ``A^T A = P L D L^T P^T`` (the solver's factorisation at the current estimate) the
+joint covariance of a set ``S`` of variables is ``E_S^T (A^T A)^-1 E_S = Y^T D^-1 Y`` with
+``Y = L^-1 P^T E_S``: one sparse forward substitution per needed column, never the dense
+inverse (paper section III, METHOD section 4).
+
+The marginal square-root information of ``S`` is the last block of the upper-triangular
+square-root information ``R`` when ``S`` is ordered last; it equals the upper Cholesky factor
+of the Schur complement ``(A^T A)_SS - (A^T A)_SO (A^T A)_OO^-1 (A^T A)_OS``, which is the
+inverse of the marginal covariance of ``S``. It is returned as that upper-triangular ``R_S``
+(``R_S^T R_S`` = marginal information) with the order of its columns.
+
+Parametrisation: global, additive ``(x, y, phi)`` per pose and ``(x, y)`` per point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
+from scipy.sparse.linalg import spsolve_triangular
+
+from csam_ros.core.solver import NormalEquations, Problem
+
+Array = NDArray[np.float64]
+
+
+def factorize_at_estimate(problem: Problem, backend: str = "qdldl") -> NormalEquations:
+    """Linearise and factor the problem at its current values (no damping)."""
+    system = problem.normal_equations(backend)
+    system.linearize(problem.values)
+    system.factorize(0.0)
+    return system
+
+
+def _columns_of(problem: Problem, keys: Sequence[Hashable]) -> NDArray[np.int64]:
+    if len(keys) == 0:
+        raise ValueError("no variables selected")
+    if len(set(keys)) != len(keys):
+        raise ValueError("selected variables contain duplicates")
+    return problem.scalar_indices(problem.indices(keys))
+
+
+def marginal_covariance(
+    problem: Problem,
+    keys: Sequence[Hashable],
+    system: NormalEquations | None = None,
+) -> Array:
+    """Joint marginal covariance ``(D, D)`` of ``keys`` (blocks in the given order).
+
+    ``system`` is a factorisation at the estimate (from :func:`factorize_at_estimate`); one is
+    made when not given. Cost: one sparse triangular solve per selected scalar column.
+    """
+    system = system or factorize_at_estimate(problem)
+    cols = _columns_of(problem, keys)
+    if system.backend != "qdldl":
+        rhs = np.zeros((system.n, len(cols)))
+        rhs[cols, np.arange(len(cols))] = 1.0
+        x = np.column_stack([system.solve(rhs[:, j]) for j in range(len(cols))])
+        cov = x[cols]
+        return 0.5 * (cov + cov.T)
+    strict_lower, d, perm = system._factorization.factors()  # type: ignore[union-attr]
+    n = system.n
+    inverse_perm = np.empty(n, dtype=np.int64)
+    inverse_perm[perm] = np.arange(n)
+    unit_lower = (strict_lower + sp.eye(n, format="csc")).tocsr()
+    rhs = np.zeros((n, len(cols)))
+    rhs[inverse_perm[cols], np.arange(len(cols))] = 1.0
+    y = spsolve_triangular(unit_lower, rhs, lower=True, unit_diagonal=True)
+    y = np.atleast_2d(y.T).T
+    cov = (y / d[:, None]).T @ y
+    return 0.5 * (cov + cov.T)
+
+
+def marginal_covariances(
+    problem: Problem,
+    keys: Sequence[Hashable],
+    system: NormalEquations | None = None,
+) -> list[Array]:
+    """The diagonal covariance block of each variable in ``keys`` (no cross terms)."""
+    system = system or factorize_at_estimate(problem)
+    out: list[Array] = []
+    chunk = 64
+    for start in range(0, len(keys), chunk):
+        part = list(keys[start : start + chunk])
+        cov = marginal_covariance(problem, part, system)
+        dims = [problem.kind(k).dim for k in part]
+        edges = np.cumsum([0, *dims])
+        out.extend(cov[edges[i] : edges[i + 1], edges[i] : edges[i + 1]] for i in range(len(part)))
+    return out
+
+
+def marginal_sqrt_information(
+    problem: Problem,
+    keys: Sequence[Hashable],
+    system: NormalEquations | None = None,
+) -> tuple[Array, list[Hashable]]:
+    """Upper-triangular ``R_S`` with ``R_S^T R_S`` the marginal information of ``keys``.
+
+    Returns ``(R_S, order)``; the columns of ``R_S`` follow ``order`` (= ``keys``), block by
+    block, and ``R_S`` is the last block of ``R`` for an ordering with ``keys`` last.
+    """
+    cov = marginal_covariance(problem, keys, system)
+    # upper R with R^T R = cov^-1: cov = U U^T with U upper gives cov^-1 = U^-T U^-1, R = U^-1.
+    flip = np.arange(len(cov))[::-1]
+    lower_of_flipped = np.linalg.cholesky(cov[np.ix_(flip, flip)])
+    upper = lower_of_flipped[np.ix_(flip, flip)]
+    r = solve_triangular(upper, np.eye(len(cov)), lower=False)
+    signs = np.sign(np.diag(r))
+    return r * signs[:, None], list(keys)

@@ -1,0 +1,513 @@
+"""Sparse nonlinear least squares for 2D smoothing and mapping (sqrt-SAM, paper eq. 1-2).
+
+Public API (stable; other modules build on it)::
+
+    from csam_ros.core.factors import (POSE, POINT, VariableKind, PosePrior, PointPrior,
+        RelativePose, PointObservation, RelativePosition, LinearPrior, Huber, Cauchy,
+        sqrt_information_from_covariance, Factor)
+    from csam_ros.core.solver import Problem, SolverOptions, SolveReport
+
+    problem = Problem()
+    ids = problem.add_variables(POSE, keys, initial)          # keys: any hashables, (K, 3)
+    lid = problem.add_variables(POINT, ["l1", "l2"], xy)     # (K, 2) -> ids (K,)
+    problem.add_factor(PosePrior(ids[:1], [[0, 0, 0]], covariance=np.eye(3) * 1e-12))
+    problem.add_factor(RelativePose(ids[:-1], ids[1:], z, covariance=cov))   # cov (K,3,3)
+    problem.add_factor(PointObservation(pose_ids, point_ids, z_xy, covariance=cov_xy))
+    report = problem.solve(SolverOptions())                   # Gauss-Newton / LM, in place
+    problem.values_of(ids)                                    # (K, dim) current estimate
+    problem.value("l1"); problem.index("l1"); problem.indices(keys)
+    problem.cost()                                            # 0.5 * sum of squared whitened
+                                                              # (robust) residuals, like GTSAM
+
+    from csam_ros.core.covariance import marginal_covariance, marginal_sqrt_information
+    cov = marginal_covariance(problem, keys)                  # dense joint block, cross terms
+    r_s, order = marginal_sqrt_information(problem, keys)     # upper R with R^T R = marginal info
+
+A new pose-like block (e.g. a base node) is ``VariableKind("base_node", 3, angle_index=2)``;
+a new factor kind subclasses ``factors.Factor`` (see its docstring).
+
+Method. Every factor kind returns its whitened residuals and Jacobian blocks for all of its
+factors in one vectorised call. The normal equations ``A^T A delta = -A^T r`` are assembled
+directly in compressed sparse column form (upper triangle) from index arrays: the sparsity
+pattern and the position of every Jacobian product in it are computed once per problem
+structure; each iteration only refills values with one ``np.bincount``. The factorisation is
+sparse ``L D L^T`` by qdldl with its approximate-minimum-degree fill-reducing ordering; the
+symbolic analysis is kept and only the numeric factorisation is redone (``update``). The
+upper-triangular square-root information is ``R = sqrt(D) L^T`` (permuted), ``R^T R = A^T A``.
+
+Iteration: Gauss-Newton steps; when a step does not lower the cost, Levenberg-Marquardt
+damping ``lambda * diag(A^T A)`` is raised tenfold until it does, and lowered tenfold after
+each success (back to pure Gauss-Newton below ``1e-7``). Convergence: after an accepted step
+whose relative cost decrease is below ``relative_tolerance`` or whose largest component is
+below ``step_tolerance`` (metres / radians), or when no damping can lower the cost any more
+and the attempted step is below ``step_tolerance``.
+
+Gauge: a smoother fixes its frame with a :class:`~csam_ros.core.factors.PosePrior` on the
+first pose whose sigma (default ``GAUGE_SIGMA = 1e-6`` m and rad) is far below every other
+sigma; this module does not add it by itself. A singular system raises ``SingularProblemError``
+naming the variable where it became singular.
+
+Parametrisation of covariances: global, additive ``(x, y, phi)`` per pose, ``(x, y)`` per point.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Hashable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import ArrayLike, NDArray
+
+from csam_ros.core import se2
+from csam_ros.core.factors import Factor, VariableKind
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+GAUGE_SIGMA = 1e-6
+
+
+class SingularProblemError(ValueError):
+    """The least-squares problem does not determine every variable."""
+
+
+@dataclass
+class SolverOptions:
+    """Settings of :meth:`Problem.solve`."""
+
+    max_iterations: int = 100
+    relative_tolerance: float = 1e-10
+    step_tolerance: float = 1e-9
+    initial_damping: float = 1e-4
+    max_damping: float = 1e12
+    backend: str = "qdldl"  # or "splu" (scipy SuperLU with COLAMD)
+
+
+@dataclass
+class SolveReport:
+    """What :meth:`Problem.solve` did."""
+
+    iterations: int
+    initial_cost: float
+    final_cost: float
+    converged: bool
+    reason: str
+    seconds: float
+    cost_history: list[float] = field(default_factory=list)
+
+
+class Problem:
+    """Variables (blocks of given kinds, identified by hashable keys) and factors."""
+
+    def __init__(self) -> None:
+        self._keys: list[Hashable] = []
+        self._index: dict[Hashable, int] = {}
+        self._kinds: list[VariableKind] = []
+        self._dims: IntArray = np.zeros(0, dtype=np.int64)
+        self.offsets: IntArray = np.zeros(0, dtype=np.int64)
+        self.values: Array = np.zeros(0)
+        self.factors: list[Factor] = []
+        self._angle_positions: IntArray = np.zeros(0, dtype=np.int64)
+        self._system: NormalEquations | None = None
+
+    # -- variables ---------------------------------------------------------------------------
+
+    @property
+    def num_variables(self) -> int:
+        return len(self._keys)
+
+    @property
+    def dim(self) -> int:
+        """Total number of scalar unknowns."""
+        return len(self.values)
+
+    @property
+    def keys(self) -> list[Hashable]:
+        return list(self._keys)
+
+    def kind(self, key: Hashable) -> VariableKind:
+        return self._kinds[self.index(key)]
+
+    def add_variables(
+        self, kind: VariableKind, keys: Iterable[Hashable], initial: ArrayLike
+    ) -> IntArray:
+        """Add variables of one kind with initial values ``(K, kind.dim)``; returns their ids."""
+        keys = list(keys)
+        init = np.asarray(initial, dtype=float).reshape(len(keys), -1) if keys else np.zeros((0,))
+        if keys and init.shape != (len(keys), kind.dim):
+            raise ValueError(
+                f"initial values of {kind.name} variables must have shape "
+                f"({len(keys)}, {kind.dim}), got {np.shape(initial)}"
+            )
+        bad = np.flatnonzero(~np.isfinite(init.reshape(len(keys), -1)).all(axis=1)) if keys else []
+        if len(bad):
+            raise ValueError(f"initial value of variable {keys[bad[0]]!r} is not finite")
+        start = len(self._keys)
+        for i, key in enumerate(keys):
+            if key in self._index:
+                raise ValueError(f"variable {key!r} already exists")
+            self._index[key] = start + i
+        if len(self._index) != start + len(keys):
+            raise ValueError("duplicate keys in one add_variables call")
+        self._keys.extend(keys)
+        self._kinds.extend([kind] * len(keys))
+        offset0 = len(self.values)
+        new_offsets = offset0 + kind.dim * np.arange(len(keys), dtype=np.int64)
+        self.offsets = np.concatenate([self.offsets, new_offsets])
+        self._dims = np.concatenate([self._dims, np.full(len(keys), kind.dim, dtype=np.int64)])
+        if keys:
+            init = init.copy()
+            if kind.angle_index is not None:
+                init[:, kind.angle_index] = se2.wrap_angle(init[:, kind.angle_index])
+                self._angle_positions = np.concatenate(
+                    [self._angle_positions, new_offsets + kind.angle_index]
+                )
+            self.values = np.concatenate([self.values, init.reshape(-1)])
+        self._system = None
+        return np.arange(start, start + len(keys), dtype=np.int64)
+
+    def add_variable(self, kind: VariableKind, key: Hashable, initial: ArrayLike) -> int:
+        """Add one variable; returns its id."""
+        return int(self.add_variables(kind, [key], np.asarray(initial, dtype=float)[None])[0])
+
+    def index(self, key: Hashable) -> int:
+        try:
+            return self._index[key]
+        except KeyError:
+            raise KeyError(f"no variable {key!r} in the problem") from None
+
+    def indices(self, keys: Iterable[Hashable]) -> IntArray:
+        return np.array([self.index(k) for k in keys], dtype=np.int64)
+
+    def key(self, index: int) -> Hashable:
+        return self._keys[index]
+
+    def has(self, key: Hashable) -> bool:
+        return key in self._index
+
+    def scalar_indices(self, ids: ArrayLike) -> IntArray:
+        """Positions in :attr:`values` of the components of variables ``ids`` (concatenated)."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        dims = self._dims[ids]
+        starts = np.repeat(self.offsets[ids], dims)
+        within = np.arange(dims.sum()) - np.repeat(np.cumsum(dims) - dims, dims)
+        return starts + within
+
+    def values_of(self, ids: ArrayLike) -> Array:
+        """Current values ``(K, dim)`` of variables ``ids`` (all of one dimension)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if ids.size == 0:
+            return np.zeros((0, 0))
+        dim = int(self._dims[ids[0]])
+        if np.any(self._dims[ids] != dim):
+            raise ValueError("values_of needs variables of one dimension")
+        return self.values[self.offsets[ids][:, None] + np.arange(dim)]
+
+    def value(self, key: Hashable) -> Array:
+        i = self.index(key)
+        return self.values[self.offsets[i] : self.offsets[i] + self._dims[i]].copy()
+
+    def set_values(self, ids: ArrayLike, values: ArrayLike) -> None:
+        """Overwrite the values of variables ``ids`` (all of one dimension)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if ids.size == 0:
+            return
+        dim = int(self._dims[ids[0]])
+        vals = np.asarray(values, dtype=float).reshape(len(ids), dim)
+        self.values[self.offsets[ids][:, None] + np.arange(dim)] = vals
+        self.wrap_angles()
+
+    def wrap_angles(self) -> None:
+        self.values[self._angle_positions] = se2.wrap_angle(self.values[self._angle_positions])
+
+    # -- factors -----------------------------------------------------------------------------
+
+    def add_factor(self, factor: Factor) -> None:
+        """Add a factor kind instance after checking its variable ids and kinds."""
+        if len(factor) == 0:
+            return
+        ids = factor.variables
+        bad = np.flatnonzero(((ids < 0) | (ids >= self.num_variables)).any(axis=1))
+        if bad.size:
+            raise ValueError(
+                f"{factor.name}: factor {bad[0]} refers to unknown variable id(s) "
+                f"{ids[bad[0]].tolist()}"
+            )
+        kinds = np.array(self._kinds, dtype=object)
+        for j, kind in enumerate(factor.kinds):
+            wrong = np.flatnonzero(kinds[ids[:, j]] != kind)
+            if wrong.size:
+                got = self._kinds[ids[wrong[0], j]]
+                raise ValueError(
+                    f"{factor.name}: factor {wrong[0]} connects variable "
+                    f"{self._keys[ids[wrong[0], j]]!r} of kind {got.name} where a "
+                    f"{kind.name} is expected"
+                )
+        self.factors.append(factor)
+        self._system = None
+
+    # -- evaluation --------------------------------------------------------------------------
+
+    def _blocks(self, factor: Factor, values: Array) -> list[Array]:
+        return [
+            values[self.offsets[factor.variables[:, j]][:, None] + np.arange(kind.dim)]
+            for j, kind in enumerate(factor.kinds)
+        ]
+
+    def cost(self, values: Array | None = None) -> float:
+        """``0.5 * sum`` of squared whitened residuals (robust cost where a kernel is set)."""
+        vals = self.values if values is None else values
+        return float(
+            sum(f.whitened(self._blocks(f, vals), jacobians=False)[2].sum() for f in self.factors)
+        )
+
+    def factor_costs(self, values: Array | None = None) -> list[Array]:
+        """Per-factor costs of each factor kind instance, in :attr:`factors` order."""
+        vals = self.values if values is None else values
+        return [f.whitened(self._blocks(f, vals), jacobians=False)[2] for f in self.factors]
+
+    def normal_equations(self, backend: str = "qdldl") -> NormalEquations:
+        """The (cached) normal-equation structure of the current variables and factors."""
+        if self._system is None or self._system.backend != backend:
+            self._system = NormalEquations(self, backend)
+        return self._system
+
+    # -- solving -----------------------------------------------------------------------------
+
+    def solve(self, options: SolverOptions | None = None) -> SolveReport:
+        """Minimise the cost by Gauss-Newton with a Levenberg-Marquardt safeguard, in place."""
+        return gauss_newton(self, options or SolverOptions())
+
+
+class NormalEquations:
+    """Sparse ``A^T A`` (upper triangle, CSC) and ``A^T r`` assembled from index arrays."""
+
+    def __init__(self, problem: Problem, backend: str = "qdldl") -> None:
+        if backend not in ("qdldl", "splu"):
+            raise ValueError(f"unknown backend {backend!r}: use 'qdldl' or 'splu'")
+        self.problem = problem
+        self.backend = backend
+        n = problem.dim
+        self.n = n
+        if not problem.factors:
+            raise SingularProblemError("the problem has no factors")
+        touched = np.zeros(problem.num_variables, dtype=bool)
+        self._columns: list[IntArray] = []
+        keys_all: list[IntArray] = []
+        masks: list[NDArray[np.bool_]] = []
+        for f in problem.factors:
+            touched[f.variables.reshape(-1)] = True
+            cols = np.concatenate(
+                [
+                    problem.offsets[f.variables[:, j]][:, None] + np.arange(kind.dim)
+                    for j, kind in enumerate(f.kinds)
+                ],
+                axis=1,
+            )
+            self._columns.append(cols)
+            rows = cols[:, :, None]
+            colm = cols[:, None, :]
+            upper = (rows <= colm).reshape(-1)
+            masks.append(upper)
+            keys_all.append((colm * n + rows).reshape(-1)[upper])
+        free = np.flatnonzero(~touched)
+        if free.size:
+            raise SingularProblemError(
+                f"variable {problem.key(int(free[0]))!r} is not constrained by any factor"
+                + (f" (and {free.size - 1} more)" if free.size > 1 else "")
+            )
+        diag = np.arange(n, dtype=np.int64) * (n + 1)
+        pattern = np.unique(np.concatenate(keys_all + [diag]))
+        self.indices = (pattern % n).astype(np.int32)
+        col_of = pattern // n
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(col_of, minlength=n))]).astype(
+            np.int32
+        )
+        self.nnz = len(pattern)
+        self._masks = masks
+        self._positions = np.concatenate([np.searchsorted(pattern, k) for k in keys_all])
+        self.diagonal_positions = np.searchsorted(pattern, diag)
+        self._gradient_index = np.concatenate([c.reshape(-1) for c in self._columns])
+        self._factorization: object | None = None
+        self._checked = False
+        self.hessian_data: Array = np.zeros(self.nnz)
+        self.gradient: Array = np.zeros(n)
+
+    def linearize(self, values: Array) -> float:
+        """Fill :attr:`hessian_data` and :attr:`gradient` at ``values``; return the cost."""
+        hess_parts: list[Array] = []
+        grad_parts: list[Array] = []
+        cost = 0.0
+        for f, mask in zip(self.problem.factors, self._masks, strict=True):
+            r, jac, costs = f.whitened(self.problem._blocks(f, values))
+            a = np.concatenate(jac, axis=2) if len(jac) > 1 else jac[0]
+            h = np.matmul(a.transpose(0, 2, 1), a)
+            hess_parts.append(h.reshape(-1)[mask])
+            grad_parts.append(np.einsum("kdi,kd->ki", a, r).reshape(-1))
+            cost += float(costs.sum())
+        self.hessian_data = np.bincount(
+            self._positions, weights=np.concatenate(hess_parts), minlength=self.nnz
+        )
+        self.gradient = np.bincount(
+            self._gradient_index, weights=np.concatenate(grad_parts), minlength=self.n
+        )
+        if not np.isfinite(cost) or not np.all(np.isfinite(self.hessian_data)):
+            raise FloatingPointError("the linearisation produced non-finite values")
+        return cost
+
+    def matrix(self, damping: float = 0.0) -> sp.csc_matrix:
+        """Upper triangle of ``A^T A + damping * diag(A^T A)`` as CSC."""
+        data = self.hessian_data
+        if damping > 0.0:
+            data = data.copy()
+            data[self.diagonal_positions] *= 1.0 + damping
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+    def check_blocks(self) -> None:
+        """Raise if a variable's own information block is singular (it is under-constrained)."""
+        problem = self.problem
+        for dim in np.unique(problem._dims):
+            ids = np.flatnonzero(problem._dims == dim)
+            rows = problem.offsets[ids][:, None, None] + np.arange(dim)[None, :, None]
+            cols = problem.offsets[ids][:, None, None] + np.arange(dim)[None, None, :]
+            lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+            pattern_keys = self.indptr_keys()
+            pos = np.searchsorted(pattern_keys, hi * self.n + lo)
+            blocks = self.hessian_data[pos]
+            eig = np.linalg.eigvalsh(blocks)
+            bad = np.flatnonzero(~(eig[:, 0] > 1e-12 * np.maximum(eig[:, -1], 1e-300)))
+            if bad.size:
+                key = problem.key(int(ids[bad[0]]))
+                rank = int((eig[bad[0]] > 1e-12 * max(eig[bad[0], -1], 1e-300)).sum())
+                raise SingularProblemError(
+                    f"variable {key!r} is under-constrained: its information block has rank "
+                    f"{rank} < {dim} (e.g. a pose seen only through a 2D relative position)"
+                )
+
+    def indptr_keys(self) -> IntArray:
+        col = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self.indptr))
+        return col * self.n + self.indices.astype(np.int64)
+
+    def factorize(self, damping: float = 0.0) -> None:
+        """Numeric factorisation of the damped system (symbolic analysis reused)."""
+        mat = self.matrix(damping)
+        if self.backend == "qdldl":
+            import qdldl
+
+            try:
+                if self._factorization is None:
+                    self._factorization = qdldl.Solver(mat, upper=True)
+                else:
+                    self._factorization.update(mat, upper=True)
+            except RuntimeError:
+                self._factorization = None
+                self._raise_singular(mat)
+            if not self._checked:
+                self._check_pivots()
+        else:
+            from scipy.sparse.linalg import splu
+
+            full = mat + sp.triu(mat, 1).T
+            try:
+                self._factorization = splu(full.tocsc(), permc_spec="COLAMD")
+            except RuntimeError:
+                self._raise_singular(mat)
+
+    def _check_pivots(self) -> None:
+        _, d, perm = self._factorization.factors()  # type: ignore[union-attr]
+        diag = self.hessian_data[self.diagonal_positions][perm]
+        ratio = d / np.maximum(diag, 1e-300)
+        bad = np.flatnonzero(~(ratio > 1e-14))
+        if bad.size:
+            self._name_singular(int(perm[bad[0]]))
+        self._checked = True
+
+    def _raise_singular(self, mat: sp.csc_matrix) -> None:
+        self.check_blocks()
+        raise SingularProblemError(
+            "the information matrix is singular: some variables are determined only up to a "
+            "common motion (is the gauge fixed by a prior on the first pose?)"
+        )
+
+    def _name_singular(self, scalar: int) -> None:
+        self.check_blocks()
+        var = int(np.searchsorted(self.problem.offsets, scalar, side="right") - 1)
+        raise SingularProblemError(
+            f"the information matrix is singular at variable {self.problem.key(var)!r}: it is "
+            "determined only up to a motion shared with others (is the gauge fixed by a prior "
+            "on the first pose?)"
+        )
+
+    def solve(self, rhs: Array) -> Array:
+        """Solve with the last factorisation."""
+        if self._factorization is None:
+            raise RuntimeError("factorize() first")
+        return np.asarray(self._factorization.solve(rhs))  # type: ignore[union-attr]
+
+
+def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
+    """Gauss-Newton with Levenberg-Marquardt safeguard (see the module docstring)."""
+    start = time.perf_counter()
+    system = problem.normal_equations(options.backend)
+    cost = system.linearize(problem.values)
+    history = [cost]
+    initial = cost
+    damping = 0.0
+    iterations = 0
+    reason = "maximum iterations reached"
+    converged = False
+    first = True
+    while iterations < options.max_iterations:
+        if first:
+            system.check_blocks()
+            first = False
+        system.factorize(damping)
+        iterations += 1
+        step = system.solve(-system.gradient)
+        candidate = problem.values + step
+        candidate[problem._angle_positions] = se2.wrap_angle(candidate[problem._angle_positions])
+        new_cost = problem.cost(candidate)
+        step_norm = float(np.abs(step).max()) if step.size else 0.0
+        if new_cost <= cost:
+            problem.values = candidate
+            decrease = cost - new_cost
+            cost = new_cost
+            history.append(cost)
+            if decrease <= options.relative_tolerance * max(history[-2], 1e-300):
+                converged, reason = True, "relative cost decrease below tolerance"
+            elif step_norm <= options.step_tolerance:
+                converged, reason = True, "step below tolerance"
+            if converged:
+                break
+            if damping > 0.0:
+                damping = damping / 10.0 if damping > 1e-7 else 0.0
+            cost = system.linearize(problem.values)
+        else:
+            if step_norm <= options.step_tolerance:
+                converged, reason = True, "step below tolerance (cost at numerical minimum)"
+                break
+            damping = options.initial_damping if damping == 0.0 else damping * 10.0
+            if damping > options.max_damping:
+                reason = "damping exceeded its maximum without lowering the cost"
+                break
+    return SolveReport(
+        iterations=iterations,
+        initial_cost=initial,
+        final_cost=cost,
+        converged=converged,
+        reason=reason,
+        seconds=time.perf_counter() - start,
+        cost_history=history,
+    )
+
+
+def gauge_prior_sqrt_information(sigma: float = GAUGE_SIGMA) -> Array:
+    """``(3, 3)`` square-root information of the gauge prior on a robot's first pose."""
+    return np.eye(3) / sigma
+
+
+def stack_keys(prefix: str, labels: Sequence[int]) -> list[tuple[str, int]]:
+    """Keys ``(prefix, label)`` for a sequence of integer labels."""
+    return [(prefix, int(i)) for i in labels]
