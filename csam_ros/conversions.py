@@ -1,0 +1,400 @@
+"""Conversions between the core's measurement logs and ROS messages, in both directions.
+
+The simulator node and the importers publish or write a :class:`MultiRobotLog` through
+:func:`log_to_messages`; offline replay turns a bag's messages back into a log with
+:class:`LogBuilder`, through the same :class:`MeasurementFilter` the smoother nodes apply, so a
+bag gives the same input to the core offline as through the nodes.
+
+Topics (ARCHITECTURE.md): ``/<robot>/odom`` (nav_msgs/Odometry, twist = measured v, v_lat,
+omega in the body frame with their variances), ``/<robot>/features``, ``/<robot>/rendezvous``,
+``/<robot>/ground_truth`` and ``/sim/features_truth``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from csam_msgs.msg import (
+    FeatureObservation,
+    FeatureObservations,
+    FeaturesTruth,
+    FeatureTruth,
+    RendezvousObservation,
+    RendezvousObservations,
+)
+from nav_msgs.msg import Odometry
+
+from csam_ros.core.log import (
+    FeatureLog,
+    GroundTruth,
+    MultiRobotLog,
+    OdometryLog,
+    RendezvousLog,
+    RobotLog,
+)
+from csam_ros.core.validation import MeasurementFilter
+
+FEATURES_TRUTH_TOPIC = "/sim/features_truth"
+SENSOR_SUFFIXES = ("odom", "features", "rendezvous")
+
+# Indices of vx, vy and wz in a row-major 6x6 twist covariance.
+_TWIST_VARIANCE = (0, 7, 35)
+
+
+def stamp_to_ns(seconds: float) -> int:
+    """Seconds to integer nanoseconds (the exact form stamps travel in)."""
+    return int(round(seconds * 1e9))
+
+
+def ns_to_time(ns: int) -> Time:
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def time_to_ns(stamp: Time) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def time_to_seconds(stamp: Time) -> float:
+    """A message stamp in seconds, computed the same way on every path."""
+    return time_to_ns(stamp) / 1e9
+
+
+def topic(robot: str, suffix: str) -> str:
+    return f"/{robot}/{suffix}"
+
+
+def odometry_message(robot: str, stamp_ns: int, inputs: np.ndarray, sigmas: np.ndarray) -> Odometry:
+    """One odometry sample: mean (v, v_lat, omega) over the interval ending at the stamp."""
+    msg = Odometry()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = f"{robot}/odom"
+    msg.child_frame_id = f"{robot}/base_link"
+    msg.twist.twist.linear.x = float(inputs[0])
+    msg.twist.twist.linear.y = float(inputs[1])
+    msg.twist.twist.angular.z = float(inputs[2])
+    cov = np.zeros(36)
+    cov[list(_TWIST_VARIANCE)] = np.square(sigmas)
+    msg.twist.covariance = cov
+    msg.pose.covariance[0] = -1.0  # REP-145 style: the pose part is not estimated here
+    return msg
+
+
+def odometry_from_message(msg: Odometry) -> tuple[float, np.ndarray, np.ndarray]:
+    """(stamp [s], inputs (3,), sigmas (3,)) of an odometry message."""
+    t = msg.twist.twist
+    inputs = np.array([t.linear.x, t.linear.y, t.angular.z])
+    variances = np.asarray(msg.twist.covariance, dtype=float)[list(_TWIST_VARIANCE)]
+    with np.errstate(invalid="ignore"):
+        sigmas = np.sqrt(variances)
+    return time_to_seconds(msg.header.stamp), inputs, sigmas
+
+
+def features_message(
+    robot: str, stamp_ns: int, labels, ranges, bearings, sigma_range, sigma_bearing
+) -> FeatureObservations:
+    msg = FeatureObservations()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = f"{robot}/base_link"
+    msg.observations = [
+        FeatureObservation(
+            label=int(k),
+            range=float(r),
+            bearing=float(b),
+            sigma_range=float(sr),
+            sigma_bearing=float(sb),
+        )
+        for k, r, b, sr, sb in zip(
+            labels, ranges, bearings, sigma_range, sigma_bearing, strict=True
+        )
+    ]
+    return msg
+
+
+def features_from_message(msg: FeatureObservations) -> tuple[float, dict[str, np.ndarray]]:
+    """(stamp [s], arrays labels, ranges, bearings, sigma_range, sigma_bearing)."""
+    obs = msg.observations
+    arrays = {
+        "labels": np.array([o.label for o in obs], dtype=np.int64),
+        "ranges": np.array([o.range for o in obs], dtype=float),
+        "bearings": np.array([o.bearing for o in obs], dtype=float),
+        "sigma_range": np.array([o.sigma_range for o in obs], dtype=float),
+        "sigma_bearing": np.array([o.sigma_bearing for o in obs], dtype=float),
+    }
+    return time_to_seconds(msg.header.stamp), arrays
+
+
+def rendezvous_message(
+    robot: str, stamp_ns: int, observed, ranges, bearings, sigma_range, sigma_bearing
+) -> RendezvousObservations:
+    msg = RendezvousObservations()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = f"{robot}/base_link"
+    msg.observations = [
+        RendezvousObservation(
+            observed_robot=str(q),
+            range=float(r),
+            bearing=float(b),
+            sigma_range=float(sr),
+            sigma_bearing=float(sb),
+        )
+        for q, r, b, sr, sb in zip(
+            observed, ranges, bearings, sigma_range, sigma_bearing, strict=True
+        )
+    ]
+    return msg
+
+
+def rendezvous_from_message(msg: RendezvousObservations) -> tuple[float, dict[str, object]]:
+    """(stamp [s], observed names and arrays ranges, bearings, sigma_range, sigma_bearing)."""
+    obs = msg.observations
+    arrays: dict[str, object] = {
+        "observed": [o.observed_robot for o in obs],
+        "ranges": np.array([o.range for o in obs], dtype=float),
+        "bearings": np.array([o.bearing for o in obs], dtype=float),
+        "sigma_range": np.array([o.sigma_range for o in obs], dtype=float),
+        "sigma_bearing": np.array([o.sigma_bearing for o in obs], dtype=float),
+    }
+    return time_to_seconds(msg.header.stamp), arrays
+
+
+def ground_truth_message(robot: str, stamp_ns: int, pose: np.ndarray) -> Odometry:
+    msg = Odometry()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = "world"
+    msg.child_frame_id = f"{robot}/base_link"
+    msg.pose.pose.position.x = float(pose[0])
+    msg.pose.pose.position.y = float(pose[1])
+    msg.pose.pose.orientation.z = float(np.sin(pose[2] / 2))
+    msg.pose.pose.orientation.w = float(np.cos(pose[2] / 2))
+    return msg
+
+
+def features_truth_message(truth: GroundTruth) -> FeaturesTruth:
+    """All true features with the robot labels that name each (for scoring only)."""
+    labels: dict[int, list[str]] = {int(f): [] for f in truth.feature_ids}
+    for robot, mapping in truth.label_to_feature.items():
+        for label, feature in sorted(mapping.items()):
+            labels.setdefault(int(feature), []).append(f"{robot}/{label}")
+    msg = FeaturesTruth()
+    msg.header.frame_id = "world"
+    msg.features = [
+        FeatureTruth(feature_id=int(f), x=float(p[0]), y=float(p[1]), labels=labels[int(f)])
+        for f, p in zip(truth.feature_ids, truth.feature_positions, strict=True)
+    ]
+    return msg
+
+
+def truth_from_message(msg: FeaturesTruth) -> GroundTruth:
+    """Ground truth of features back from its message (no trajectories)."""
+    ids = np.array([f.feature_id for f in msg.features], dtype=np.int64)
+    xy = np.array([[f.x, f.y] for f in msg.features], dtype=float).reshape(-1, 2)
+    label_to_feature: dict[str, dict[int, int]] = {}
+    for f in msg.features:
+        for member in f.labels:
+            robot, _, label = member.rpartition("/")
+            label_to_feature.setdefault(robot, {})[int(label)] = int(f.feature_id)
+    return GroundTruth(ids, xy, label_to_feature)
+
+
+@dataclass(frozen=True)
+class StampedMessage:
+    """A message to publish or write at ``stamp_ns`` on ``topic``."""
+
+    stamp_ns: int
+    topic: str
+    message: object
+
+
+def _groups(stamps: np.ndarray) -> Iterator[tuple[float, slice]]:
+    """Runs of equal stamps in a sorted stamp array."""
+    if len(stamps) == 0:
+        return
+    starts = np.flatnonzero(np.r_[True, np.diff(stamps) != 0])
+    ends = np.r_[starts[1:], len(stamps)]
+    for s, e in zip(starts, ends, strict=True):
+        yield float(stamps[s]), slice(int(s), int(e))
+
+
+def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[StampedMessage]:
+    """Every robot's measurements as messages in stamp order (stable: robots in log order).
+
+    Feature and rendezvous observations sharing a stamp travel in one message. With
+    ``with_truth``, the features' ground truth comes first (stamped at the first stamp) and each
+    robot's true pose follows each of its odometry samples.
+    """
+    out: list[StampedMessage] = []
+    for name, robot in log.robots.items():
+        odo = robot.odometry
+        truth_poses = None
+        if with_truth and log.truth is not None and name in log.truth.trajectories:
+            truth_stamps = log.truth.trajectory_stamps[name]
+            truth_poses = dict(
+                zip(truth_stamps.tolist(), log.truth.trajectories[name], strict=True)
+            )
+        for t, u, s in zip(odo.stamps, odo.inputs, odo.sigmas, strict=True):
+            ns = stamp_to_ns(t)
+            out.append(StampedMessage(ns, topic(name, "odom"), odometry_message(name, ns, u, s)))
+            if truth_poses is not None and float(t) in truth_poses:
+                pose = truth_poses[float(t)]
+                out.append(
+                    StampedMessage(
+                        ns, topic(name, "ground_truth"), ground_truth_message(name, ns, pose)
+                    )
+                )
+        f = robot.features
+        for t, g in _groups(f.stamps):
+            ns = stamp_to_ns(t)
+            msg = features_message(
+                name,
+                ns,
+                f.labels[g],
+                f.ranges[g],
+                f.bearings[g],
+                f.sigma_range[g],
+                f.sigma_bearing[g],
+            )
+            out.append(StampedMessage(ns, topic(name, "features"), msg))
+        rv = robot.rendezvous
+        for t, g in _groups(rv.stamps):
+            ns = stamp_to_ns(t)
+            msg = rendezvous_message(
+                name,
+                ns,
+                rv.observed[g],
+                rv.ranges[g],
+                rv.bearings[g],
+                rv.sigma_range[g],
+                rv.sigma_bearing[g],
+            )
+            out.append(StampedMessage(ns, topic(name, "rendezvous"), msg))
+    out.sort(key=lambda m: m.stamp_ns)  # stable: per stamp, robots and topics keep their order
+    if with_truth and log.truth is not None:
+        first = out[0].stamp_ns if out else 0
+        truth_msg = features_truth_message(log.truth)
+        truth_msg.header.stamp = ns_to_time(first)
+        out.insert(0, StampedMessage(first, FEATURES_TRUTH_TOPIC, truth_msg))
+    return out
+
+
+class LogBuilder:
+    """Collects sensor messages (in arrival order) into a :class:`MultiRobotLog`.
+
+    Every message passes the same :class:`MeasurementFilter` as in the smoother nodes; drops are
+    in ``filter.drops``. Robots appear in the order of ``robots`` (or of first arrival).
+    """
+
+    def __init__(self, robots: list[str] | None = None, field_of_view: float = 2 * np.pi) -> None:
+        self.filter = MeasurementFilter(robots, field_of_view)
+        self._order: list[str] = list(robots or [])
+        self._odometry: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+        self._features: dict[str, list[tuple[float, dict[str, np.ndarray]]]] = {}
+        self._rendezvous: dict[str, list[tuple[float, dict[str, object]]]] = {}
+        self.truth: GroundTruth | None = None
+
+    def _robot(self, name: str) -> None:
+        if name not in self._order and self.filter.robots is None:
+            self._order.append(name)
+
+    def add(self, topic_name: str, msg: object) -> None:
+        """Add one message of any sensor or truth topic; other topics are ignored."""
+        if topic_name == FEATURES_TRUTH_TOPIC:
+            self.truth = truth_from_message(msg)  # type: ignore[arg-type]
+            return
+        robot, _, suffix = topic_name.strip("/").rpartition("/")
+        if suffix == "odom":
+            stamp, u, s = odometry_from_message(msg)  # type: ignore[arg-type]
+            if self.filter.odometry(robot, stamp, u, s):
+                self._robot(robot)
+                self._odometry.setdefault(robot, []).append((stamp, u, s))
+        elif suffix == "features":
+            stamp, a = features_from_message(msg)  # type: ignore[arg-type]
+            keep = self.filter.features(
+                robot, stamp, a["ranges"], a["bearings"], a["sigma_range"], a["sigma_bearing"]
+            )
+            if keep is not None:
+                self._robot(robot)
+                self._features.setdefault(robot, []).append(
+                    (stamp, {k: v[keep] for k, v in a.items()})
+                )
+        elif suffix == "rendezvous":
+            stamp, a = rendezvous_from_message(msg)  # type: ignore[arg-type]
+            keep = self.filter.rendezvous(
+                robot,
+                stamp,
+                a["observed"],
+                a["ranges"],
+                a["bearings"],
+                a["sigma_range"],
+                a["sigma_bearing"],
+            )
+            if keep is not None:
+                self._robot(robot)
+                kept = {
+                    k: (np.asarray(v, dtype=object if k == "observed" else float)[keep])
+                    for k, v in a.items()
+                }
+                self._rendezvous.setdefault(robot, []).append((stamp, kept))
+
+    def build(self) -> MultiRobotLog:
+        robots: dict[str, RobotLog] = {}
+        for name in self._order:
+            odo = self._odometry.get(name, [])
+            odometry = OdometryLog(
+                np.array([o[0] for o in odo], dtype=float),
+                np.array([o[1] for o in odo], dtype=float).reshape(-1, 3),
+                np.array([o[2] for o in odo], dtype=float).reshape(-1, 3),
+            )
+            robots[name] = RobotLog(
+                name,
+                odometry,
+                _feature_log(self._features.get(name, [])),
+                _rendezvous_log(self._rendezvous.get(name, [])),
+            )
+        return MultiRobotLog(robots, self.truth)
+
+
+def _stacked(chunks: list[tuple[float, dict]], key: str, dtype) -> np.ndarray:
+    if not chunks:
+        return np.zeros(0, dtype=dtype)
+    return np.concatenate([np.asarray(c[1][key], dtype=dtype) for c in chunks])
+
+
+def _feature_log(chunks: list[tuple[float, dict[str, np.ndarray]]]) -> FeatureLog:
+    stamps = (
+        np.concatenate([np.full(len(c[1]["ranges"]), c[0]) for c in chunks])
+        if chunks
+        else np.zeros(0)
+    )
+    return FeatureLog(
+        stamps,
+        _stacked(chunks, "labels", np.int64),
+        _stacked(chunks, "ranges", float),
+        _stacked(chunks, "bearings", float),
+        _stacked(chunks, "sigma_range", float),
+        _stacked(chunks, "sigma_bearing", float),
+    )
+
+
+def _rendezvous_log(chunks: list[tuple[float, dict[str, object]]]) -> RendezvousLog:
+    stamps = (
+        np.concatenate([np.full(len(c[1]["ranges"]), c[0]) for c in chunks])
+        if chunks
+        else np.zeros(0)
+    )
+    observed = [str(q) for c in chunks for q in c[1]["observed"]]
+    return RendezvousLog(
+        stamps,
+        observed,
+        _stacked(chunks, "ranges", float),
+        _stacked(chunks, "bearings", float),
+        _stacked(chunks, "sigma_range", float),
+        _stacked(chunks, "sigma_bearing", float),
+    )
+
+
+def sensor_topics(robots: Iterable[str]) -> list[str]:
+    """The sensor topics of the given robots, as replay plays them."""
+    return [topic(r, s) for r in robots for s in SENSOR_SUFFIXES]
