@@ -1,0 +1,124 @@
+"""simulator: runs a scenario from config/ and publishes every robot's measurements.
+
+Publishes per robot ``/<robot>/odom``, ``/<robot>/features``, ``/<robot>/rendezvous`` and
+``/<robot>/ground_truth``, the features' truth on ``/sim/features_truth`` (transient local) and
+``/clock``. The whole run is simulated by the core at start; the node only paces it out.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rosgraph_msgs.msg import Clock
+
+from csam_ros.conversions import FEATURES_TRUTH_TOPIC, log_to_messages, ns_to_time
+from csam_ros.core.scenario import load_scenario
+from csam_ros.core.simulation import simulate
+from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA, declare, run_node
+
+
+class Simulator(Node):
+    """Publishes a simulated run at ``rate`` times real time (0: as fast as possible)."""
+
+    def __init__(self) -> None:
+        super().__init__("simulator")
+        scenario_name = declare(
+            self, "scenario", "map_joining", "scenario name in config/ or path to a YAML file"
+        )
+        seed = declare(self, "seed", -1, "noise seed; -1 uses the scenario's", -1, 2**31 - 1)
+        self.rate = declare(
+            self,
+            "rate",
+            1.0,
+            "speed relative to real time; 0 publishes as fast as possible",
+            0.0,
+            1000.0,
+        )
+        self.wait_for_subscribers = declare(
+            self,
+            "wait_for_subscribers",
+            True,
+            "start only once every robot's sensor topics have a subscriber",
+        )
+        self.exit_when_done = declare(
+            self, "exit_when_done", False, "shut down once everything is published"
+        )
+        scenario = load_scenario(scenario_name)
+        self.robots = [r.name for r in scenario.robots]
+        log = simulate(scenario, None if seed < 0 else seed)
+        self.messages = log_to_messages(log)
+        self.topic_publishers: dict[str, Publisher] = {}
+        for m in self.messages:
+            if m.topic not in self.topic_publishers:
+                self.topic_publishers[m.topic] = self.create_publisher(
+                    type(m.message), m.topic, self._qos(m.topic)
+                )
+        self.clock = self.create_publisher(Clock, "/clock", 10)
+        self.next_index = 0
+        self.start_stamp_ns = self.messages[0].stamp_ns if self.messages else 0
+        self.end_stamp_ns = self.messages[-1].stamp_ns if self.messages else 0
+        self.wall_start: float | None = None
+        self.get_logger().info(
+            f"scenario {scenario.name}: {len(self.robots)} robots, {len(self.messages)} messages, "
+            f"{(self.end_stamp_ns - self.start_stamp_ns) / 1e9:.1f} s at rate {self.rate}"
+        )
+        self.timer = self.create_timer(0.01, self._tick)
+
+    @staticmethod
+    def _qos(topic: str):
+        if topic == FEATURES_TRUTH_TOPIC:
+            return LATCHED
+        if topic.endswith("/odom") or topic.endswith("/ground_truth"):
+            return SENSOR_DATA
+        return RELIABLE
+
+    def _subscribers_ready(self) -> bool:
+        return all(
+            self.count_subscribers(f"/{r}/{s}") > 0
+            for r in self.robots
+            for s in ("odom", "features", "rendezvous")
+        )
+
+    def _tick(self) -> None:
+        if self.wall_start is None:
+            if self.wait_for_subscribers and not self._subscribers_ready():
+                return
+            self.wall_start = time.monotonic()
+        if self.rate > 0:
+            elapsed_ns = int((time.monotonic() - self.wall_start) * self.rate * 1e9)
+            horizon = self.start_stamp_ns + elapsed_ns
+        else:
+            horizon = self.end_stamp_ns
+        published = 0
+        while self.next_index < len(self.messages):
+            m = self.messages[self.next_index]
+            if m.stamp_ns > horizon or (self.rate == 0 and published >= 200):
+                break
+            self.topic_publishers[m.topic].publish(m.message)
+            self.next_index += 1
+            published += 1
+        now_ns = self.messages[self.next_index - 1].stamp_ns if self.next_index else horizon
+        self.clock.publish(Clock(clock=ns_to_time(min(max(now_ns, horizon), self.end_stamp_ns))))
+        if self.next_index == len(self.messages):
+            self.timer.cancel()
+            self.get_logger().info("all messages published")
+            if self.exit_when_done:
+                # let reliable messages drain before the process goes away
+                self.create_timer(1.0, self._finish)
+
+    def _finish(self) -> None:
+        raise SystemExit(0)
+
+
+def main(args: list[str] | None = None) -> int:
+    try:
+        return run_node(Simulator, args)
+    except SystemExit as done:
+        return int(done.code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
