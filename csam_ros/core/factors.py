@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from csam_ros.core import se2
+from csam_ros.core import se2, sensor
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -392,22 +392,9 @@ def _point_in_body(
     pose: Array, point: Array, jacobians: bool
 ) -> tuple[Array, Array | None, Array | None]:
     """``R(phi)^T (l - t)`` with its Jacobians w.r.t. the pose and the point."""
-    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-    dx = point[:, 0] - pose[:, 0]
-    dy = point[:, 1] - pose[:, 1]
-    lx = c * dx + s * dy
-    ly = -s * dx + c * dy
-    h = np.stack([lx, ly], 1)
     if not jacobians:
-        return h, None, None
-    k = len(h)
-    jp = np.zeros((k, 2, 3))
-    jl = np.zeros((k, 2, 2))
-    jp[:, 0, 0], jp[:, 0, 1], jp[:, 0, 2] = -c, -s, ly
-    jp[:, 1, 0], jp[:, 1, 1], jp[:, 1, 2] = s, -c, -lx
-    jl[:, 0, 0], jl[:, 0, 1] = c, s
-    jl[:, 1, 0], jl[:, 1, 1] = -s, c
-    return h, jp, jl
+        return sensor.predict(pose, point), None, None
+    return sensor.predict_jacobians(pose, point)
 
 
 class PointObservation(Factor):

@@ -1,0 +1,167 @@
+"""Jacobians of every factor kind against central finite differences; input checks."""
+
+import numpy as np
+import pytest
+
+from csam_ros.core import se2
+from csam_ros.core.factors import (
+    POINT,
+    POSE,
+    Cauchy,
+    Huber,
+    LinearPrior,
+    PointObservation,
+    PointPrior,
+    PosePrior,
+    RelativePose,
+    RelativePosition,
+    sqrt_information_from_covariance,
+)
+
+
+def random_poses(rng, count):
+    x = rng.uniform(-4, 4, (count, 3))
+    x[:, 2] = rng.uniform(-np.pi, np.pi, count)
+    return x
+
+
+def check_jacobians(factor, blocks, eps=1e-6, atol=1e-6):
+    """Compare the analytic Jacobian blocks of all factors with central differences."""
+    errors, jac = factor.evaluate(blocks)
+    assert errors.shape == (len(factor), jac[0].shape[1])
+    for j, block in enumerate(blocks):
+        assert jac[j].shape == (len(factor), errors.shape[1], block.shape[1])
+        for c in range(block.shape[1]):
+            plus = [b.copy() for b in blocks]
+            minus = [b.copy() for b in blocks]
+            plus[j][:, c] += eps
+            minus[j][:, c] -= eps
+            diff = factor.evaluate(plus, False)[0] - factor.evaluate(minus, False)[0]
+            numeric = diff / (2 * eps)
+            np.testing.assert_allclose(jac[j][:, :, c], numeric, atol=atol, rtol=1e-6)
+
+
+def unit_w(count, dim):
+    return np.broadcast_to(np.eye(dim), (count, dim, dim))
+
+
+def test_pose_prior_jacobian_and_wrapped_error():
+    rng = np.random.default_rng(0)
+    x = random_poses(rng, 10)
+    prior = random_poses(rng, 10)
+    f = PosePrior(np.arange(10), prior, unit_w(10, 3))
+    check_jacobians(f, [x])
+    e, _ = f.evaluate([x], False)
+    assert np.all(np.abs(e[:, 2]) <= np.pi)
+
+
+def test_point_prior_jacobian():
+    rng = np.random.default_rng(1)
+    f = PointPrior(np.arange(5), rng.normal(size=(5, 2)), unit_w(5, 2))
+    check_jacobians(f, [rng.normal(size=(5, 2))])
+
+
+def test_relative_pose_jacobians_and_error():
+    rng = np.random.default_rng(2)
+    a, b = random_poses(rng, 12), random_poses(rng, 12)
+    a[0] = [0, 0, 0]
+    b[0] = [0, 0, 0]  # coincident poses
+    z = se2.between(a, b)
+    f = RelativePose(np.arange(12), np.arange(12, 24), z, unit_w(12, 3))
+    check_jacobians(f, [a, b])
+    np.testing.assert_allclose(f.evaluate([a, b], False)[0], 0, atol=1e-12)
+
+
+@pytest.mark.parametrize("distance", [3.0, 1e-3, 0.0])
+def test_point_observation_jacobians_including_range_near_zero(distance):
+    rng = np.random.default_rng(3)
+    x = random_poses(rng, 8)
+    direction = rng.normal(size=(8, 2))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    points = x[:, :2] + distance * direction
+    z = se2.inverse_transform_point(x, points)
+    f = PointObservation(np.arange(8), np.arange(8, 16), z, unit_w(8, 2))
+    check_jacobians(f, [x, points])
+    np.testing.assert_allclose(f.evaluate([x, points], False)[0], 0, atol=1e-12)
+
+
+def test_relative_position_jacobians():
+    rng = np.random.default_rng(4)
+    a, b = random_poses(rng, 9), random_poses(rng, 9)
+    b[0, :2] = a[0, :2]
+    z = se2.between(a, b)[:, :2]
+    f = RelativePosition(np.arange(9), np.arange(9, 18), z, unit_w(9, 2))
+    check_jacobians(f, [a, b])
+    _, jac = f.evaluate([a, b])
+    np.testing.assert_allclose(jac[1][:, :, 2], 0)
+
+
+def test_linear_prior_whitened_jacobian_and_wrap():
+    rng = np.random.default_rng(5)
+    pose = random_poses(rng, 1)
+    point = rng.normal(size=(1, 2))
+    mean = np.concatenate([pose[0], point[0]])
+    mean[2] = se2.wrap_angle(mean[2] + 2 * np.pi - 0.1)
+    R = np.triu(rng.normal(size=(5, 5))) + 3 * np.eye(5)
+    f = LinearPrior([0, 1], [POSE, POINT], mean, R)
+    r, jac, cost = f.whitened([pose, point])
+    delta = np.concatenate([pose[0], point[0]]) - mean
+    delta[2] = se2.wrap_angle(delta[2])
+    np.testing.assert_allclose(r[0], R @ delta)
+    np.testing.assert_allclose(np.concatenate([j[0] for j in jac], axis=1), R)
+    np.testing.assert_allclose(cost, 0.5 * delta @ R.T @ R @ delta)
+
+
+def test_whitening_uses_sqrt_information_of_covariance():
+    rng = np.random.default_rng(6)
+    m = rng.normal(size=(4, 3, 3))
+    cov = m @ m.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    w = sqrt_information_from_covariance(cov)
+    np.testing.assert_allclose(w.transpose(0, 2, 1) @ w, np.linalg.inv(cov), rtol=1e-9, atol=1e-9)
+    a, b = random_poses(rng, 4), random_poses(rng, 4)
+    f = RelativePose(np.arange(4), np.arange(4, 8), np.zeros((4, 3)), covariance=cov)
+    e, _ = f.evaluate([a, b], False)
+    _, _, cost = f.whitened([a, b], False)
+    expected = 0.5 * np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov), e)
+    np.testing.assert_allclose(cost, expected, rtol=1e-9)
+
+
+@pytest.mark.parametrize("kernel", [Huber(1.0), Cauchy(1.0)])
+def test_robust_kernel_reweights_rows(kernel):
+    x = np.array([[0.1, 0, 0], [5.0, 0, 0]])
+    f = PosePrior([0, 1], np.zeros((2, 3)), unit_w(2, 3), robust=kernel)
+    r, jac, cost = f.whitened([x])
+    s = np.array([0.01, 25.0])
+    weight = kernel.weight(s)
+    np.testing.assert_allclose(r[:, 0], np.sqrt(weight) * x[:, 0])
+    np.testing.assert_allclose(jac[0][:, 0, 0], np.sqrt(weight))
+    np.testing.assert_allclose(cost, 0.5 * kernel.rho(s))
+    assert weight[0] == pytest.approx(1.0, abs=0.02) and weight[1] < 0.5
+    # rho' is the weight: check by central differences
+    h = 1e-6
+    np.testing.assert_allclose((kernel.rho(s + h) - kernel.rho(s - h)) / (2 * h), weight, rtol=1e-5)
+
+
+def test_non_positive_definite_covariance_names_factor():
+    cov = np.stack([np.eye(3), np.diag([1.0, 1.0, -1.0])])
+    with pytest.raises(ValueError, match="Odometry.*factor 1.*positive definite"):
+        RelativePose([0, 1], [1, 2], np.zeros((2, 3)), covariance=cov, name="Odometry")
+    with pytest.raises(ValueError, match="factor 0 is not symmetric"):
+        PointPrior([0], [[0, 0]], covariance=[[[1.0, 0.5], [0.0, 1.0]]])
+
+
+def test_non_finite_measurement_is_rejected():
+    z = np.zeros((3, 2))
+    z[2, 1] = np.nan
+    with pytest.raises(ValueError, match="PointObservation measurement: entry 2"):
+        PointObservation([0, 0, 0], [1, 2, 3], z, covariance=np.eye(2))
+    with pytest.raises(ValueError, match="shape"):
+        PointObservation([0, 0], [1, 2], np.zeros((3, 2)), covariance=np.eye(2))
+    with pytest.raises(ValueError, match="exactly one"):
+        PointPrior([0], [[0, 0]])
+
+
+def test_singular_sqrt_information_is_rejected():
+    w = np.array([[[1.0, 2.0], [0.5, 1.0]]])
+    with pytest.raises(ValueError, match="sqrt_information of factor 0 is singular"):
+        PointPrior([0], [[0.0, 0.0]], w)
