@@ -20,14 +20,18 @@ Every function is vectorised over a leading axis of ``K`` measurements.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core import se2
+from csam_ros.core.log import RendezvousLog
+from csam_ros.core.sensor import polar_to_cartesian
 
 Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
 @dataclass
@@ -151,3 +155,170 @@ def point_difference(
     ga, d_ba, d_la = _point_in_parent(ba, la)
     gc, d_bc, d_lc = _point_in_parent(bc, lc)
     return ga - gc, d_la, d_ba, -d_lc, -d_bc
+
+
+@dataclass
+class RendezvousSet:
+    """All rendezvous measurements among a set of robots, one row per measurement.
+
+    Robot fields index :attr:`robots`; pose fields index that robot's pose stamps (the poses
+    of its local map). ``position`` and ``covariance`` are the Cartesian observation of the
+    observed robot in the observer's body frame (METHOD section 3).
+    """
+
+    robots: list[str]
+    observer: IntArray
+    observed: IntArray
+    stamps: Array
+    observer_pose: IntArray
+    observed_pose: IntArray
+    position: Array  # (K, 2)
+    covariance: Array  # (K, 2, 2)
+    bearing: Array  # (K,) measured bearing, for the mutual-observation heading
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def subset(self, mask: NDArray[np.bool_]) -> RendezvousSet:
+        """The measurements selected by a boolean mask."""
+        return RendezvousSet(
+            robots=self.robots,
+            observer=self.observer[mask],
+            observed=self.observed[mask],
+            stamps=self.stamps[mask],
+            observer_pose=self.observer_pose[mask],
+            observed_pose=self.observed_pose[mask],
+            position=self.position[mask],
+            covariance=self.covariance[mask],
+            bearing=self.bearing[mask],
+        )
+
+    def between(self, a: int, c: int) -> NDArray[np.bool_]:
+        """Mask of the measurements between robots ``a`` and ``c`` in either direction."""
+        return ((self.observer == a) & (self.observed == c)) | (
+            (self.observer == c) & (self.observed == a)
+        )
+
+
+def required_stamps(logs: Mapping[str, RendezvousLog]) -> dict[str, Array]:
+    """Stamps at which each robot's local map must hold a pose: the rendezvous measurements
+    it made and the ones other robots made of it (sorted, unique)."""
+    out: dict[str, list[Array]] = {name: [] for name in logs}
+    for name, log in logs.items():
+        out[name].append(np.asarray(log.stamps, dtype=float))
+        for other in set(log.observed):
+            if other in out:
+                mask = np.array([o == other for o in log.observed], dtype=bool)
+                out[other].append(np.asarray(log.stamps, dtype=float)[mask])
+    return {
+        name: np.unique(np.concatenate(parts)) if parts else np.zeros(0)
+        for name, parts in out.items()
+    }
+
+
+def _pose_index(stamps: Array, query: Array, tolerance: float, robot: str) -> IntArray:
+    """Index of the pose at each query stamp; raises naming the robot and the stamp."""
+    if len(query) == 0:
+        return np.zeros(0, dtype=np.int64)
+    if len(stamps) == 0:
+        raise ValueError(f"robot {robot!r} has no poses but rendezvous stamps need some")
+    pos = np.clip(np.searchsorted(stamps, query), 1, max(len(stamps) - 1, 1))
+    left = np.clip(pos - 1, 0, len(stamps) - 1)
+    right = np.clip(pos, 0, len(stamps) - 1)
+    nearest = np.where(np.abs(stamps[left] - query) <= np.abs(stamps[right] - query), left, right)
+    missing = np.flatnonzero(np.abs(stamps[nearest] - query) > tolerance)
+    if missing.size:
+        raise ValueError(
+            f"robot {robot!r} has no pose at rendezvous stamp {query[missing[0]]:.9f} s "
+            f"(nearest {stamps[nearest[missing[0]]]:.9f} s): its local map must hold a pose at "
+            "every rendezvous stamp that involves it"
+        )
+    return nearest.astype(np.int64)
+
+
+def collect(
+    logs: Mapping[str, RendezvousLog],
+    pose_stamps: Mapping[str, ArrayLike],
+    tolerance: float = 1e-6,
+) -> tuple[RendezvousSet, list[str]]:
+    """Gather the rendezvous measurements among the robots of ``pose_stamps``.
+
+    ``logs`` holds each robot's rendezvous log; ``pose_stamps`` the stamps of each robot's
+    local-map poses, in the robots' order (which :attr:`RendezvousSet.robots` keeps).
+    Measurements of or by a robot without a map, and of a robot by itself, are left out and
+    described in the returned notes.
+    """
+    robots = list(pose_stamps)
+    index = {name: i for i, name in enumerate(robots)}
+    stamps_of = {n: np.asarray(s, dtype=float) for n, s in pose_stamps.items()}
+    notes: list[str] = []
+    parts: list[tuple[Array, ...]] = []
+    for name, log in logs.items():
+        k = len(log.stamps)
+        if k == 0:
+            continue
+        if name not in index:
+            notes.append(f"{k} rendezvous measurement(s) by {name!r} ignored: no map of {name!r}")
+            continue
+        observed = np.array([index.get(o, -1) for o in log.observed], dtype=np.int64)
+        if len(observed) != k:
+            raise ValueError(f"rendezvous log of {name!r}: {len(observed)} names for {k} stamps")
+        self_seen = observed == index[name]
+        if self_seen.any():
+            notes.append(f"{int(self_seen.sum())} rendezvous measurement(s) of {name!r} by itself")
+        unknown = observed < 0
+        for other in sorted({log.observed[i] for i in np.flatnonzero(unknown)}):
+            count = sum(1 for o in log.observed if o == other)
+            notes.append(
+                f"{count} rendezvous measurement(s) of {other!r} by {name!r} ignored: "
+                f"no map of {other!r}"
+            )
+        keep = ~(self_seen | unknown)
+        if not keep.any():
+            continue
+        stamps = np.asarray(log.stamps, dtype=float)[keep]
+        z, cov = polar_to_cartesian(
+            np.asarray(log.ranges)[keep],
+            np.asarray(log.bearings)[keep],
+            np.asarray(log.sigma_range)[keep],
+            np.asarray(log.sigma_bearing)[keep],
+        )
+        obs = observed[keep]
+        observed_pose = np.empty(len(obs), dtype=np.int64)
+        for c in np.unique(obs):
+            sel = obs == c
+            observed_pose[sel] = _pose_index(
+                stamps_of[robots[c]], stamps[sel], tolerance, robots[c]
+            )
+        parts.append(
+            (
+                np.full(len(obs), index[name], dtype=np.int64),
+                obs,
+                stamps,
+                _pose_index(stamps_of[name], stamps, tolerance, name),
+                observed_pose,
+                z,
+                cov,
+                np.asarray(log.bearings, dtype=float)[keep],
+            )
+        )
+    if not parts:
+        empty = np.zeros(0, dtype=np.int64)
+        return (
+            RendezvousSet(
+                robots,
+                empty,
+                empty,
+                np.zeros(0),
+                empty,
+                empty,
+                np.zeros((0, 2)),
+                np.zeros((0, 2, 2)),
+                np.zeros(0),
+            ),
+            notes,
+        )
+    cols = [np.concatenate(c) for c in zip(*parts, strict=True)]
+    order = np.lexsort((cols[1], cols[0], cols[2]))
+    cols = [c[order] for c in cols]
+    return RendezvousSet(robots, *cols), notes

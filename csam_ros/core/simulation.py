@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core import se2
+from csam_ros.core import motion, se2
 from csam_ros.core.log import (
     FeatureLog,
     GroundTruth,
@@ -110,16 +110,6 @@ def feature_grid(
     return points + rng.uniform(-jitter, jitter, points.shape) * spacing
 
 
-def _arc_steps(v: FloatArray, omega: FloatArray, t: float) -> FloatArray:
-    """Exact constant-turn displacement ``U((v, 0, omega), T)`` (K, 3), series for small turns."""
-    wt = omega * t
-    small = np.abs(wt) < 1e-4
-    safe = np.where(small, 1.0, omega)
-    sin_term = np.where(small, t * (1 - wt**2 / 6), np.sin(wt) / safe)
-    cos_term = np.where(small, t * wt / 2 * (1 - wt**2 / 12), (1 - np.cos(wt)) / safe)
-    return np.column_stack([v * sin_term, v * cos_term, wt])
-
-
 def program_inputs(robot: RobotSpec, sample_time: float) -> FloatArray:
     """Commanded ``(v, omega)`` per sample (N-1, 2), from the robot's program."""
     rows = []
@@ -140,7 +130,8 @@ def program_inputs(robot: RobotSpec, sample_time: float) -> FloatArray:
 def true_trajectory(robot: RobotSpec, sample_time: float) -> FloatArray:
     """World poses (N, 3) of the robot at every sample, the start included."""
     cmd = program_inputs(robot, sample_time)
-    steps = _arc_steps(cmd[:, 0], cmd[:, 1], sample_time)
+    inputs = np.column_stack([cmd[:, 0], np.zeros(len(cmd)), cmd[:, 1]])
+    steps = motion.increment(inputs, sample_time)
     poses = np.empty((len(cmd) + 1, 3))
     poses[0] = robot.start_pose
     for i, step in enumerate(steps):  # sequential by nature; a few hundred steps
