@@ -33,6 +33,11 @@ offending lines quoted in ``ImportReport.notes``; no row ever raises):
   observer itself or a robot outside the selection; a landmark barcode becomes a feature
   observation with the observer's own label. Measurements outside the observer's odometry
   span in the window (or, for rendezvous, outside the observed robot's) are dropped.
+- Ground-truth corrections: ``landmark_swaps`` exchanges the true positions of pairs of
+  landmark subjects (Dataset 1 as distributed here has subjects 11 and 17 exchanged: every
+  measurement of either is ~4-5 m off the listed position while the other 13 landmarks agree
+  to centimetres; ``python -m csam_ros.bench.mrclam noise`` shows it). Applied swaps are
+  listed in ``ImportReport.truth_corrections``; nothing is swapped unless asked.
 - Labels are local: robot ``k`` numbers the landmarks ``k + permutation_k(index)`` with a
   permutation seeded by ``(label_seed, k)``, so label ranges overlap across robots and equal
   labels mean nothing across robots. :class:`GroundTruth` keeps each robot's label -> subject.
@@ -41,6 +46,7 @@ offending lines quoted in ``ImportReport.notes``; no row ever raises):
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,18 +76,18 @@ class MrclamFormatError(ValueError):
 
 @dataclass(frozen=True)
 class MrclamNoise:
-    """Sensor and odometry noise of the MR.CLAM robots (values: ``config/mrclam.yaml``).
+    """Sensor and odometry noise of the MR.CLAM robots (defaults = ``config/mrclam.yaml``).
 
     ``sigma_range(r) = sigma_range + sigma_range_per_m * r``; odometry densities are per
     sqrt-second (see the module docstring for the per-sample sigmas).
     """
 
-    sigma_range: float = 0.1
-    sigma_range_per_m: float = 0.0
-    sigma_bearing: float = 0.03
-    q_v: float = 0.01
-    q_vlat: float = 0.01
-    q_omega: float = 0.02
+    sigma_range: float = 0.079
+    sigma_range_per_m: float = 0.0154
+    sigma_bearing: float = 0.0048
+    q_v: float = 0.022
+    q_vlat: float = 0.0053
+    q_omega: float = 0.036
 
     def __post_init__(self) -> None:
         for name in ("sigma_range", "sigma_bearing", "q_v", "q_vlat", "q_omega"):
@@ -131,6 +137,7 @@ class ImportReport:
     robots: list[str]
     counts: dict[str, dict[str, int]] = field(default_factory=dict)  # robot -> reason -> n
     notes: list[str] = field(default_factory=list)  # first offending lines, "file:line: why"
+    truth_corrections: list[str] = field(default_factory=list)
 
     def total(self, reason: str) -> int:
         """Sum of one count over all robots."""
@@ -146,6 +153,7 @@ class ImportReport:
             "robots": list(self.robots),
             "counts": {r: dict(c) for r, c in self.counts.items()},
             "notes": list(self.notes),
+            "truth_corrections": list(self.truth_corrections),
         }
 
     def summary(self) -> str:
@@ -385,13 +393,15 @@ def import_mrclam(
     duration: float | None = None,
     noise: MrclamNoise | None = None,
     label_seed: int = 0,
+    landmark_swaps: Sequence[tuple[int, int]] = (),
 ) -> tuple[MultiRobotLog, ImportReport]:
     """Read an MR.CLAM data set directory into a :class:`MultiRobotLog`.
 
     ``robots`` selects robot numbers (default: all with an odometry file); ``start`` and
     ``duration`` [s] cut a window relative to the data set's first stamp. Returns the log
     (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
-    label -> subject map) and the :class:`ImportReport`.
+    label -> subject map) and the :class:`ImportReport`. ``landmark_swaps`` lists pairs of
+    landmark subjects whose true positions are exchanged (module docstring).
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -416,6 +426,17 @@ def import_mrclam(
 
     barcode_to_subject = _read_barcodes(directory, counter)
     landmark_subjects, landmark_xy = _read_landmarks(directory, counter)
+    corrections = []
+    for pair in landmark_swaps:
+        a, b = (int(v) for v in pair)
+        rows = np.searchsorted(landmark_subjects, [a, b])
+        if not all(
+            r < landmark_subjects.size and landmark_subjects[r] == s
+            for r, s in zip(rows, (a, b), strict=True)
+        ):
+            raise ValueError(f"landmark_swaps: ({a}, {b}) names a subject without ground truth")
+        landmark_xy[rows] = landmark_xy[rows[::-1]]
+        corrections.append(f"true positions of landmark subjects {a} and {b} exchanged")
     files = {
         r: _read_robot(directory, r, counter if r in selected else _Counter([])) for r in available
     }
@@ -476,6 +497,7 @@ def import_mrclam(
         robots=names,
         counts=counter.counts,
         notes=counter.notes,
+        truth_corrections=corrections,
     )
     return MultiRobotLog(logs, truth), report
 

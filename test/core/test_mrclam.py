@@ -274,6 +274,22 @@ def test_missing_measurement_file_counted(tmp_path: Path) -> None:
 def test_config_file_loads() -> None:
     config = load_config(ROOT / "config" / "mrclam.yaml")
     assert isinstance(config["noise"], MrclamNoise)
+    assert config["noise"] == MrclamNoise()  # the defaults are the config's values
+    assert config["landmark_swaps"] == [[11, 17]]
+
+
+def test_landmark_swaps_exchange_truth_positions(tmp_path: Path) -> None:
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {1: []})
+    log, report = import_mrclam(d, landmark_swaps=[(6, 8)])
+    ids = log.truth.feature_ids.tolist()
+    np.testing.assert_allclose(log.truth.feature_positions[ids.index(6)], LANDMARKS[8])
+    np.testing.assert_allclose(log.truth.feature_positions[ids.index(8)], LANDMARKS[6])
+    np.testing.assert_allclose(log.truth.feature_positions[ids.index(7)], LANDMARKS[7])
+    assert report.truth_corrections == ["true positions of landmark subjects 6 and 8 exchanged"]
+    _, plain = import_mrclam(d)
+    assert plain.truth_corrections == []
+    with pytest.raises(ValueError, match=r"\(6, 3\)"):
+        import_mrclam(d, landmark_swaps=[(6, 3)])
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
