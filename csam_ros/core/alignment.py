@@ -194,6 +194,7 @@ class Alignment:
     base_nodes: Array  # (R, 3), NaN rows for pending robots
     initial_base_nodes: Array  # (R, 3) before refinement, NaN where none
     rendezvous_poses: dict[int, Array]  # robot -> (n, 3) refined rendezvous poses
+    rendezvous_shift: dict[int, Array]  # robot -> (n, 3) refined minus local (angle wrapped)
     state_keys: list[tuple]
     covariance: Array  # joint covariance of the state
     iterations: int = 0
@@ -487,7 +488,7 @@ def _refine(
             keys.append(("base", r))
     if not base_ids:
         return Alignment(
-            robots, 0, status, initial.copy(), initial.copy(), {}, [], np.zeros((0, 0))
+            robots, 0, status, initial.copy(), initial.copy(), {}, {}, [], np.zeros((0, 0))
         )
     for r, ids in rho_ids.items():
         part = parts[r]
@@ -542,6 +543,12 @@ def _refine(
         report = None
     bases = np.full((len(robots), 3), np.nan)
     bases[0] = 0.0
+    refined = {r: problem.values_of(ids) for r, ids in rho_ids.items()}
+    shift = {}
+    for r, values in refined.items():
+        d = values - parts[r].poses  # type: ignore[union-attr]
+        d[:, 2] = se2.wrap_angle(d[:, 2])
+        shift[r] = d
     for r, i in base_ids.items():
         bases[r] = problem.values_of([i])[0]
     return Alignment(
@@ -550,7 +557,8 @@ def _refine(
         status=status,
         base_nodes=bases,
         initial_base_nodes=initial.copy(),
-        rendezvous_poses={r: problem.values_of(ids) for r, ids in rho_ids.items()},
+        rendezvous_poses=refined,
+        rendezvous_shift=shift,
         state_keys=keys,
         covariance=cov,
         iterations=report.iterations if report else 0,
