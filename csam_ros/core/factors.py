@@ -257,23 +257,28 @@ class Factor(ABC):
 
     def whitened(
         self, blocks: Sequence[Array], jacobians: bool = True
-    ) -> tuple[Array, list[Array], Array]:
-        """Whitened (and robustly reweighted) residuals, Jacobians and per-factor costs.
+    ) -> tuple[Array, Array | None, Array]:
+        """Whitened (and robustly reweighted) residuals, Jacobian and per-factor costs.
 
-        Returns ``r`` ``(K, d)``, ``[W de/dx_j]`` and the cost of each factor
-        ``0.5 rho(||W e||^2)`` (``0.5 ||W e||^2`` without robust kernel).
+        Returns ``r = W e`` ``(K, d)``; the whitened Jacobian ``W [de/dx_1, ..., de/dx_m]``
+        ``(K, d, D)`` with the connected variables' blocks side by side (``None`` unless
+        ``jacobians``); and the cost of each factor ``0.5 rho(||W e||^2)``
+        (``0.5 ||W e||^2`` without robust kernel).
         """
         errors, jac = self.evaluate(blocks, jacobians)
         w = self.sqrt_information
-        r = np.einsum("kij,kj->ki", w, errors)
-        jac = [np.matmul(w, j) for j in jac] if jacobians else []
+        r = np.matmul(w, errors[:, :, None])[:, :, 0]
+        stacked = None
+        if jacobians:
+            stacked = np.matmul(w, np.concatenate(jac, axis=2) if len(jac) > 1 else jac[0])
         s = np.einsum("ki,ki->k", r, r)
         if self.robust is None:
-            return r, jac, 0.5 * s
+            return r, stacked, 0.5 * s
         scale = np.sqrt(self.robust.weight(s))
         r = r * scale[:, None]
-        jac = [j * scale[:, None, None] for j in jac]
-        return r, jac, 0.5 * self.robust.rho(s)
+        if stacked is not None:
+            stacked = stacked * scale[:, None, None]
+        return r, stacked, 0.5 * self.robust.rho(s)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -527,13 +532,13 @@ class LinearPrior(Factor):
 
     def whitened(
         self, blocks: Sequence[Array], jacobians: bool = True
-    ) -> tuple[Array, list[Array], Array]:
+    ) -> tuple[Array, Array | None, Array]:
         e, _ = self.evaluate(blocks, jacobians=False)
         rmat = self.sqrt_information[0]
         r = (rmat @ e[0])[None]
-        jac = [rmat[:, s][None] for s in self._slices] if jacobians else []
+        jac = rmat[None].copy() if jacobians else None
         s2 = np.array([r[0] @ r[0]])
         if self.robust is None:
             return r, jac, 0.5 * s2
         scale = float(np.sqrt(self.robust.weight(s2))[0])
-        return r * scale, [j * scale for j in jac], 0.5 * self.robust.rho(s2)
+        return r * scale, (None if jac is None else jac * scale), 0.5 * self.robust.rho(s2)

@@ -105,6 +105,8 @@ class Problem:
         self._keys: list[Hashable] = []
         self._index: dict[Hashable, int] = {}
         self._kinds: list[VariableKind] = []
+        self._kind_codes: dict[VariableKind, int] = {}
+        self._kind_of: IntArray = np.zeros(0, dtype=np.int64)
         self._dims: IntArray = np.zeros(0, dtype=np.int64)
         self.offsets: IntArray = np.zeros(0, dtype=np.int64)
         self.values: Array = np.zeros(0)
@@ -153,6 +155,8 @@ class Problem:
             raise ValueError("duplicate keys in one add_variables call")
         self._keys.extend(keys)
         self._kinds.extend([kind] * len(keys))
+        code = self._kind_codes.setdefault(kind, len(self._kind_codes))
+        self._kind_of = np.concatenate([self._kind_of, np.full(len(keys), code, dtype=np.int64)])
         offset0 = len(self.values)
         new_offsets = offset0 + kind.dim * np.arange(len(keys), dtype=np.int64)
         self.offsets = np.concatenate([self.offsets, new_offsets])
@@ -235,9 +239,17 @@ class Problem:
                 f"{factor.name}: factor {bad[0]} refers to unknown variable id(s) "
                 f"{ids[bad[0]].tolist()}"
             )
-        kinds = np.array(self._kinds, dtype=object)
+        for s in range(ids.shape[1]):
+            for t in range(s + 1, ids.shape[1]):
+                same = np.flatnonzero(ids[:, s] == ids[:, t])
+                if same.size:
+                    raise ValueError(
+                        f"{factor.name}: factor {same[0]} connects variable "
+                        f"{self._keys[ids[same[0], s]]!r} twice"
+                    )
         for j, kind in enumerate(factor.kinds):
-            wrong = np.flatnonzero(kinds[ids[:, j]] != kind)
+            code = self._kind_codes.get(kind, -1)
+            wrong = np.flatnonzero(self._kind_of[ids[:, j]] != code)
             if wrong.size:
                 got = self._kinds[ids[wrong[0], j]]
                 raise ValueError(
@@ -282,53 +294,121 @@ class Problem:
 
 
 class NormalEquations:
-    """Sparse ``A^T A`` (upper triangle, CSC) and ``A^T r`` assembled from index arrays."""
+    """Sparse ``A^T A`` (upper triangle, CSC) and ``A^T r`` assembled from index arrays.
+
+    The pattern is built at the block level: the unique pairs of variables that share a
+    factor, sorted by (column variable, row variable), expanded to scalar CSC entries
+    without any sort of scalar entries. For every factor kind, the CSC position of each
+    entry of its per-factor ``A_k^T A_k`` (upper triangle) is computed once, so that each
+    linearisation refills the values with one ``np.bincount``.
+    """
 
     def __init__(self, problem: Problem, backend: str = "qdldl") -> None:
         if backend not in ("qdldl", "splu"):
             raise ValueError(f"unknown backend {backend!r}: use 'qdldl' or 'splu'")
-        self.problem = problem
-        self.backend = backend
-        n = problem.dim
-        self.n = n
         if not problem.factors:
             raise SingularProblemError("the problem has no factors")
-        touched = np.zeros(problem.num_variables, dtype=bool)
-        self._columns: list[IntArray] = []
-        keys_all: list[IntArray] = []
-        masks: list[NDArray[np.bool_]] = []
+        self.problem = problem
+        self.backend = backend
+        self.n = n = problem.dim
+        num_vars = problem.num_variables
+        offsets = problem.offsets
+        dims = problem._dims
+        touched = np.zeros(num_vars, dtype=bool)
+        pair_keys: list[IntArray] = [np.arange(num_vars, dtype=np.int64) * (num_vars + 1)]
         for f in problem.factors:
             touched[f.variables.reshape(-1)] = True
-            cols = np.concatenate(
-                [
-                    problem.offsets[f.variables[:, j]][:, None] + np.arange(kind.dim)
-                    for j, kind in enumerate(f.kinds)
-                ],
-                axis=1,
-            )
-            self._columns.append(cols)
-            rows = cols[:, :, None]
-            colm = cols[:, None, :]
-            upper = (rows <= colm).reshape(-1)
-            masks.append(upper)
-            keys_all.append((colm * n + rows).reshape(-1)[upper])
+            m = f.variables.shape[1]
+            for s in range(m):
+                for t in range(s + 1, m):
+                    lo = np.minimum(f.variables[:, s], f.variables[:, t])
+                    hi = np.maximum(f.variables[:, s], f.variables[:, t])
+                    pair_keys.append(hi * num_vars + lo)
         free = np.flatnonzero(~touched)
         if free.size:
             raise SingularProblemError(
                 f"variable {problem.key(int(free[0]))!r} is not constrained by any factor"
                 + (f" (and {free.size - 1} more)" if free.size > 1 else "")
             )
-        diag = np.arange(n, dtype=np.int64) * (n + 1)
-        pattern = np.unique(np.concatenate(keys_all + [diag]))
-        self.indices = (pattern % n).astype(np.int32)
-        col_of = pattern // n
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(col_of, minlength=n))]).astype(
-            np.int32
+        keys = np.unique(np.concatenate(pair_keys))
+        col_var = keys // num_vars
+        row_var = keys % num_vars
+        row_dim = dims[row_var]
+        # pairs are grouped by column variable, diagonal pair last in each group
+        group_start = np.searchsorted(col_var, np.arange(num_vars))
+        group_size = np.diff(np.append(group_start, len(keys)))
+        csum = np.cumsum(row_dim)
+        rows_before = (
+            csum - row_dim - np.repeat(csum[group_start] - row_dim[group_start], group_size)
         )
-        self.nnz = len(pattern)
-        self._masks = masks
-        self._positions = np.concatenate([np.searchsorted(pattern, k) for k in keys_all])
-        self.diagonal_positions = np.searchsorted(pattern, diag)
+        self._pair_keys = keys
+        self._rows_before = rows_before  # rows of earlier pairs in the same columns
+        off_diag_rows = rows_before[group_start + group_size - 1]  # S_w
+        within = np.arange(n) - np.repeat(offsets, dims)  # b of each scalar column
+        col_variable = np.repeat(np.arange(num_vars), dims)
+        col_counts = off_diag_rows[col_variable] + within + 1
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(col_counts, out=indptr[1:])
+        self.nnz = int(indptr[-1])
+        # runs: for each scalar column, one run of rows per pair of its group
+        runs_per_col = group_size[col_variable]
+        run_col = np.repeat(np.arange(n), runs_per_col)
+        run_first = np.concatenate([[0], np.cumsum(runs_per_col)[:-1]])
+        run_pair = np.repeat(group_start[col_variable], runs_per_col) + (
+            np.arange(len(run_col)) - np.repeat(run_first, runs_per_col)
+        )
+        is_diag = row_var[run_pair] == col_var[run_pair]
+        run_len = np.where(is_diag, within[run_col] + 1, row_dim[run_pair])
+        run_start = np.concatenate([[0], np.cumsum(run_len)[:-1]])
+        self.indices = (
+            np.repeat(offsets[row_var[run_pair]], run_len)
+            + np.arange(self.nnz)
+            - np.repeat(run_start, run_len)
+        ).astype(np.int32)
+        self.indptr = indptr.astype(np.int32)
+        self.diagonal_positions = indptr[1:] - 1
+        self._off_diag_rows = off_diag_rows
+
+        self._columns: list[IntArray] = []
+        self._splits: list[list[int]] = []
+        self._take: list[IntArray] = []
+        positions: list[IntArray] = []
+        for f in problem.factors:
+            var = f.variables
+            kdims = [k.dim for k in f.kinds]
+            starts = np.cumsum([0, *kdims])
+            self._splits.append(list(starts[1:-1]))
+            self._columns.append(
+                np.concatenate(
+                    [offsets[var[:, j]][:, None] + np.arange(d) for j, d in enumerate(kdims)],
+                    axis=1,
+                )
+            )
+            dim = int(starts[-1])
+            take: list[int] = []
+            pos_parts: list[IntArray] = []
+            for s in range(len(kdims)):
+                for t in range(s, len(kdims)):
+                    a, b = np.meshgrid(np.arange(kdims[s]), np.arange(kdims[t]), indexing="ij")
+                    a, b = a.reshape(-1), b.reshape(-1)
+                    if s == t:
+                        keep = a <= b
+                        a, b = a[keep], b[keep]
+                    take.extend(((starts[s] + a) * dim + starts[t] + b).tolist())
+                    vs, vt = var[:, s], var[:, t]
+                    swap = (vs > vt)[:, None]
+                    lo, hi = np.minimum(vs, vt), np.maximum(vs, vt)
+                    pair = np.searchsorted(keys, hi * num_vars + lo)
+                    row_local = np.where(swap, b[None], a[None])
+                    col_local = np.where(swap, a[None], b[None])
+                    pos_parts.append(
+                        indptr[offsets[hi][:, None] + col_local]
+                        + rows_before[pair][:, None]
+                        + row_local
+                    )
+            self._take.append(np.array(take, dtype=np.int64))
+            positions.append(np.concatenate(pos_parts, axis=1).reshape(-1))
+        self._positions = np.concatenate(positions)
         self._gradient_index = np.concatenate([c.reshape(-1) for c in self._columns])
         self._factorization: object | None = None
         self._checked = False
@@ -340,12 +420,14 @@ class NormalEquations:
         hess_parts: list[Array] = []
         grad_parts: list[Array] = []
         cost = 0.0
-        for f, mask in zip(self.problem.factors, self._masks, strict=True):
-            r, jac, costs = f.whitened(self.problem._blocks(f, values))
-            a = np.concatenate(jac, axis=2) if len(jac) > 1 else jac[0]
-            h = np.matmul(a.transpose(0, 2, 1), a)
-            hess_parts.append(h.reshape(-1)[mask])
-            grad_parts.append(np.einsum("kdi,kd->ki", a, r).reshape(-1))
+        for f, cols, splits, take in zip(
+            self.problem.factors, self._columns, self._splits, self._take, strict=True
+        ):
+            r, a, costs = f.whitened(np.split(values[cols], splits, axis=1))
+            at = a.transpose(0, 2, 1)  # type: ignore[union-attr]
+            h = np.matmul(at, a)
+            hess_parts.append(h.reshape(len(h), -1)[:, take].reshape(-1))
+            grad_parts.append(np.matmul(at, r[:, :, None]).reshape(-1))
             cost += float(costs.sum())
         self.hessian_data = np.bincount(
             self._positions, weights=np.concatenate(hess_parts), minlength=self.nnz
@@ -356,6 +438,13 @@ class NormalEquations:
         if not np.isfinite(cost) or not np.all(np.isfinite(self.hessian_data)):
             raise FloatingPointError("the linearisation produced non-finite values")
         return cost
+
+    def cost(self, values: Array) -> float:
+        """Cost at ``values`` (no Jacobians)."""
+        total = 0.0
+        for f, cols, splits in zip(self.problem.factors, self._columns, self._splits, strict=True):
+            total += float(f.whitened(np.split(values[cols], splits, axis=1), False)[2].sum())
+        return total
 
     def matrix(self, damping: float = 0.0) -> sp.csc_matrix:
         """Upper triangle of ``A^T A + damping * diag(A^T A)`` as CSC."""
@@ -368,15 +457,18 @@ class NormalEquations:
     def check_blocks(self) -> None:
         """Raise if a variable's own information block is singular (it is under-constrained)."""
         problem = self.problem
+        indptr = self.indptr.astype(np.int64)
         for dim in np.unique(problem._dims):
             ids = np.flatnonzero(problem._dims == dim)
-            rows = problem.offsets[ids][:, None, None] + np.arange(dim)[None, :, None]
-            cols = problem.offsets[ids][:, None, None] + np.arange(dim)[None, None, :]
-            lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
-            pattern_keys = self.indptr_keys()
-            pos = np.searchsorted(pattern_keys, hi * self.n + lo)
-            blocks = self.hessian_data[pos]
-            eig = np.linalg.eigvalsh(blocks)
+            a = np.arange(dim)[None, :, None]
+            b = np.arange(dim)[None, None, :]
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            pos = (
+                indptr[problem.offsets[ids][:, None, None] + hi]
+                + self._off_diag_rows[ids][:, None, None]
+                + lo
+            )
+            eig = np.linalg.eigvalsh(self.hessian_data[pos])
             bad = np.flatnonzero(~(eig[:, 0] > 1e-12 * np.maximum(eig[:, -1], 1e-300)))
             if bad.size:
                 key = problem.key(int(ids[bad[0]]))
@@ -385,10 +477,6 @@ class NormalEquations:
                     f"variable {key!r} is under-constrained: its information block has rank "
                     f"{rank} < {dim} (e.g. a pose seen only through a 2D relative position)"
                 )
-
-    def indptr_keys(self) -> IntArray:
-        col = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self.indptr))
-        return col * self.n + self.indices.astype(np.int64)
 
     def factorize(self, damping: float = 0.0) -> None:
         """Numeric factorisation of the damped system (symbolic analysis reused)."""
@@ -458,17 +546,13 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     iterations = 0
     reason = "maximum iterations reached"
     converged = False
-    first = True
     while iterations < options.max_iterations:
-        if first:
-            system.check_blocks()
-            first = False
         system.factorize(damping)
         iterations += 1
         step = system.solve(-system.gradient)
         candidate = problem.values + step
         candidate[problem._angle_positions] = se2.wrap_angle(candidate[problem._angle_positions])
-        new_cost = problem.cost(candidate)
+        new_cost = system.cost(candidate)
         step_norm = float(np.abs(step).max()) if step.size else 0.0
         if new_cost <= cost:
             problem.values = candidate
