@@ -1,0 +1,282 @@
+"""Figures drawn from summary.json: geometry helpers, and drawing synthetic summaries."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from csam_ros import figures
+from csam_ros.core import se2
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def synthetic_summary(
+    poses_per_robot: int = 80, feature_spacing: float = 1.0, seed: int = 0
+) -> dict[str, Any]:
+    """A map-joining-like summary: robot1 (reference) and robot2 (aligned) cross between two
+    feature areas, robot3 is pending. Local quantities are in each robot's first-pose frame."""
+    rng = np.random.default_rng(seed)
+    sample_time = 0.5
+    stamps = sample_time * np.arange(poses_per_robot)
+    travel = 0.5 * stamps
+    starts = {"robot1": np.array([-10.5, -1.0, 0.0]), "robot2": np.array([10.5, 1.0, np.pi])}
+    true_poses = {
+        name: se2.compose(start, np.column_stack((travel, 0 * travel, 0 * travel)))
+        for name, start in starts.items()
+    }
+    grid = np.arange(-2.5, 2.5 + 1e-9, feature_spacing)
+    gx, gy = np.meshgrid(grid, grid)
+    area = np.column_stack((gx.ravel(), gy.ravel()))
+    world = np.concatenate((area + [-9.0, 0.0], area + [9.0, 0.0]))
+    world += rng.uniform(-0.2, 0.2, world.shape)
+
+    distance = np.linalg.norm(true_poses["robot1"][:, :2] - true_poses["robot2"][:, :2], axis=1)
+    rendezvous = stamps[distance < 4.0].tolist()
+    robots: dict[str, Any] = {}
+    seen_by: dict[int, list[str]] = {}
+    for name, poses in true_poses.items():
+        base = starts[name]
+        near = np.linalg.norm(world[None] - poses[::10, None, :2], axis=2).min(axis=0) < 4.0
+        ids = np.flatnonzero(near)
+        local_xy = se2.inverse_transform_point(base, world[ids])
+        steps = np.cumsum(
+            rng.uniform(0.0, 0.01, poses_per_robot) + (np.arange(poses_per_robot) > 40) * 0.02
+        )
+        sigma_local = np.radians(0.05) + steps * np.radians(1.0)
+        sigma_local[0] = 0.0 if name == "robot1" else sigma_local[0]
+        for index, feature in enumerate(ids):
+            seen_by.setdefault(int(feature), []).append(f"{name}/{index}")
+        robots[name] = {
+            "base_node": base - starts["robot1"] if name == "robot2" else [0.0, 0.0, 0.0],
+            "base_node_cov": (
+                np.diag([0.01, 0.02, 1e-4]) if name == "robot2" else np.zeros((3, 3))
+            ).tolist(),
+            "alignment": "reference" if name == "robot1" else "aligned",
+            "stamps": stamps.tolist(),
+            "poses_local": se2.between(base, poses).tolist(),
+            "poses_joined": se2.between(starts["robot1"], poses).tolist(),
+            "sigma_phi_local": sigma_local.tolist(),
+            "sigma_phi_joined": (0.6 * sigma_local).tolist(),
+            "features_local": [
+                {"label": f"{name}/{i}", "xy": xy.tolist(), "cov": _feature_cov(rng, 1e-4).tolist()}
+                for i, xy in enumerate(local_xy)
+            ],
+            "rendezvous_stamps": rendezvous,
+        }
+    robots["robot2"]["base_node"] = se2.between(starts["robot1"], starts["robot2"]).tolist()
+    robots["robot3"] = {
+        "base_node": None,
+        "base_node_cov": None,
+        "alignment": "pending: no rendezvous yet",
+        "stamps": stamps[:20].tolist(),
+        "poses_local": np.column_stack(
+            (0.3 * stamps[:20], 0 * stamps[:20], 0 * stamps[:20])
+        ).tolist(),
+        "poses_joined": None,
+        "sigma_phi_local": np.radians(0.1 * np.arange(20)).tolist(),
+        "sigma_phi_joined": None,
+        "features_local": [],
+        "rendezvous_stamps": [],
+    }
+    reference = starts["robot1"]
+    features = [
+        {
+            "members": members,
+            "xy": se2.inverse_transform_point(reference, world[feature]).tolist(),
+            "cov": _feature_cov(rng, 4e-4 if len(members) == 1 else 2e-4).tolist(),
+        }
+        for feature, members in sorted(seen_by.items())
+    ]
+    associations = [
+        {"a": m[0], "b": m[1], "mahalanobis": float(rng.uniform(0, 5))}
+        for m in seen_by.values()
+        if len(m) > 1
+    ]
+    return {
+        "scenario": "map_joining",
+        "reference_frame": "robot1/map",
+        "robots": robots,
+        "features": features,
+        "associations": associations,
+        "timing_s": {"joint_solve": 0.1},
+    }
+
+
+def _feature_cov(rng: np.random.Generator, variance: float) -> np.ndarray:
+    root = rng.normal(0.0, math.sqrt(variance), (2, 2))
+    return root @ root.T + 1e-6 * np.eye(2)
+
+
+def assert_png(path: Path, min_bytes: int = 15_000) -> None:
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE, path
+    assert len(data) > min_bytes, (path, len(data))
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_chi2_quantile_matches_table_value() -> None:
+    assert figures.chi2_2dof_quantile(0.95) == pytest.approx(5.991, abs=5e-4)
+    assert figures.chi2_2dof_quantile(0.99) == pytest.approx(9.210, abs=5e-4)
+    scipy_stats = pytest.importorskip("scipy.stats")
+    assert figures.chi2_2dof_quantile(0.9) == pytest.approx(scipy_stats.chi2.ppf(0.9, 2))
+
+
+def test_ellipse_axes_of_rotated_covariance() -> None:
+    sigma_major, sigma_minor, angle = 0.3, 0.1, np.radians(30.0)
+    rotation = se2.rotation(angle)
+    cov = rotation @ np.diag([sigma_major**2, sigma_minor**2]) @ rotation.T
+    widths, heights, angles = figures.ellipse_axes(np.stack([cov, np.diag([0.04, 0.09])]))
+    k = math.sqrt(5.991464547107979)
+    np.testing.assert_allclose(widths, [2 * k * 0.3, 2 * k * 0.3])
+    np.testing.assert_allclose(heights, [2 * k * 0.1, 2 * k * 0.2])
+    # an axis has no sign: compare the direction modulo 180 degrees
+    np.testing.assert_allclose(np.mod(angles, 180.0), [30.0, 90.0], atol=1e-9)
+
+
+def test_ellipse_axes_boundary_point_is_on_the_chi2_contour() -> None:
+    cov = np.array([[0.5, 0.2], [0.2, 0.3]])
+    width, height, angle = figures.ellipse_axes(cov, confidence=0.9)
+    theta = np.radians(angle[0])
+    ends = np.array(
+        [
+            0.5 * width[0] * np.array([np.cos(theta), np.sin(theta)]),
+            0.5 * height[0] * np.array([-np.sin(theta), np.cos(theta)]),
+        ]
+    )
+    distances = np.einsum("ni,ij,nj->n", ends, np.linalg.inv(cov), ends)
+    np.testing.assert_allclose(distances, figures.chi2_2dof_quantile(0.9))
+
+
+def test_ellipse_axes_rejects_indefinite_and_asymmetric() -> None:
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        figures.ellipse_axes(np.array([[1.0, 0.0], [0.0, -1.0]]))
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        figures.ellipse_axes(np.array([[1.0, 0.5], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="shape"):
+        figures.ellipse_axes(np.eye(3))
+
+
+def test_group_stamps_splits_at_gaps() -> None:
+    stamps = [10.5, 10.0, 11.0, 11.5, 30.0, 30.5, 50.0, 10.0]
+    intervals = figures.group_stamps(stamps, max_gap=1.0)
+    np.testing.assert_array_equal(intervals, [[10.0, 11.5], [30.0, 30.5], [50.0, 50.0]])
+    assert figures.group_stamps([], max_gap=1.0).shape == (0, 2)
+    np.testing.assert_array_equal(figures.group_stamps(stamps, max_gap=100.0), [[10.0, 50.0]])
+    with pytest.raises(ValueError, match="max_gap"):
+        figures.group_stamps(stamps, max_gap=-1.0)
+
+
+def test_magnification_makes_small_ellipses_visible_but_not_huge() -> None:
+    assert figures.ellipse_magnification([1.0, 1.0], extent=20.0) == 1
+    factor = figures.ellipse_magnification([0.01, 0.012], extent=20.0)
+    assert factor > 1 and 0.012 * factor <= 0.08 * 20.0 and 0.01 * factor >= 0.006 * 20.0
+    assert figures.ellipse_magnification([], extent=20.0) == 1
+
+
+def test_robot_colours_are_stable_and_distinct() -> None:
+    colours = figures.robot_colours(["robot1", "robot2", "robot3"])
+    assert len(set(colours.values())) == 3
+    assert figures.robot_colours(["robot1", "robot2"])["robot2"] == colours["robot2"]
+
+
+# --------------------------------------------------------------------------- drawing
+
+
+def test_draw_all_writes_three_pngs(tmp_path: Path) -> None:
+    summary = synthetic_summary()
+    truth = np.array([f["xy"] for f in summary["features"]])
+    paths = figures.draw_all(summary, tmp_path / "out", truth=truth)
+    assert [p.name for p in paths] == ["local_maps.png", "heading_sigma.png", "joined_map.png"]
+    for path in paths:
+        assert_png(path)
+
+
+def test_draw_all_reads_summary_json_path(tmp_path: Path) -> None:
+    path = tmp_path / "summary.json"
+    path.write_text(json.dumps(synthetic_summary(poses_per_robot=30)))
+    for png in figures.draw_all(path, tmp_path):
+        assert_png(png)
+
+
+@pytest.mark.parametrize(
+    "drop",
+    [
+        "scenario",
+        "reference_frame",
+        "features",
+        "associations",
+        "timing_s",
+        "robots.*.features_local",
+        "robots.*.rendezvous_stamps",
+        "robots.*.sigma_phi_joined",
+        "robots.*.base_node_cov",
+        "robots.*.stamps",
+        "features.*.cov",
+    ],
+)
+def test_missing_optional_keys_do_not_crash(tmp_path: Path, drop: str) -> None:
+    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
+    head, _, key = drop.partition(".*.")
+    if not key:
+        del summary[head]
+    elif head == "robots":
+        for robot in summary["robots"].values():
+            robot.pop(key, None)
+    else:
+        for entry in summary[head]:
+            entry.pop(key, None)
+    for png in figures.draw_all(summary, tmp_path):
+        assert_png(png, min_bytes=5_000)
+
+
+def test_only_pending_and_empty_summaries_draw(tmp_path: Path) -> None:
+    summary = synthetic_summary(poses_per_robot=30)
+    pending_only = {"robots": {"robot3": summary["robots"]["robot3"]}}
+    for png in figures.draw_all(pending_only, tmp_path / "pending"):
+        assert_png(png, min_bytes=5_000)
+    for png in figures.draw_all({}, tmp_path / "empty"):
+        assert_png(png, min_bytes=5_000)
+
+
+def test_malformed_values_name_the_key(tmp_path: Path) -> None:
+    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
+    summary["robots"]["robot2"]["poses_local"] = [[0.0, 1.0]]
+    with pytest.raises(figures.SummaryError, match=r"robots\.robot2\.poses_local.*shape"):
+        figures.draw_local_maps(summary, tmp_path / "a.png")
+
+    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
+    summary["robots"]["robot1"]["sigma_phi_local"] = [0.1, 0.2]
+    with pytest.raises(figures.SummaryError, match=r"robot1\.sigma_phi_local: 2 entries but 30"):
+        figures.draw_heading_sigma(summary, tmp_path / "b.png")
+
+    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
+    summary["features"][3]["cov"] = [[1.0, 0.0], [0.0, -2.0]]
+    label = "+".join(summary["features"][3]["members"])
+    with pytest.raises(figures.SummaryError, match=rf"features: covariance of '{label}'"):
+        figures.draw_joined_map(summary, tmp_path / "c.png")
+
+    with pytest.raises(figures.SummaryError, match="truth"):
+        figures.draw_joined_map(synthetic_summary(30), tmp_path / "d.png", truth=np.zeros(4))
+
+
+def test_large_summary_draws(tmp_path: Path) -> None:
+    """A few thousand poses and features go through the collections (speed is printed)."""
+    import time
+
+    summary = synthetic_summary(poses_per_robot=2000, feature_spacing=0.12)
+    count = len(summary["features"])
+    start = time.perf_counter()
+    figures.draw_joined_map(summary, tmp_path / "joined.png")
+    elapsed = time.perf_counter() - start
+    print(f"joined map with {count} features and 2 x 2000 poses: {elapsed:.2f} s")
+    assert count > 2000
+    assert_png(tmp_path / "joined.png")
