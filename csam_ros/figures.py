@@ -143,6 +143,22 @@ def ellipse_magnification(
     return MAGNIFICATIONS[index]
 
 
+def value_axis_scale(values: ArrayLike) -> tuple[str, tuple[float, float] | None]:
+    """``("log", limits)`` when the positive values span more than two decades, else linear.
+
+    The span is taken from the 2nd percentile up, so that one anchored pose with a near-zero
+    standard deviation does not force a log axis on its own.
+    """
+    array = np.asarray(values, dtype=float).ravel()
+    positive = array[np.isfinite(array) & (array > 0.0)]
+    if positive.size == 0:
+        return "linear", None
+    low, high = float(np.quantile(positive, 0.02)), float(positive.max())
+    if high > 100.0 * low:
+        return "log", (low / 2.0, high * 1.5)
+    return "linear", (0.0, high * 1.08)
+
+
 def robot_colours(robot_names: Sequence[str]) -> dict[str, str]:
     """One colour per robot, by its position in the summary (the same in every figure)."""
     return {name: ROBOT_PALETTE[i % len(ROBOT_PALETTE)] for i, name in enumerate(robot_names)}
@@ -317,6 +333,9 @@ def _robot(name: str, entry: Any, colour: str) -> _Robot:
         base_node=_fixed(entry.get("base_node"), (3,), f"{where}.base_node"),
         base_node_cov=_fixed(entry.get("base_node_cov"), (3, 3), f"{where}.base_node_cov"),
     )
+    for key, values in (("stamps", stamps), ("rendezvous_stamps", robot.rendezvous_stamps)):
+        if values is not None and not np.isfinite(values).all():
+            raise SummaryError(f"{where}.{key}: not all finite")
     if stamps is not None:
         for key, values in (
             ("poses_local", robot.poses_local),
@@ -654,16 +673,12 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
             color="0.4",
         )
 
-    values = np.concatenate(plotted) if plotted else np.empty(0)
-    positive = values[np.isfinite(values) & (values > 0)]
-    if positive.size:
-        low, high = float(np.quantile(positive, 0.02)), float(positive.max())
-        if high > 100.0 * low:
-            axes.set_yscale("log")
-            axes.set_ylim(low / 2.0, high * 1.5)
-            axes.set_ylabel("heading std-dev σ_φ [deg] (log scale)")
-        else:
-            axes.set_ylim(0.0, high * 1.08)
+    scale, limits = value_axis_scale(np.concatenate(plotted) if plotted else np.empty(0))
+    axes.set_yscale(scale)
+    if limits is not None:
+        axes.set_ylim(*limits)
+    if scale == "log":
+        axes.set_ylabel("heading std-dev σ_φ [deg] (log scale)")
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     return _save(figure, path)
 

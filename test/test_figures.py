@@ -182,6 +182,15 @@ def test_magnification_makes_small_ellipses_visible_but_not_huge() -> None:
     assert figures.ellipse_magnification([], extent=20.0) == 1
 
 
+def test_value_axis_scale_goes_log_beyond_two_decades() -> None:
+    assert figures.value_axis_scale([0.1, 0.5, 2.0]) == ("linear", (0.0, 2.0 * 1.08))
+    scale, limits = figures.value_axis_scale(np.geomspace(0.01, 5.0, 50))
+    assert scale == "log" and limits is not None and limits[0] < 0.02 and limits[1] > 5.0
+    # one anchored pose at zero or near zero does not force a log axis
+    assert figures.value_axis_scale([0.0, 1e-9, *np.linspace(0.1, 2.0, 200)])[0] == "linear"
+    assert figures.value_axis_scale([np.nan, 0.0]) == ("linear", None)
+
+
 def test_robot_colours_are_stable_and_distinct() -> None:
     colours = figures.robot_colours(["robot1", "robot2", "robot3"])
     assert len(set(colours.values())) == 3
