@@ -100,25 +100,35 @@ def simulate_landmark_problem(
     measured_inputs = inputs + rng.normal(size=inputs.shape) * sig
     odometry, odometry_cov = motion.step_covariance(measured_inputs, dt, sig)
 
-    local = se2.inverse_transform_point(poses[:, None, :], landmarks[None, :, :])
-    rng_all, bearing_all = sensor.cartesian_to_polar(local)
-    visible = (rng_all < sensor_range) & (np.abs(bearing_all) < np.radians(120)) & (rng_all > 0.1)
+    def visibility(lms: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+        local = se2.inverse_transform_point(poses[:, None, :], lms[None, :, :])
+        r, b = sensor.cartesian_to_polar(local)
+        return r, b, (r < sensor_range) & (np.abs(b) < np.radians(120)) & (r > 0.1)
+
+    rng_all, bearing_all, visible = visibility(landmarks)
+    unseen = np.flatnonzero(~visible.any(axis=0))
+    if unseen.size:  # move never-visible landmarks in front of random poses
+        hosts = poses[rng.integers(0, num_poses, unseen.size)]
+        dist = rng.uniform(0.5, 0.8 * sensor_range, unseen.size)
+        ang = rng.uniform(-1.0, 1.0, unseen.size)
+        local_xy = np.stack([dist * np.cos(ang), dist * np.sin(ang)], axis=1)
+        landmarks[unseen] = se2.transform_point(hosts, local_xy)
+        rng_all, bearing_all, visible = visibility(landmarks)
     pi, li = np.nonzero(visible)
     if len(pi) < num_observations:
         raise ValueError(f"only {len(pi)} visible pairs for {num_observations} observations")
-    keep = np.sort(rng.choice(len(pi), num_observations, replace=False))
+    # one observation of every landmark, the rest drawn uniformly among visible pairs
+    first_of_each = np.unique(li, return_index=True)[1]
+    if num_observations < len(first_of_each):
+        raise ValueError(f"{num_observations} observations cannot see {num_landmarks} landmarks")
+    others = np.setdiff1d(np.arange(len(pi)), first_of_each)
+    extra = rng.choice(others, num_observations - len(first_of_each), replace=False)
+    keep = np.sort(np.concatenate([first_of_each, extra]))
     pi, li = pi[keep], li[keep]
     obs_r = rng_all[pi, li] + rng.normal(0.0, sigma_range, len(pi))
     obs_b = se2.wrap_angle(bearing_all[pi, li] + rng.normal(0.0, sigma_bearing, len(pi)))
 
     initial = motion.dead_reckoning(odometry, poses[0])
-    seen = np.unique(li)
-    if len(seen) < num_landmarks:
-        keep_lm = np.zeros(num_landmarks, dtype=bool)
-        keep_lm[seen] = True
-        remap = np.cumsum(keep_lm) - 1
-        landmarks = landmarks[keep_lm]
-        li = remap[li]
     first = np.unique(li, return_index=True)[1]
     z, _ = sensor.polar_to_cartesian(obs_r, obs_b, sigma_range, sigma_bearing)
     initial_landmarks = se2.transform_point(initial[pi[first]], z[first])
@@ -413,7 +423,10 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(("GTSAM LM, identical objective", gti, gti_mem))
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print()
-    header = f"{'solver':32s} {'iter':>5s} {'s/iter':>9s} {'total s':>9s} {'final cost':>14s} {'peak MB':>8s}"
+    header = (
+        f"{'solver':32s} {'iter':>5s} {'s/iter':>9s} {'total s':>9s} {'final cost':>14s} "
+        f"{'peak MB':>8s}"
+    )
     print(header)
     for name, r, mem in rows:
         print(

@@ -1,0 +1,67 @@
+"""Selected marginal covariances and marginal square-root information against dense algebra."""
+
+import numpy as np
+import pytest
+
+from csam_ros.bench.smoothing import build_problem, simulate_landmark_problem
+from csam_ros.core.covariance import (
+    factorize_at_estimate,
+    marginal_covariance,
+    marginal_covariances,
+    marginal_sqrt_information,
+)
+
+
+@pytest.fixture(scope="module")
+def solved():
+    sim = simulate_landmark_problem(120, 10, 200, seed=2, area=8.0)
+    problem = build_problem(sim)
+    problem.solve()
+    system = factorize_at_estimate(problem)
+    info = system.matrix().toarray()
+    info = info + np.triu(info, 1).T
+    return problem, system, info
+
+
+def test_joint_marginal_with_cross_terms_equals_dense_inverse(solved):
+    problem, system, info = solved
+    keys = [("l", 4), ("x", 7), ("x", 119), ("l", 0)]
+    cov = marginal_covariance(problem, keys, system)
+    cols = problem.scalar_indices(problem.indices(keys))
+    dense = np.linalg.inv(info)[np.ix_(cols, cols)]
+    np.testing.assert_allclose(cov, dense, rtol=1e-8, atol=1e-12 * np.abs(dense).max())
+    blocks = marginal_covariances(problem, keys, system)
+    np.testing.assert_allclose(blocks[1], dense[2:5, 2:5], rtol=1e-8)
+    np.testing.assert_allclose(blocks[3], dense[8:10, 8:10], rtol=1e-8)
+
+
+def test_splu_backend_gives_the_same_covariance(solved):
+    problem, _, info = solved
+    keys = [("x", 50), ("l", 2)]
+    cov = marginal_covariance(problem, keys, factorize_at_estimate(problem, "splu"))
+    cols = problem.scalar_indices(problem.indices(keys))
+    np.testing.assert_allclose(cov, np.linalg.inv(info)[np.ix_(cols, cols)], rtol=1e-8)
+    problem.normal_equations("qdldl")  # restore the default backend for other tests
+
+
+def test_marginal_sqrt_information_is_last_block_of_r_with_keys_ordered_last(solved):
+    problem, system, info = solved
+    keys = [("x", 30), ("x", 90), ("l", 5)]
+    r_s, order = marginal_sqrt_information(problem, keys, system)
+    assert order == keys
+    assert np.allclose(np.tril(r_s, -1), 0)
+    assert np.all(np.diag(r_s) > 0)
+    last = problem.scalar_indices(problem.indices(keys))
+    rest = np.setdiff1d(np.arange(problem.dim), last)
+    perm = np.concatenate([rest, last])
+    r_full = np.linalg.cholesky(info[np.ix_(perm, perm)]).T  # upper, R^T R = info
+    expected = r_full[-len(last) :, -len(last) :]
+    np.testing.assert_allclose(r_s, expected, rtol=1e-7, atol=1e-7 * np.abs(expected).max())
+
+
+def test_bad_selection_is_rejected(solved):
+    problem, system, _ = solved
+    with pytest.raises(ValueError, match="duplicates"):
+        marginal_covariance(problem, [("x", 1), ("x", 1)], system)
+    with pytest.raises(KeyError, match="no variable"):
+        marginal_covariance(problem, [("x", 1000)], system)
