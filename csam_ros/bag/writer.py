@@ -115,6 +115,7 @@ class BagWriter:
         self._topics: dict[str, _Topic] = {}
         self._schemas: dict[str, int] = {}
         self._pending_bytes = 0
+        self._pending_messages = 0
         self._last_flush = time.monotonic()
         self._start_ns: int | None = None
         self._end_ns = 0
@@ -194,6 +195,7 @@ class BagWriter:
         self._start_ns = stamp_ns if self._start_ns is None else min(self._start_ns, stamp_ns)
         self._end_ns = max(self._end_ns, stamp_ns)
         self._pending_bytes += len(data)
+        self._pending_messages += 1
         if (
             self._pending_bytes >= self.chunk_size
             or time.monotonic() - self._last_flush >= self.flush_period_s
@@ -201,11 +203,16 @@ class BagWriter:
             self.flush()
 
     def flush(self) -> None:
-        """Close the current chunk, write it to the file and refresh metadata.yaml."""
+        """Close the current chunk, write it to the file and refresh metadata.yaml (nothing to
+        do when no message was written since the last flush)."""
         self._check_open()
+        if self._pending_messages == 0:
+            self._last_flush = time.monotonic()
+            return
         self._mcap.flush()
         self._file.flush()
         self._pending_bytes = 0
+        self._pending_messages = 0
         self._last_flush = time.monotonic()
         for topic in self._topics.values():
             topic.flushed_count = topic.message_count

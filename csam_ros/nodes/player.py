@@ -1,0 +1,244 @@
+"""player: publish a recorded bag again, like ``ros2 bag play``, with /clock.
+
+    player BAG [--rate R] [--topics T ...] [--loop] [--wait-for-subscribers [T ...]]
+
+Messages go out raw (the recorded CDR bytes) with their recorded log-time spacing divided by
+``--rate`` (2 = twice as fast, 0 = as fast as possible). /clock (rosgraph_msgs/Clock) carries
+the recorded log time: before each message, and every ``--clock-period`` seconds while waiting
+between messages; a /clock recorded in the bag is not replayed (``--no-clock`` replays it
+instead). Each topic is published with the recorded QoS (reliability and durability, when all
+recorded publishers agree; transient local with the recorded depth).
+
+BAG is a bag directory or an .mcap file. A bag whose recorder was killed plays up to its last
+complete chunk (with a warning); a bag without metadata.yaml plays from its .mcap files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from rosgraph_msgs.msg import Clock
+
+from csam_ros.bag import BagError, BagInfo, BagMessage, inspect_bag, publisher_qos, read_bag
+from csam_ros.bag.types import UnknownMessageTypeError, message_class
+
+CLOCK_TOPIC = "/clock"
+
+
+class PlayerNode(Node):
+    """Publishers for the played topics and /clock, and the timed playback loop."""
+
+    def __init__(self, bag: BagInfo, topics: Sequence[str], publish_clock: bool = True) -> None:
+        super().__init__("player")
+        self.bag = bag
+        self.published = 0
+        self.skipped_topics: list[str] = []
+        self._topic_publishers: dict[str, Publisher] = {}
+        for topic in topics:
+            info = bag.topics[topic]
+            try:
+                cls = message_class(info.msgtype)
+            except UnknownMessageTypeError as error:
+                self.get_logger().error(f"not playing {topic}: {error}")
+                self.skipped_topics.append(topic)
+                continue
+            qos = publisher_qos(info.offered_qos_profiles)
+            self._topic_publishers[topic] = self.create_publisher(cls, topic, qos)
+        self._clock_publisher = (
+            self.create_publisher(
+                Clock, CLOCK_TOPIC, QoSProfile(depth=1, durability=DurabilityPolicy.VOLATILE)
+            )
+            if publish_clock
+            else None
+        )
+        self._last_clock = -1
+
+    @property
+    def topics(self) -> list[str]:
+        """Topics this player publishes (bag topics with an installed message type)."""
+        return list(self._topic_publishers)
+
+    def wait_for_subscribers(self, topics: Iterable[str], timeout_s: float) -> list[str]:
+        """Wait until each of ``topics`` has a matched subscription; returns those without
+        one when ``timeout_s`` ran out."""
+        waiting = [t for t in topics if t in self._topic_publishers]
+        deadline = time.monotonic() + timeout_s
+        while self.context.ok():
+            publishers = self._topic_publishers
+            waiting = [t for t in waiting if publishers[t].get_subscription_count() == 0]
+            if not waiting or time.monotonic() >= deadline:
+                break
+            time.sleep(0.02)
+        return waiting
+
+    def _publish_clock(self, stamp_ns: int) -> None:
+        if self._clock_publisher is None or stamp_ns == self._last_clock:
+            return
+        clock = Clock()
+        clock.clock.sec, clock.clock.nanosec = divmod(stamp_ns, 1_000_000_000)
+        self._clock_publisher.publish(clock)
+        self._last_clock = stamp_ns
+
+    def _sleep_until(
+        self, due: float, start_wall: float, start_log_ns: int, rate: float, clock_period_s: float
+    ) -> None:
+        """Sleep until monotonic time ``due``, publishing the interpolated /clock."""
+        while self.context.ok():
+            now = time.monotonic()
+            if now >= due:
+                return
+            time.sleep(min(due - now, clock_period_s))
+            if time.monotonic() < due:
+                elapsed_ns = int((time.monotonic() - start_wall) * rate * 1e9)
+                self._publish_clock(start_log_ns + elapsed_ns)
+
+    def play(self, messages: Iterable[BagMessage], rate: float, clock_period_s: float) -> None:
+        """Publish ``messages`` (in log-time order) with their spacing divided by ``rate``."""
+        start_wall = time.monotonic()
+        start_log_ns: int | None = None
+        for message in messages:
+            publisher = self._topic_publishers.get(message.topic)
+            if publisher is None:
+                continue
+            if start_log_ns is None:
+                start_log_ns = message.log_time_ns
+            if rate > 0:
+                due = start_wall + (message.log_time_ns - start_log_ns) / 1e9 / rate
+                self._sleep_until(due, start_wall, start_log_ns, rate, clock_period_s)
+            if not self.context.ok():
+                return
+            self._publish_clock(message.log_time_ns)
+            publisher.publish(message.data)
+            self.published += 1
+
+    def finish(self, linger_s: float) -> None:
+        """Wait until reliable subscribers have acknowledged everything, then ``linger_s``
+        more seconds (transient local late joiners), then log a summary."""
+        for topic, publisher in self._topic_publishers.items():
+            if publisher.qos_profile.reliability != ReliabilityPolicy.RELIABLE:
+                continue
+            if not publisher.wait_for_all_acked(Duration(seconds=5)):
+                self.get_logger().warning(f"not every subscriber of {topic} acknowledged")
+        end = time.monotonic() + linger_s
+        while self.context.ok() and time.monotonic() < end:
+            time.sleep(0.05)
+        skipped = f"; skipped {', '.join(self.skipped_topics)}" if self.skipped_topics else ""
+        self.get_logger().info(
+            f"published {self.published} messages on {len(self._topic_publishers)} topics from "
+            f"{self.bag.path}{skipped}"
+        )
+
+
+def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="player",
+        description="Publish a recorded rosbag2 (MCAP) bag with its recorded timing and /clock.",
+        epilog="ROS arguments go after --ros-args.",
+    )
+    parser.add_argument("bag", type=Path, help="bag directory or .mcap file")
+    parser.add_argument(
+        "--rate", type=float, default=1.0, help="speed factor (0: as fast as possible)"
+    )
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these topics")
+    parser.add_argument("--loop", action="store_true", help="play again from the start forever")
+    parser.add_argument(
+        "--no-clock", action="store_true", help="do not publish /clock (replay a recorded one)"
+    )
+    parser.add_argument(
+        "--clock-period", type=float, default=0.05, metavar="S", help="/clock period in gaps"
+    )
+    parser.add_argument(
+        "--delay", type=float, default=0.5, metavar="S", help="wait S s for discovery first"
+    )
+    parser.add_argument(
+        "--wait-for-subscribers",
+        nargs="*",
+        metavar="TOPIC",
+        help="before playing, wait until these topics (none named: all) have a subscriber",
+    )
+    parser.add_argument(
+        "--wait-timeout", type=float, default=10.0, metavar="S", help="longest wait for them"
+    )
+    parser.add_argument(
+        "--linger", type=float, default=0.0, metavar="S", help="stay S s after the last message"
+    )
+    options = parser.parse_args(argv)
+    if options.rate < 0:
+        parser.error(f"--rate must be >= 0, got {options.rate}")
+    for name in ("clock_period", "delay", "wait_timeout", "linger"):
+        if getattr(options, name) < 0 or (name == "clock_period" and options.clock_period == 0):
+            parser.error(f"--{name.replace('_', '-')} must be positive")
+    return options
+
+
+def select_topics(bag: BagInfo, requested: Sequence[str] | None, publish_clock: bool) -> list[str]:
+    """The bag topics to play; BagError for a requested topic the bag lacks or no messages."""
+    if requested is not None:
+        missing = [topic for topic in requested if topic not in bag.topics]
+        if missing:
+            raise BagError(
+                f"{bag.path} has no topic {', '.join(missing)} "
+                f"(it has {', '.join(bag.topics) or 'none'})"
+            )
+        topics = list(dict.fromkeys(requested))
+    else:
+        topics = list(bag.topics)
+    if publish_clock:
+        topics = [topic for topic in topics if topic != CLOCK_TOPIC]
+    if not any(bag.topics[topic].message_count for topic in topics):
+        raise BagError(f"{bag.path} holds no messages to play")
+    return topics
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv if args is None else args)
+    options = parse_arguments(remove_ros_args(argv)[1:])
+    publish_clock = not options.no_clock
+    try:
+        bag = inspect_bag(options.bag)
+        topics = select_topics(bag, options.topics, publish_clock)
+    except BagError as error:
+        print(f"player: {error}", file=sys.stderr)
+        return 1
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = PlayerNode(bag, topics, publish_clock)
+        for warning in bag.warnings:
+            node.get_logger().warning(warning)
+        if not node.topics:
+            node.get_logger().error("no topic of the bag can be played")
+            return 1
+        time.sleep(options.delay)
+        if options.wait_for_subscribers is not None:
+            wanted = options.wait_for_subscribers or node.topics
+            unmatched = node.wait_for_subscribers(wanted, options.wait_timeout)
+            if unmatched:
+                node.get_logger().warning(f"no subscriber on {', '.join(unmatched)}; playing")
+        while True:
+            node.play(read_bag(bag.path, node.topics), options.rate, options.clock_period)
+            if not options.loop or not node.context.ok():
+                break
+        node.finish(options.linger)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
