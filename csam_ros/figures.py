@@ -426,7 +426,7 @@ def _extent(points: Sequence[FloatArray | None]) -> float:
 def _map_height(spans: Sequence[tuple[float, float]], axes_width_in: float) -> float:
     """Height of a map axes of the given width that fits the widest data aspect, clamped."""
     ratios = [(h + 0.1 * max(w, h)) / (w + 0.1 * max(w, h)) for w, h in spans if max(w, h) > 0]
-    ratio = max(ratios, default=1.0)
+    ratio = max(ratios, default=0.6)
     return axes_width_in * min(max(ratio, 0.4), 1.25)
 
 
@@ -582,7 +582,8 @@ def draw_local_maps(summary: Mapping[str, Any] | str | Path, path: str | Path) -
     handles.append(
         Line2D([], [], ls="none", marker="o", ms=6, color="0.7", mec="black", label="first pose")
     )
-    handles.append(Line2D([], [], ls="none", marker=".", color="0.1", ms=5, label="feature"))
+    if any(r.features_local.xy.shape[0] for r in robots):
+        handles.append(Line2D([], [], ls="none", marker=".", color="0.1", ms=5, label="feature"))
     if drawn_ellipses:
         handles.append(
             Line2D(
@@ -817,9 +818,12 @@ def draw_joined_map(
                 label="base node G_r (x axis; y axis pale)",
             )
         )
-    handles.append(
-        Line2D([], [], ls="none", marker="o", ms=6, color="0.7", mec="black", label="first pose")
-    )
+    if any(r.poses_joined is not None and r.poses_joined.shape[0] for r in aligned):
+        handles.append(
+            Line2D(
+                [], [], ls="none", marker="o", ms=6, color="0.7", mec="black", label="first pose"
+            )
+        )
     if drawn_rendezvous:
         handles.append(
             Line2D(
