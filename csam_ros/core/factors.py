@@ -255,6 +255,11 @@ class Factor(ABC):
         ``blocks[j]`` holds the values ``(K, dim_j)`` of the ``j``-th connected variable.
         """
 
+    def evaluate_stacked(self, blocks: Sequence[Array]) -> tuple[Array, Array]:
+        """Errors and the Jacobian blocks side by side ``(K, d, D)``; override to avoid a copy."""
+        errors, jac = self.evaluate(blocks, True)
+        return errors, (np.concatenate(jac, axis=2) if len(jac) > 1 else jac[0])
+
     def whitened(
         self, blocks: Sequence[Array], jacobians: bool = True
     ) -> tuple[Array, Array | None, Array]:
@@ -265,12 +270,13 @@ class Factor(ABC):
         ``jacobians``); and the cost of each factor ``0.5 rho(||W e||^2)``
         (``0.5 ||W e||^2`` without robust kernel).
         """
-        errors, jac = self.evaluate(blocks, jacobians)
         w = self.sqrt_information
-        r = np.matmul(w, errors[:, :, None])[:, :, 0]
-        stacked = None
         if jacobians:
-            stacked = np.matmul(w, np.concatenate(jac, axis=2) if len(jac) > 1 else jac[0])
+            errors, jac = self.evaluate_stacked(blocks)
+            stacked = np.matmul(w, jac)
+        else:
+            errors, stacked = self.evaluate(blocks, False)[0], None
+        r = np.einsum("kij,kj->ki", w, errors)
         s = np.einsum("ki,ki->k", r, r)
         if self.robust is None:
             return r, stacked, 0.5 * s
@@ -371,6 +377,14 @@ class RelativePose(Factor):
     def evaluate(
         self, blocks: Sequence[Array], jacobians: bool = True
     ) -> tuple[Array, list[Array]]:
+        e, jac = self._evaluate(blocks, jacobians)
+        return e, ([jac[:, :, :3], jac[:, :, 3:]] if jac is not None else [])
+
+    def evaluate_stacked(self, blocks: Sequence[Array]) -> tuple[Array, Array]:
+        e, jac = self._evaluate(blocks, True)
+        return e, jac  # type: ignore[return-value]
+
+    def _evaluate(self, blocks: Sequence[Array], jacobians: bool) -> tuple[Array, Array | None]:
         xa, xb = blocks
         c, s = np.cos(xa[:, 2]), np.sin(xa[:, 2])
         dx = xb[:, 0] - xa[:, 0]
@@ -380,17 +394,15 @@ class RelativePose(Factor):
         z = self.measured
         e = np.stack([lx - z[:, 0], ly - z[:, 1], se2.wrap_angle(xb[:, 2] - xa[:, 2] - z[:, 2])], 1)
         if not jacobians:
-            return e, []
-        k = len(e)
-        ja = np.zeros((k, 3, 3))
-        jb = np.zeros((k, 3, 3))
-        ja[:, 0, 0], ja[:, 0, 1], ja[:, 0, 2] = -c, -s, ly
-        ja[:, 1, 0], ja[:, 1, 1], ja[:, 1, 2] = s, -c, -lx
-        ja[:, 2, 2] = -1.0
-        jb[:, 0, 0], jb[:, 0, 1] = c, s
-        jb[:, 1, 0], jb[:, 1, 1] = -s, c
-        jb[:, 2, 2] = 1.0
-        return e, [ja, jb]
+            return e, None
+        jac = np.zeros((len(c), 3, 6))
+        jac[:, 0, 0], jac[:, 0, 1], jac[:, 0, 2] = -c, -s, ly
+        jac[:, 1, 0], jac[:, 1, 1], jac[:, 1, 2] = s, -c, -lx
+        jac[:, 2, 2] = -1.0
+        jac[:, 0, 3], jac[:, 0, 4] = c, s
+        jac[:, 1, 3], jac[:, 1, 4] = -s, c
+        jac[:, 2, 5] = 1.0
+        return e, jac
 
 
 def _point_in_body(
@@ -430,6 +442,21 @@ class PointObservation(Factor):
         h, jp, jl = _point_in_body(blocks[0], blocks[1], jacobians)
         e = h - self.measured
         return e, ([jp, jl] if jacobians else [])
+
+    def evaluate_stacked(self, blocks: Sequence[Array]) -> tuple[Array, Array]:
+        pose, point = blocks
+        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+        dx = point[:, 0] - pose[:, 0]
+        dy = point[:, 1] - pose[:, 1]
+        lx = c * dx + s * dy
+        ly = -s * dx + c * dy
+        e = np.stack([lx, ly], 1) - self.measured
+        jac = np.zeros((len(c), 2, 5))
+        jac[:, 0, 0], jac[:, 0, 1], jac[:, 0, 2] = -c, -s, ly
+        jac[:, 1, 0], jac[:, 1, 1], jac[:, 1, 2] = s, -c, -lx
+        jac[:, 0, 3], jac[:, 0, 4] = c, s
+        jac[:, 1, 3], jac[:, 1, 4] = -s, c
+        return e, jac
 
 
 class RelativePosition(Factor):

@@ -424,10 +424,10 @@ class NormalEquations:
             self.problem.factors, self._columns, self._splits, self._take, strict=True
         ):
             r, a, costs = f.whitened(np.split(values[cols], splits, axis=1))
-            at = a.transpose(0, 2, 1)  # type: ignore[union-attr]
+            at = np.ascontiguousarray(a.transpose(0, 2, 1))  # type: ignore[union-attr]
             h = np.matmul(at, a)
-            hess_parts.append(h.reshape(len(h), -1)[:, take].reshape(-1))
-            grad_parts.append(np.matmul(at, r[:, :, None]).reshape(-1))
+            hess_parts.append(np.take(h.reshape(len(h), -1), take, axis=1).reshape(-1))
+            grad_parts.append(np.einsum("kid,kd->ki", at, r).reshape(-1))
             cost += float(costs.sum())
         self.hessian_data = np.bincount(
             self._positions, weights=np.concatenate(hess_parts), minlength=self.nnz

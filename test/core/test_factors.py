@@ -29,6 +29,9 @@ def check_jacobians(factor, blocks, eps=1e-6, atol=1e-6):
     """Compare the analytic Jacobian blocks of all factors with central differences."""
     errors, jac = factor.evaluate(blocks)
     assert errors.shape == (len(factor), jac[0].shape[1])
+    stacked_errors, stacked = factor.evaluate_stacked(blocks)
+    np.testing.assert_array_equal(stacked_errors, errors)
+    np.testing.assert_array_equal(stacked, np.concatenate(jac, axis=2))
     for j, block in enumerate(blocks):
         assert jac[j].shape == (len(factor), errors.shape[1], block.shape[1])
         for c in range(block.shape[1]):
