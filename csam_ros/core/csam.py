@@ -1,0 +1,376 @@
+"""C-SAM in one call: alignment, association and the joint solve over any number of robots.
+
+:func:`join_maps` takes the robots' solved local maps (:class:`~csam_ros.core.joining.
+RobotMap`, in the robots' order; the first is the reference) and their rendezvous logs;
+:func:`run_csam` first builds the local maps from a :class:`~csam_ros.core.log.MultiRobotLog`
+with a pose at every rendezvous stamp. Steps (paper section IV, METHOD 5-7):
+
+1. From each local map only its rendezvous part: the marginal square-root information of its
+   rendezvous poses (and, for association, the gains ``K = P_l,rho P_rho,rho^-1`` of its
+   features on those poses).
+2. Base-node initialisation and Algorithm 1 (:mod:`csam_ros.core.alignment`); robots that
+   cannot be aligned stay ``pending: <reason>`` and get no joined map.
+3. Algorithm 2 (:mod:`csam_ros.core.association`).
+4. One joint solve of all poses and features of the aligned robots
+   (:mod:`csam_ros.core.joining`), then the marginal covariances the summary reports.
+
+The :class:`CsamResult` carries everything ``summary.json`` holds (ARCHITECTURE.md);
+:meth:`CsamResult.to_dict` returns that JSON-ready structure. Heading standard deviations:
+``sigma_phi_local`` is the local map's marginal heading sigma in ``G_r``;
+``sigma_phi_joined`` is the heading sigma after joining *relative to the robot's own first
+pose* (in ``G_r``, the like-for-like comparison of the paper's figures 5c and 6c: it can
+only shrink); ``sigma_phi_joined_reference`` is the heading sigma in the reference frame
+(which adds the base node's uncertainty).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from csam_ros.core import se2
+from csam_ros.core.alignment import AlignmentOptions, RendezvousPart, align
+from csam_ros.core.association import (
+    CHI2_2DOF_99,
+    AssociationOptions,
+    Associations,
+    MapFeatures,
+    associate,
+)
+from csam_ros.core.covariance import (
+    factorize_at_estimate,
+    marginal_covariance,
+    marginal_covariances,
+    marginal_sqrt_information,
+)
+from csam_ros.core.joining import RobotMap, covariance_columns, heading_sigmas, joint_solve
+from csam_ros.core.log import MultiRobotLog, RendezvousLog
+from csam_ros.core.rendezvous import collect, required_stamps
+from csam_ros.core.solver import NormalEquations, SolverOptions
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class CsamConfig:
+    """Parameters of C-SAM (the ``csam:`` section of a scenario or merger parameter file)."""
+
+    chi2_gate: float = CHI2_2DOF_99  # association gate on D (2 dof)
+    max_heading_sigma_deg: float = 5.0  # a base node less certain than this stays pending
+    mutual_time_tolerance: float = 1e-3  # s: two measurements this close are "mutual"
+    stamp_tolerance: float = 1e-6  # s: matching rendezvous stamps to local-map poses
+    max_iterations: int = 100  # of Algorithm 1 and of the joint solve
+    step_tolerance: float = 1e-9  # m, rad: stop when the largest step component is below
+    relative_tolerance: float = 1e-12  # stop when the relative cost decrease is below
+    associate: bool = True  # False: join through rendezvous rows only
+
+    @classmethod
+    def from_dict(cls, node: Mapping[str, Any] | None, source: str = "csam") -> CsamConfig:
+        """Build from a mapping; unknown keys are errors naming them."""
+        if node is None:
+            return cls()
+        if not isinstance(node, Mapping):
+            raise ValueError(f"{source}: expected a mapping, got {type(node).__name__}")
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(node) - set(known))
+        if unknown:
+            raise ValueError(f"{source}: unknown key(s) {unknown}; allowed: {sorted(known)}")
+        values: dict[str, Any] = {}
+        for key, value in node.items():
+            default = getattr(cls(), key)
+            if isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise ValueError(f"{source}.{key}: expected true/false, got {value!r}")
+            elif isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"{source}.{key}: expected a number, got {value!r}")
+            elif not np.isfinite(value) or value <= 0:
+                raise ValueError(f"{source}.{key}: must be a positive number, got {value!r}")
+            values[key] = type(default)(value)
+        return cls(**values)
+
+    def alignment_options(self) -> AlignmentOptions:
+        return AlignmentOptions(
+            max_heading_sigma=float(np.deg2rad(self.max_heading_sigma_deg)),
+            mutual_time_tolerance=self.mutual_time_tolerance,
+            max_iterations=self.max_iterations,
+            step_tolerance=self.step_tolerance,
+            relative_tolerance=self.relative_tolerance,
+        )
+
+    def solver_options(self) -> SolverOptions:
+        return SolverOptions(
+            max_iterations=self.max_iterations,
+            relative_tolerance=self.relative_tolerance,
+            step_tolerance=self.step_tolerance,
+        )
+
+
+@dataclass
+class RobotResult:
+    """One robot in the result; ``None`` / empty joined fields when it is pending."""
+
+    name: str
+    alignment: str  # "reference" | "aligned" | "pending: <reason>"
+    stamps: Array
+    poses_local: Array  # (N, 3) in G_r
+    sigma_phi_local: Array  # (N,)
+    base_node: Array | None = None  # G_r in the reference frame
+    base_node_cov: Array | None = None  # (3, 3)
+    poses_joined: Array | None = None  # (N, 3) in the reference frame
+    sigma_phi_joined: Array | None = None  # (N,) relative to the robot's own first pose
+    sigma_phi_joined_reference: Array | None = None  # (N,) in the reference frame
+    alignment_method: str = ""  # "mutual" | "registration" | "" (reference, pending)
+    initial_base_node: Array | None = None  # before Algorithm 1
+
+
+@dataclass
+class FeatureResult:
+    """A feature of the joined map: its members ``robot/label``, position and covariance."""
+
+    members: list[str]
+    xy: Array
+    cov: Array
+
+
+@dataclass
+class AssociationRecord:
+    """An accepted association with its Mahalanobis distance ``D`` (eq. 26)."""
+
+    a: str
+    b: str
+    mahalanobis: float
+
+
+@dataclass
+class CsamResult:
+    """Everything ``summary.json`` reports (see :meth:`to_dict`)."""
+
+    reference_frame: str
+    robots: dict[str, RobotResult]
+    features: list[FeatureResult]
+    associations: list[AssociationRecord]
+    timing_s: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+    statistics: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON-ready summary (lists and floats only)."""
+
+        def arr(a: Array | None) -> Any:
+            return None if a is None else np.asarray(a, dtype=float).tolist()
+
+        robots = {}
+        for name, r in self.robots.items():
+            robots[name] = {
+                "base_node": arr(r.base_node),
+                "base_node_cov": arr(r.base_node_cov),
+                "alignment": r.alignment,
+                "alignment_method": r.alignment_method,
+                "initial_base_node": arr(r.initial_base_node),
+                "stamps": arr(r.stamps),
+                "poses_local": arr(r.poses_local),
+                "poses_joined": arr(r.poses_joined) if r.poses_joined is not None else [],
+                "sigma_phi_local": arr(r.sigma_phi_local),
+                "sigma_phi_joined": arr(r.sigma_phi_joined)
+                if r.sigma_phi_joined is not None
+                else [],
+                "sigma_phi_joined_reference": arr(r.sigma_phi_joined_reference)
+                if r.sigma_phi_joined_reference is not None
+                else [],
+            }
+        return {
+            "reference_frame": self.reference_frame,
+            "robots": robots,
+            "features": [
+                {"members": list(f.members), "xy": arr(f.xy), "cov": arr(f.cov)}
+                for f in self.features
+            ],
+            "associations": [
+                {"a": a.a, "b": a.b, "mahalanobis": float(a.mahalanobis)}
+                for a in self.associations
+            ],
+            "timing_s": {k: float(v) for k, v in self.timing_s.items()},
+            "statistics": {k: float(v) for k, v in self.statistics.items()},
+            "notes": list(self.notes),
+        }
+
+
+def _local_inputs(
+    m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64], with_features: bool
+) -> tuple[RendezvousPart | None, MapFeatures | None]:
+    """A robot's rendezvous part and (optionally) its features' gains and covariances."""
+    if len(rendezvous_poses) == 0:
+        return None, None
+    problem = m.problem
+    keys = [problem.key(int(i)) for i in m.pose_ids[rendezvous_poses]]
+    root, _ = marginal_sqrt_information(problem, keys, system)
+    part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
+    if not with_features or len(m.feature_ids) == 0:
+        return part, None
+    columns = covariance_columns(system, problem.scalar_indices(m.pose_ids[rendezvous_poses]))
+    cross = columns[problem.scalar_indices(m.feature_ids)].reshape(len(m.feature_ids), 2, -1)
+    gain = cross @ (root.T @ root)
+    covs = np.array(
+        marginal_covariances(problem, [problem.key(int(i)) for i in m.feature_ids], system)
+    )
+    return part, MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
+
+
+def join_maps(
+    maps: Sequence[RobotMap],
+    rendezvous_logs: Mapping[str, RendezvousLog],
+    config: CsamConfig | None = None,
+) -> CsamResult:
+    """Run C-SAM on solved local maps (the first map's robot is the reference)."""
+    config = config or CsamConfig()
+    if not maps:
+        raise ValueError("join_maps: no local maps")
+    names = [m.name for m in maps]
+    if len(set(names)) != len(names):
+        raise ValueError(f"join_maps: duplicate robot names {names}")
+    timing: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(key: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timing[key] = timing.get(key, 0.0) + now - clock
+        clock = now
+
+    measurements, notes = collect(
+        rendezvous_logs, {m.name: m.stamps for m in maps}, config.stamp_tolerance
+    )
+    systems = [factorize_at_estimate(m.problem) for m in maps]
+    sigma_local = [heading_sigmas(m.problem, s, m.pose_ids)[0] for m, s in zip(maps, systems)]
+    rdv_poses = [
+        np.unique(
+            np.concatenate(
+                [
+                    measurements.observer_pose[measurements.observer == r],
+                    measurements.observed_pose[measurements.observed == r],
+                ]
+            )
+        )
+        for r in range(len(maps))
+    ]
+    parts = [_local_inputs(m, s, idx, False)[0] for m, s, idx in zip(maps, systems, rdv_poses)]
+    lap("local_rendezvous_parts")
+
+    alignment = align(parts, measurements, config.alignment_options())
+    aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
+    lap("alignment")
+
+    associations = Associations([], [])
+    if config.associate and len(aligned) > 1:
+        feats: list[MapFeatures | None] = [None] * len(maps)
+        for r in aligned:
+            feats[r] = _local_inputs(maps[r], systems[r], rdv_poses[r], True)[1]
+        lap("local_feature_covariances")
+        associations = associate(
+            feats,
+            alignment,
+            [p.sqrt_information if p is not None else None for p in parts],
+            AssociationOptions(chi2_gate=config.chi2_gate),
+        )
+        lap("association")
+
+    solution = joint_solve(
+        maps,
+        aligned,
+        alignment.base_nodes,
+        associations.clusters,
+        measurements,
+        config.solver_options(),
+    )
+    lap("joint_solve")
+
+    joint = solution.problem
+    system = factorize_at_estimate(joint)
+    first_keys = [joint.key(int(solution.pose_ids[r][0])) for r in aligned]
+    base_cov = marginal_covariance(joint, first_keys, system)
+    robots: dict[str, RobotResult] = {}
+    for r, m in enumerate(maps):
+        result = RobotResult(
+            name=m.name,
+            alignment=alignment.status[r],
+            stamps=np.asarray(m.stamps, dtype=float),
+            poses_local=m.poses,
+            sigma_phi_local=sigma_local[r],
+            alignment_method=alignment.methods.get(r, ""),
+        )
+        if r in aligned:
+            k = aligned.index(r)
+            poses = joint.values_of(solution.pose_ids[r])
+            in_reference, own = heading_sigmas(joint, system, solution.pose_ids[r])
+            result.poses_joined = poses
+            result.sigma_phi_joined = own
+            result.sigma_phi_joined_reference = in_reference
+            if r == 0:
+                result.base_node = np.zeros(3)
+                result.base_node_cov = np.zeros((3, 3))
+            else:
+                # G_r is defined by the robot's first pose (module docs of joining)
+                result.base_node = se2.compose(poses[0], se2.inverse(m.poses[0]))
+                result.base_node_cov = base_cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3]
+                result.initial_base_node = alignment.base_nodes[r].copy()
+        robots[m.name] = result
+    lap("joint_heading_sigmas")
+
+    feature_covs = (
+        marginal_covariances(
+            joint, [joint.key(int(i)) for i in solution.feature_var_ids], system
+        )
+        if len(solution.feature_var_ids)
+        else []
+    )
+    xy = joint.values_of(solution.feature_var_ids) if len(solution.feature_var_ids) else []
+    features = [
+        FeatureResult([f"{names[r]}/{lab}" for r, lab in members], xy[i], feature_covs[i])
+        for i, members in enumerate(solution.features)
+    ]
+    lap("joint_feature_covariances")
+    records = [
+        AssociationRecord(
+            f"{names[mt.robot_a]}/{mt.label_a}", f"{names[mt.robot_c]}/{mt.label_c}", mt.mahalanobis
+        )
+        for mt in associations.matches
+    ]
+    statistics = {
+        "algorithm1_iterations": alignment.iterations,
+        "joint_iterations": solution.report.iterations,
+        "joint_final_cost": solution.report.final_cost,
+        "association_candidates": associations.candidates,
+        "association_gated": associations.gated,
+        "association_rejected_conflicts": associations.rejected_conflicts,
+        "rendezvous_measurements": len(measurements),
+    }
+    timing["total"] = sum(timing.values())
+    return CsamResult(
+        reference_frame=f"{names[0]}/map",
+        robots=robots,
+        features=features,
+        associations=records,
+        timing_s=timing,
+        notes=notes,
+        statistics=statistics,
+    )
+
+
+def run_csam(log: MultiRobotLog, config: CsamConfig | None = None) -> CsamResult:
+    """Build every robot's local map from its log (poses at all rendezvous stamps that
+    involve it) and run :func:`join_maps`; ``timing_s["local_maps"]`` is the building time."""
+    from csam_ros.core.local_map import robot_map_from_log
+
+    start = time.perf_counter()
+    stamps = required_stamps({n: r.rendezvous for n, r in log.robots.items()})
+    maps = [robot_map_from_log(robot, stamps[name]) for name, robot in log.robots.items()]
+    built = time.perf_counter() - start
+    result = join_maps(maps, {n: r.rendezvous for n, r in log.robots.items()}, config)
+    result.timing_s["local_maps"] = built
+    result.timing_s["total"] += built
+    return result
