@@ -1,0 +1,472 @@
+"""One robot's local map by square-root smoothing, fed online or built from a whole log.
+
+The map lives in the robot's frame ``G_r``: its first pose (at the first odometry stamp) is
+the origin, fixed by a pose prior of sigma ``gauge_sigma`` (far below every other sigma).
+
+Key poses are held at: the first odometry stamp, every feature-scan stamp, every requested
+stamp (rendezvous: the robot's own observations of others and other robots' observations of
+it, which may arrive late) and, optionally, a regular grid ``t0 + k * key_interval`` so that
+the path is sampled during stretches without observations. Stamps closer than
+``stamp_tolerance`` share one key pose. Odometry samples between consecutive keys are composed
+into one relative-pose factor (:func:`csam_ros.core.motion.odometry_between`); a key inserted
+in the past splits the factor of its interval (exact for the mean). Features give Cartesian
+observation factors (METHOD section 3); a new landmark is initialised from its first
+observation.
+
+Update policy (online). Data are buffered as they arrive. :meth:`LocalMap.update` integrates
+everything covered by odometry: new keys (appended or inserted in the past) get initial values
+by composing odometry from their preceding key's current estimate, new landmarks from their
+first observation; then Gauss-Newton runs warm-started from the previous estimate until the
+same convergence rule as a batch solve. Every iteration relinearises the whole map (full
+batch relinearisation; the sparsity pattern and ordering are rebuilt only when keys or
+factors were added), so each update ends at the batch optimum of the data so far, and the
+final update equals :func:`build_local_map` on the whole log. :meth:`LocalMap.maybe_update`
+runs an update only once ``update_period`` seconds of new odometry have arrived.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from csam_ros.core import motion, se2, sensor
+from csam_ros.core.covariance import (
+    factorize_at_estimate,
+    marginal_covariance,
+    marginal_covariances,
+    marginal_sqrt_information,
+)
+from csam_ros.core.factors import (
+    POINT,
+    POSE,
+    PointObservation,
+    PosePrior,
+    RelativePose,
+    RobustKernel,
+    sqrt_information_from_covariance,
+)
+from csam_ros.core.log import RobotLog
+from csam_ros.core.solver import (
+    GAUGE_SIGMA,
+    NormalEquations,
+    Problem,
+    SolveReport,
+    SolverOptions,
+)
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass
+class LocalMapOptions:
+    """Settings of a local map."""
+
+    key_interval: float | None = 1.0  # regular key poses every this many seconds; None: off
+    stamp_tolerance: float = 1e-6  # stamps closer than this share a key pose
+    gauge_sigma: float = GAUGE_SIGMA
+    robust: RobustKernel | None = None  # kernel on feature observations (real data)
+    update_period: float = 1.0  # maybe_update(): seconds of new odometry between solves
+    solver: SolverOptions = field(default_factory=SolverOptions)
+
+
+@dataclass
+class UpdateReport:
+    """What one :meth:`LocalMap.update` did."""
+
+    new_poses: int
+    inserted_poses: int  # of which inserted in the past (splitting an odometry factor)
+    new_landmarks: int
+    new_observations: int
+    solve: SolveReport | None
+    seconds: float
+
+
+class LocalMap:
+    """Square-root smoothing of one robot's poses and landmarks (see the module docstring)."""
+
+    def __init__(self, name: str = "robot", options: LocalMapOptions | None = None) -> None:
+        self.name = name
+        self.options = options or LocalMapOptions()
+        # raw data buffers
+        self._odo_chunks: list[tuple[Array, Array, Array]] = []
+        self._odo_t = np.zeros(0)
+        self._odo_u = np.zeros((0, 3))
+        self._odo_q = np.zeros((0, 3))
+        self._feat_chunks: list[tuple[Array, IntArray, Array, Array]] = []
+        self._feat_t = np.zeros(0)
+        self._feat_label = np.zeros(0, dtype=np.int64)
+        self._feat_z = np.zeros((0, 2))
+        self._feat_w = np.zeros((0, 2, 2))
+        self._requested: list[float] = []
+        # state
+        self._keys = np.zeros(0)
+        self._key_values = np.zeros((0, 3))
+        self._rel = np.zeros((0, 3))
+        self._rel_w = np.zeros((0, 3, 3))
+        self._landmark_index: dict[int, int] = {}
+        self._landmark_labels: list[int] = []
+        self._landmark_values = np.zeros((0, 2))
+        self._integrated_features = 0  # features (sorted by stamp) already in the map
+        self._dropped_features = 0
+        self._last_solved_odometry = -np.inf
+        self._problem: Problem | None = None
+        self._system: NormalEquations | None = None
+        self.last_report: UpdateReport | None = None
+
+    # -- feeding ------------------------------------------------------------------------------
+
+    def add_odometry(self, stamps: ArrayLike, inputs: ArrayLike, sigmas: ArrayLike) -> None:
+        """Append odometry samples, sorted; sample ``i`` holds the input over ``(t_{i-1}, t_i]``."""
+        t = np.atleast_1d(np.asarray(stamps, dtype=float))
+        u = np.asarray(inputs, dtype=float).reshape(len(t), 3)
+        q = np.asarray(sigmas, dtype=float).reshape(len(t), 3)
+        if len(t) == 0:
+            return
+        motion.check_odometry(t, u, q)
+        bad = np.flatnonzero((q <= 0).any(axis=1))
+        if bad.size:
+            raise ValueError(
+                f"{self.name}: odometry sample {bad[0]} has a non-positive sigma "
+                f"{q[bad[0]].tolist()}; the motion model needs s_v, s_vlat, s_omega > 0"
+            )
+        last = self._last_odometry_stamp()
+        if t[0] <= last:
+            raise ValueError(
+                f"{self.name}: odometry stamp {t[0]} does not follow the previous one {last}"
+            )
+        self._odo_chunks.append((t, u, q))
+
+    def add_features(
+        self,
+        stamps: ArrayLike,
+        labels: ArrayLike,
+        ranges: ArrayLike,
+        bearings: ArrayLike,
+        sigma_range: ArrayLike,
+        sigma_bearing: ArrayLike,
+    ) -> None:
+        """Add range-bearing observations of labelled point features (any stamp order)."""
+        t = np.atleast_1d(np.asarray(stamps, dtype=float))
+        if len(t) == 0:
+            return
+        if not np.all(np.isfinite(t)):
+            bad = np.flatnonzero(~np.isfinite(t))[0]
+            raise ValueError(f"{self.name}: feature observation {bad}: stamp is not finite")
+        lab = np.atleast_1d(np.asarray(labels)).astype(np.int64)
+        z, cov = sensor.polar_to_cartesian(ranges, bearings, sigma_range, sigma_bearing)
+        if z.shape[0] != len(t) or lab.shape != t.shape:
+            raise ValueError(f"{self.name}: feature arrays have different lengths")
+        w = sqrt_information_from_covariance(cov, f"{self.name} feature observations")
+        self._feat_chunks.append((t, lab, z, w))
+
+    def request_poses(self, stamps: ArrayLike) -> None:
+        """Ask for key poses at these stamps (rendezvous, also ones observed by others)."""
+        t = np.atleast_1d(np.asarray(stamps, dtype=float))
+        if not np.all(np.isfinite(t)):
+            raise ValueError(f"{self.name}: requested pose stamps must be finite")
+        self._requested.extend(t.tolist())
+
+    def add_log(self, log: RobotLog, extra_pose_stamps: ArrayLike = ()) -> None:
+        """Feed a whole robot log; its own rendezvous stamps are requested as poses."""
+        self.add_odometry(log.odometry.stamps, log.odometry.inputs, log.odometry.sigmas)
+        f = log.features
+        self.add_features(f.stamps, f.labels, f.ranges, f.bearings, f.sigma_range, f.sigma_bearing)
+        self.request_poses(log.rendezvous.stamps)
+        self.request_poses(extra_pose_stamps)
+
+    # -- updating -----------------------------------------------------------------------------
+
+    def _last_odometry_stamp(self) -> float:
+        if self._odo_chunks:
+            return float(self._odo_chunks[-1][0][-1])
+        return float(self._odo_t[-1]) if len(self._odo_t) else -np.inf
+
+    def _consolidate(self) -> None:
+        if self._odo_chunks:
+            self._odo_t = np.concatenate([self._odo_t, *(c[0] for c in self._odo_chunks)])
+            self._odo_u = np.concatenate([self._odo_u, *(c[1] for c in self._odo_chunks)])
+            self._odo_q = np.concatenate([self._odo_q, *(c[2] for c in self._odo_chunks)])
+            self._odo_chunks = []
+        if self._feat_chunks:
+            done = self._integrated_features
+            t = np.concatenate([self._feat_t[done:], *(c[0] for c in self._feat_chunks)])
+            lab = np.concatenate([self._feat_label[done:], *(c[1] for c in self._feat_chunks)])
+            z = np.concatenate([self._feat_z[done:], *(c[2] for c in self._feat_chunks)])
+            w = np.concatenate([self._feat_w[done:], *(c[3] for c in self._feat_chunks)])
+            order = np.argsort(t, kind="stable")
+            self._feat_t = np.concatenate([self._feat_t[:done], t[order]])
+            self._feat_label = np.concatenate([self._feat_label[:done], lab[order]])
+            self._feat_z = np.concatenate([self._feat_z[:done], z[order]])
+            self._feat_w = np.concatenate([self._feat_w[:done], w[order]])
+            self._feat_chunks = []
+
+    def maybe_update(self) -> UpdateReport | None:
+        """Update if ``update_period`` seconds of odometry arrived since the last solve."""
+        if self._last_odometry_stamp() - self._last_solved_odometry < self.options.update_period:
+            return None
+        return self.update()
+
+    def update(self) -> UpdateReport:
+        """Integrate all data covered by odometry and solve (warm-started Gauss-Newton)."""
+        start = time.perf_counter()
+        self._consolidate()
+        tol = self.options.stamp_tolerance
+        if len(self._odo_t) < 2:
+            return UpdateReport(0, 0, 0, 0, None, time.perf_counter() - start)
+        t0, t_end = float(self._odo_t[0]), float(self._odo_t[-1])
+        first_new_feature = self._integrated_features
+        # features stamped before the first odometry sample cannot be attached to a pose
+        early = first_new_feature + np.searchsorted(
+            self._feat_t[first_new_feature:], t0 - tol, side="left"
+        )
+        if early > first_new_feature:
+            self._dropped_features += int(early - first_new_feature)
+            keep = np.r_[np.arange(first_new_feature), np.arange(early, len(self._feat_t))]
+            self._feat_t = self._feat_t[keep]
+            self._feat_label = self._feat_label[keep]
+            self._feat_z = self._feat_z[keep]
+            self._feat_w = self._feat_w[keep]
+        covered = first_new_feature + int(
+            np.searchsorted(self._feat_t[first_new_feature:], t_end + tol, side="right")
+        )
+        candidates = [np.array([t0]), self._feat_t[first_new_feature:covered]]
+        req = np.asarray(self._requested, dtype=float)
+        candidates.append(req[(req >= t0 - tol) & (req <= t_end + tol)])
+        if self.options.key_interval:
+            count = int(np.floor((t_end - t0) / self.options.key_interval)) + 1
+            candidates.append(t0 + self.options.key_interval * np.arange(count))
+        cand = np.clip(np.unique(np.concatenate(candidates)), t0, t_end)
+        new_keys = self._new_key_stamps(cand, tol)
+        inserted = self._insert_keys(new_keys)
+        new_landmarks, new_obs = self._integrate_features(covered)
+        solve = self._solve()
+        self._last_solved_odometry = t_end
+        self.last_report = UpdateReport(
+            new_poses=len(new_keys),
+            inserted_poses=inserted,
+            new_landmarks=new_landmarks,
+            new_observations=new_obs,
+            solve=solve,
+            seconds=time.perf_counter() - start,
+        )
+        return self.last_report
+
+    def _new_key_stamps(self, candidates: Array, tol: float) -> Array:
+        """Candidates not within ``tol`` of an existing key, clustered (first of a cluster)."""
+        if len(self._keys):
+            pos = np.searchsorted(self._keys, candidates)
+            near_next = np.abs(self._keys[np.minimum(pos, len(self._keys) - 1)] - candidates)
+            near_prev = np.abs(self._keys[np.maximum(pos - 1, 0)] - candidates)
+            candidates = candidates[np.minimum(near_next, near_prev) > tol]
+        if len(candidates) == 0:
+            return candidates
+        starts = np.concatenate([[True], np.diff(candidates) > tol])
+        return candidates[starts]
+
+    def _insert_keys(self, new_keys: Array) -> int:
+        """Add key poses, recompute the odometry factors of changed intervals; count inserts."""
+        if len(new_keys) == 0:
+            return 0
+        old = self._keys
+        keys = np.union1d(old, new_keys)
+        is_new = ~np.isin(keys, old)
+        if len(old) == 0:
+            values = np.zeros((len(keys), 3))
+            changed_runs = [(0, len(keys) - 1)] if len(keys) > 1 else []
+            inserted = 0
+        else:
+            values = np.zeros((len(keys), 3))
+            values[~is_new] = self._key_values
+            # an interval changes when either end is new: runs between consecutive old keys
+            old_pos = np.flatnonzero(~is_new)
+            changed_runs = []
+            for a, b in zip(old_pos[:-1], old_pos[1:], strict=True):
+                if b - a > 1:
+                    changed_runs.append((int(a), int(b)))
+            if old_pos[-1] < len(keys) - 1:
+                changed_runs.append((int(old_pos[-1]), len(keys) - 1))
+            inserted = int(is_new[: old_pos[-1]].sum())
+        rel = np.zeros((len(keys) - 1, 3))
+        rel_w = np.zeros((len(keys) - 1, 3, 3))
+        if len(old) > 1:
+            # unchanged intervals keep their factors: map old interval i -> new index
+            old_pos = np.flatnonzero(~is_new)
+            same = np.flatnonzero(np.diff(old_pos) == 1)
+            rel[old_pos[same]] = self._rel[same]
+            rel_w[old_pos[same]] = self._rel_w[same]
+        for a, b in changed_runs:
+            odo = motion.odometry_between(
+                self._odo_t, self._odo_u, self._odo_q, keys[a : b + 1], check=False
+            )
+            rel[a:b] = odo.relative_poses
+            rel_w[a:b] = sqrt_information_from_covariance(odo.covariances, f"{self.name} odometry")
+            chain = motion.dead_reckoning(odo.relative_poses, values[a])
+            fill = is_new[a + 1 : b + 1]
+            values[a + 1 : b + 1][fill] = chain[1:][fill]
+        self._keys, self._key_values, self._rel, self._rel_w = keys, values, rel, rel_w
+        return inserted
+
+    def _integrate_features(self, covered: int) -> tuple[int, int]:
+        start = self._integrated_features
+        if covered <= start:
+            return 0, 0
+        idx = self._key_index_of(self._feat_t[start:covered])
+        labels = self._feat_label[start:covered]
+        unknown = [lab for lab in dict.fromkeys(labels.tolist()) if lab not in self._landmark_index]
+        if unknown:
+            first = np.array([int(np.flatnonzero(labels == lab)[0]) for lab in unknown])
+            xy = se2.transform_point(self._key_values[idx[first]], self._feat_z[start + first])
+            for lab in unknown:
+                self._landmark_index[lab] = len(self._landmark_labels)
+                self._landmark_labels.append(lab)
+            self._landmark_values = np.concatenate([self._landmark_values, xy])
+        self._integrated_features = covered
+        return len(unknown), covered - start
+
+    def _key_index_of(self, stamps: Array) -> IntArray:
+        pos = np.searchsorted(self._keys, stamps)
+        nxt = np.minimum(pos, len(self._keys) - 1)
+        prv = np.maximum(pos - 1, 0)
+        pick = np.where(
+            np.abs(self._keys[nxt] - stamps) <= np.abs(self._keys[prv] - stamps), nxt, prv
+        )
+        off = np.abs(self._keys[pick] - stamps)
+        if np.any(off > self.options.stamp_tolerance):
+            bad = int(np.argmax(off))
+            raise RuntimeError(f"{self.name}: no key pose at stamp {stamps[bad]}")
+        return pick
+
+    def _build_problem(self) -> Problem:
+        problem = Problem()
+        n = len(self._keys)
+        poses = problem.add_variables(POSE, [("x", i) for i in range(n)], self._key_values)
+        gauge = np.eye(3) / self.options.gauge_sigma
+        problem.add_factor(PosePrior(poses[:1], np.zeros((1, 3)), gauge, name="gauge prior"))
+        if n > 1:
+            problem.add_factor(
+                RelativePose(poses[:-1], poses[1:], self._rel, self._rel_w, name="odometry")
+            )
+        if self._landmark_labels:
+            lms = problem.add_variables(
+                POINT, [("l", lab) for lab in self._landmark_labels], self._landmark_values
+            )
+            done = self._integrated_features
+            if done:
+                obs_pose = self._key_index_of(self._feat_t[:done])
+                obs_lm = np.array(
+                    [self._landmark_index[lab] for lab in self._feat_label[:done].tolist()]
+                )
+                problem.add_factor(
+                    PointObservation(
+                        poses[obs_pose],
+                        lms[obs_lm],
+                        self._feat_z[:done],
+                        self._feat_w[:done],
+                        robust=self.options.robust,
+                        name="feature observations",
+                    )
+                )
+        return problem
+
+    def _solve(self) -> SolveReport:
+        problem = self._build_problem()
+        report = problem.solve(self.options.solver)
+        n = len(self._keys)
+        self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
+        self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
+        self._problem = problem
+        self._system = None
+        return report
+
+    # -- results ------------------------------------------------------------------------------
+
+    @property
+    def stamps(self) -> Array:
+        """Stamps of the key poses ``(N,)``."""
+        return self._keys.copy()
+
+    @property
+    def poses(self) -> Array:
+        """Key poses ``(N, 3)`` in the robot's frame ``G_r`` (first pose = origin)."""
+        return self._key_values.copy()
+
+    @property
+    def landmark_labels(self) -> IntArray:
+        return np.array(self._landmark_labels, dtype=np.int64)
+
+    @property
+    def landmarks(self) -> Array:
+        """Landmark positions ``(L, 2)`` in ``G_r``, in the order of :attr:`landmark_labels`."""
+        return self._landmark_values.copy()
+
+    @property
+    def dropped_features(self) -> int:
+        """Feature observations stamped before the first odometry sample (not used)."""
+        return self._dropped_features
+
+    @property
+    def problem(self) -> Problem:
+        """The solved least-squares problem (variables ``("x", i)`` and ``("l", label)``)."""
+        if self._problem is None:
+            raise RuntimeError(f"{self.name}: the local map has not been solved yet")
+        return self._problem
+
+    def pose_index(self, stamps: ArrayLike) -> IntArray:
+        """Indices of the key poses at ``stamps`` (within ``stamp_tolerance``)."""
+        return self._key_index_of(np.atleast_1d(np.asarray(stamps, dtype=float)))
+
+    def pose_keys(self, stamps: ArrayLike) -> list[Hashable]:
+        return [("x", int(i)) for i in self.pose_index(stamps)]
+
+    def _factorization(self) -> NormalEquations:
+        if self._system is None:
+            self._system = factorize_at_estimate(self.problem)
+        return self._system
+
+    def covariance(self, pose_stamps: ArrayLike = (), landmark_labels: Sequence[int] = ()) -> Array:
+        """Joint marginal covariance of the poses at ``pose_stamps`` then the landmarks."""
+        keys = self.pose_keys(pose_stamps) if len(np.atleast_1d(pose_stamps)) else []
+        keys += [("l", int(lab)) for lab in landmark_labels]
+        return marginal_covariance(self.problem, keys, self._factorization())
+
+    def pose_covariances(self, indices: ArrayLike | None = None) -> Array:
+        """Marginal covariance ``(k, 3, 3)`` of key poses (all by default; no cross terms)."""
+        idx = np.arange(len(self._keys)) if indices is None else np.asarray(indices)
+        keys = [("x", int(i)) for i in idx]
+        return np.array(marginal_covariances(self.problem, keys, self._factorization()))
+
+    def landmark_covariances(self) -> Array:
+        """Marginal covariance ``(L, 2, 2)`` of every landmark (no cross terms)."""
+        keys = [("l", lab) for lab in self._landmark_labels]
+        if not keys:
+            return np.zeros((0, 2, 2))
+        return np.array(marginal_covariances(self.problem, keys, self._factorization()))
+
+    def sqrt_information(self, pose_stamps: ArrayLike) -> tuple[Array, Array, Array]:
+        """Marginal square-root information of the poses at ``pose_stamps``.
+
+        Returns ``(R, stamps, poses)``: upper-triangular ``R`` ``(3m, 3m)`` with ``R^T R`` the
+        marginal information of those poses (the last block of the map's ``R`` with them
+        ordered last), their key stamps ``(m,)`` and estimates ``(m, 3)``, in stamp order.
+        """
+        idx = np.unique(self.pose_index(pose_stamps))
+        keys = [("x", int(i)) for i in idx]
+        r, _ = marginal_sqrt_information(self.problem, keys, self._factorization())
+        return r, self._keys[idx].copy(), self._key_values[idx].copy()
+
+
+def build_local_map(
+    log: RobotLog,
+    extra_pose_stamps: ArrayLike = (),
+    options: LocalMapOptions | None = None,
+) -> LocalMap:
+    """Offline: the local map of a whole robot log in one batch solve."""
+    local = LocalMap(log.name, options)
+    local.add_log(log, extra_pose_stamps)
+    local.update()
+    return local

@@ -1,0 +1,171 @@
+"""Local map: online feeding equals the offline batch, late rendezvous poses, outputs."""
+
+import numpy as np
+import pytest
+
+from csam_ros.core import motion, se2, sensor
+from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
+from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
+
+
+def make_log(duration=40.0, rate=67.0, seed=0, landmarks=12):
+    """A robot at MR.CLAM-like rates: odometry at ~67 Hz, feature scans at their own stamps."""
+    rng = np.random.default_rng(seed)
+    stamps = 100.0 + np.cumsum(rng.uniform(0.9, 1.1, int(duration * rate)) / rate)
+    n = len(stamps)
+    true_u = np.column_stack(
+        [0.3 + 0.1 * np.sin(stamps / 5), np.zeros(n), 0.25 * np.sin(stamps / 3)]
+    )
+    true_u[n // 3 : n // 3 + 80, 2] = 0.0  # a straight stretch (omega = 0 exactly)
+    dt = np.diff(stamps)
+    steps = motion.increment(true_u[1:], dt)
+    truth = motion.dead_reckoning(steps)
+    sig = np.tile([0.03, 0.01, 0.04], (n, 1))
+    meas_u = true_u + rng.normal(size=(n, 3)) * sig
+    lm = rng.uniform(-3, 8, (landmarks, 2))
+    scan_t = np.sort(rng.uniform(stamps[0] + 0.05, stamps[-1] - 0.05, int(duration * 2)))
+    # true pose at scan stamps: compose up to the sample before, then a partial step
+    i = np.searchsorted(stamps, scan_t)
+    part = motion.increment(true_u[i], scan_t - stamps[i - 1])
+    at_scan = se2.compose(truth[i - 1], part)
+    local = se2.inverse_transform_point(at_scan[:, None], lm[None])
+    r, b = sensor.cartesian_to_polar(local)
+    seen_scan, seen_lm = np.nonzero(r < 6.0)
+    k = len(seen_scan)
+    features = FeatureLog(
+        stamps=scan_t[seen_scan],
+        labels=(seen_lm + 10).astype(np.int64),
+        ranges=r[seen_scan, seen_lm] + rng.normal(0, 0.02, k),
+        bearings=b[seen_scan, seen_lm] + rng.normal(0, 0.01, k),
+        sigma_range=np.full(k, 0.02),
+        sigma_bearing=np.full(k, 0.01),
+    )
+    rdv_t = np.array([stamps[0] + 7.31, stamps[0] + 21.005])
+    rendezvous = RendezvousLog(
+        rdv_t, ["other", "other"], np.ones(2), np.zeros(2), np.full(2, 0.1), np.full(2, 0.1)
+    )
+    log = RobotLog("robot1", OdometryLog(stamps, meas_u, sig), features, rendezvous)
+    return log, truth, stamps, lm
+
+
+def feed_online(log, late_stamps=(), chunk=1.0, options=None):
+    """Feed a log in stamp order in chunks of ``chunk`` seconds, updating after each chunk."""
+    local = LocalMap(log.name, options)
+    local.inserted = 0
+    odo, f = log.odometry, log.features
+    t0, t1 = odo.stamps[0], odo.stamps[-1]
+    edges = np.arange(t0, t1 + chunk, chunk)
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        o = (odo.stamps >= a) & (odo.stamps < b) if a > t0 else odo.stamps < b
+        local.add_odometry(odo.stamps[o], odo.inputs[o], odo.sigmas[o])
+        m = (f.stamps >= a) & (f.stamps < b)
+        local.add_features(
+            f.stamps[m],
+            f.labels[m],
+            f.ranges[m],
+            f.bearings[m],
+            f.sigma_range[m],
+            f.sigma_bearing[m],
+        )
+        local.request_poses(
+            log.rendezvous.stamps[(log.rendezvous.stamps >= a) & (log.rendezvous.stamps < b)]
+        )
+        if b > t0 + 0.6 * (t1 - t0):
+            # another robot's observation of this robot, reported late, stamped in the past
+            local.request_poses([s for s in late_stamps])
+            late_stamps = ()
+        local.inserted += local.update().inserted_poses
+    local.add_odometry(
+        odo.stamps[odo.stamps >= edges[-1]],
+        odo.inputs[odo.stamps >= edges[-1]],
+        odo.sigmas[odo.stamps >= edges[-1]],
+    )
+    local.update()
+    return local
+
+
+def test_online_equals_offline_batch_with_late_pose_insertion():
+    log, _, stamps, _ = make_log()
+    late = [stamps[0] + 3.3337, stamps[0] + 12.5]
+    offline = build_local_map(log, extra_pose_stamps=late)
+    online = feed_online(log, late_stamps=late)
+    assert online.last_report is not None
+    np.testing.assert_array_equal(online.stamps, offline.stamps)
+    np.testing.assert_allclose(online.poses[:, :2], offline.poses[:, :2], atol=1e-7)
+    np.testing.assert_allclose(
+        se2.wrap_angle(online.poses[:, 2] - offline.poses[:, 2]), 0, atol=1e-8
+    )
+    np.testing.assert_array_equal(online.landmark_labels, offline.landmark_labels)
+    np.testing.assert_allclose(online.landmarks, offline.landmarks, atol=1e-7)
+    assert online.problem.cost() == pytest.approx(offline.problem.cost(), rel=1e-9)
+    for s in late:
+        assert np.min(np.abs(online.stamps - s)) == 0.0
+    assert online.inserted == 2
+
+
+def test_local_map_is_in_robot_frame_and_close_to_truth():
+    log, truth, stamps, lm = make_log(seed=1)
+    local = build_local_map(log)
+    np.testing.assert_allclose(local.poses[0], 0.0, atol=1e-9)
+    assert local.stamps[0] == stamps[0]
+    # key poses at every feature stamp and rendezvous stamp, regular keys every second
+    for s in np.concatenate([log.features.stamps, log.rendezvous.stamps]):
+        assert np.min(np.abs(local.stamps - s)) <= 1e-6
+    assert np.max(np.diff(local.stamps)) <= 1.0 + 1e-9
+    # landmarks near the truth (robot frame = truth frame here: both start at the origin)
+    truth_lm = lm[local.landmark_labels - 10]
+    assert np.max(np.linalg.norm(local.landmarks - truth_lm, axis=1)) < 0.3
+    i = np.searchsorted(stamps, local.stamps[-1])
+    assert np.linalg.norm(local.poses[-1, :2] - truth[i, :2]) < 0.5
+
+
+def test_marginal_outputs():
+    log, _, _, _ = make_log(duration=25.0, seed=2)
+    local = build_local_map(log)
+    covs = local.pose_covariances()
+    assert covs.shape == (len(local.stamps), 3, 3)
+    assert np.all(np.linalg.eigvalsh(covs)[:, 0] > 0)
+    assert covs[0, 2, 2] < 1e-10 < covs[-1, 2, 2]  # gauge-fixed first pose
+    lm_cov = local.landmark_covariances()
+    assert lm_cov.shape == (len(local.landmark_labels), 2, 2)
+    stamps = log.rendezvous.stamps[:1]
+    joint = local.covariance(stamps, local.landmark_labels[:2])
+    assert joint.shape == (7, 7)
+    idx = local.pose_index(stamps)[0]
+    np.testing.assert_allclose(joint[:3, :3], covs[idx], rtol=1e-9)
+    r, key_stamps, poses = local.sqrt_information(log.rendezvous.stamps)
+    assert r.shape == (6, 6) and np.allclose(np.tril(r, -1), 0)
+    cov = local.covariance(key_stamps)
+    np.testing.assert_allclose(r.T @ r, np.linalg.inv(cov), rtol=1e-6)
+    np.testing.assert_allclose(poses, local.poses[local.pose_index(key_stamps)])
+
+
+def test_features_before_odometry_are_dropped_and_counted():
+    log, _, stamps, _ = make_log(duration=10.0, seed=3)
+    local = LocalMap("r")
+    local.add_features([stamps[0] - 1.0], [99], [1.0], [0.0], [0.01], [0.01])
+    local.add_log(log)
+    local.update()
+    assert local.dropped_features == 1
+    assert 99 not in local.landmark_labels
+
+
+def test_bad_odometry_is_named():
+    local = LocalMap("r")
+    with pytest.raises(ValueError, match="odometry sample 1 has a non-positive sigma"):
+        local.add_odometry([0.0, 0.1], np.ones((2, 3)), [[1, 1, 1], [1, 0, 1]])
+    local.add_odometry([0.0, 0.1], np.ones((2, 3)), np.ones((2, 3)))
+    with pytest.raises(ValueError, match="does not follow"):
+        local.add_odometry([0.05], np.ones((1, 3)), np.ones((1, 3)))
+
+
+def test_maybe_update_follows_the_update_period():
+    log, _, stamps, _ = make_log(duration=5.0, seed=4)
+    local = LocalMap("r", LocalMapOptions(update_period=2.0))
+    odo = log.odometry
+    solved = 0
+    for k in range(len(odo.stamps)):
+        local.add_odometry(odo.stamps[k : k + 1], odo.inputs[k : k + 1], odo.sigmas[k : k + 1])
+        if local.maybe_update() is not None:
+            solved += 1
+    assert 2 <= solved <= 4
