@@ -70,12 +70,14 @@ class PlayerNode(Node):
         return list(self._topic_publishers)
 
     def wait_for_subscribers(self, topics: Iterable[str], timeout_s: float) -> list[str]:
-        """Wait until each of ``topics`` has a matched subscription; returns those without
-        one when ``timeout_s`` ran out."""
-        waiting = [t for t in topics if t in self._topic_publishers]
+        """Wait until each of ``topics`` (played topics or /clock) has a matched subscription;
+        returns those without one when ``timeout_s`` ran out."""
+        publishers = dict(self._topic_publishers)
+        if self._clock_publisher is not None:
+            publishers[CLOCK_TOPIC] = self._clock_publisher
+        waiting = [topic for topic in topics if topic in publishers]
         deadline = time.monotonic() + timeout_s
         while self.context.ok():
-            publishers = self._topic_publishers
             waiting = [t for t in waiting if publishers[t].get_subscription_count() == 0]
             if not waiting or time.monotonic() >= deadline:
                 break
@@ -208,6 +210,9 @@ def main(args: Sequence[str] | None = None) -> int:
     try:
         bag = inspect_bag(options.bag)
         topics = select_topics(bag, options.topics, publish_clock)
+        unknown = set(options.wait_for_subscribers or ()) - {*topics, CLOCK_TOPIC}
+        if unknown:
+            raise BagError(f"--wait-for-subscribers names unplayed topic(s) {sorted(unknown)}")
     except BagError as error:
         print(f"player: {error}", file=sys.stderr)
         return 1

@@ -1,0 +1,266 @@
+"""The player executable over DDS: order, payload bytes and /clock, recorded QoS restored,
+record -> play -> record, killed bags, --loop, and bad bags."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from csam_ros.bag import BagWriter, inspect_bag, read_bag
+
+SECOND = 1_000_000_000
+FEATURES = "/play/features"
+LATCHED = "/play/local_map"
+
+
+def _wait_until(condition: Any, timeout_s: float = 15.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def _features(label: int) -> Any:
+    from csam_msgs.msg import FeatureObservation, FeatureObservations
+
+    message = FeatureObservations(observations=[FeatureObservation(label=label, range=2.0)])
+    message.header.frame_id = "robot1/base_link"
+    return message
+
+
+def _latched_qos(depth: int = 1) -> Any:
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    return QoSProfile(depth=depth, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _features_bag(path: Path, count: int, spacing_ns: int) -> list[bytes]:
+    """A bag of ``count`` FeatureObservations, one latched LocalMap and a recorded /clock
+    (stamped 999 s, which a player publishing its own /clock must not replay)."""
+    from csam_msgs.msg import LocalMap
+    from rclpy.serialization import serialize_message
+    from rosgraph_msgs.msg import Clock
+
+    payloads = [serialize_message(_features(label)) for label in range(count)]
+    with BagWriter(path) as bag:
+        bag.add_topic(FEATURES, "csam_msgs/msg/FeatureObservations")
+        bag.add_topic(LATCHED, "csam_msgs/msg/LocalMap", _latched_qos())
+        bag.add_topic("/clock", "rosgraph_msgs/msg/Clock")
+        bag.write(LATCHED, 10 * SECOND, LocalMap(robot="robot1", iterations=3))
+        stale = Clock()
+        stale.clock.sec = 999
+        bag.write("/clock", 10 * SECOND, stale)
+        for label, data in enumerate(payloads):
+            bag.write(FEATURES, 10 * SECOND + label * spacing_ns, data)
+    return payloads
+
+
+def test_plays_in_order_with_clock_and_recorded_qos(
+    ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
+) -> None:
+    import rclpy
+    from csam_msgs.msg import FeatureObservations, LocalMap
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from rosgraph_msgs.msg import Clock
+
+    bag = tmp_path / "bag"
+    payloads = _features_bag(bag, count=20, spacing_ns=SECOND // 10)
+    node = rclpy.create_node("play_sink", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    received: list[bytes] = []
+    clock_ns: list[int] = []
+    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
+    node.create_subscription(
+        Clock,
+        "/clock",
+        lambda m: clock_ns.append(m.clock.sec * SECOND + m.clock.nanosec),
+        QoSProfile(depth=1000),
+    )
+    player = nodes.start(
+        "player", bag, "--rate", "5", "--delay", "0", "--linger", "30",
+        "--wait-for-subscribers", FEATURES, "/clock",
+    )  # fmt: skip
+    assert spin(executor, lambda: len(received) == len(payloads), 30), nodes.output(player)
+    assert received == payloads, "same payload bytes, same order"
+    log_times = [10 * SECOND + label * SECOND // 10 for label in range(20)]
+    assert set(log_times) <= set(clock_ns), "a /clock at every message's log time"
+    assert clock_ns == sorted(clock_ns) and clock_ns[0] >= 10 * SECOND
+    assert 999 * SECOND not in clock_ns, "the recorded /clock is not replayed"
+
+    late: list[Any] = []  # joins after playback: gets the latched map only by durability
+    node.create_subscription(LocalMap, LATCHED, late.append, _latched_qos())
+    assert spin(executor, lambda: len(late) == 1, 15)
+    assert (late[0].robot, late[0].iterations) == ("robot1", 3)
+    durability = {
+        topic: [i.qos_profile.durability for i in node.get_publishers_info_by_topic(topic)]
+        for topic in (FEATURES, LATCHED)
+    }
+    assert durability == {
+        FEATURES: [DurabilityPolicy.VOLATILE],
+        LATCHED: [DurabilityPolicy.TRANSIENT_LOCAL],
+    }
+    assert nodes.stop(player, signal.SIGINT) == 0, nodes.output(player)
+    executor.shutdown()
+    node.destroy_node()
+
+
+def test_record_play_record_gives_the_same_messages(
+    ros_context: Any, nodes: Any, sample_messages: dict[str, Any], tmp_path: Path
+) -> None:
+    """A live recording, played back and recorded again: same topics, types, payload bytes
+    (as DDS delivers them) and order."""
+    import rclpy
+    from rclpy.duration import Duration
+
+    node = rclpy.create_node("again_source", context=ros_context)
+    publishers = {
+        msgtype: node.create_publisher(
+            type(message),
+            f"/again/{msgtype.split('/')[-1]}",
+            _latched_qos(2) if msgtype.endswith("LocalMap") else 10,
+        )
+        for msgtype, message in sample_messages.items()
+    }
+    topics = [p.topic_name for p in publishers.values()]
+    first, second = tmp_path / "first", tmp_path / "second"
+    recorder = nodes.start("recorder", "-o", first, "--topics", *topics)
+    assert _wait_until(lambda: all(p.get_subscription_count() for p in publishers.values()))
+    for _ in range(2):
+        for msgtype, publisher in publishers.items():
+            publisher.publish(sample_messages[msgtype])
+            time.sleep(0.02)  # distinct receive times: one order
+    for publisher in publishers.values():
+        assert publisher.wait_for_all_acked(Duration(seconds=10))
+    assert nodes.stop(recorder, signal.SIGINT) == 0, nodes.output(recorder)
+    node.destroy_node()
+
+    recorder = nodes.start("recorder", "-o", second, "--topics", *topics)
+    player = nodes.start(
+        "player", first, "--delay", "0", "--wait-for-subscribers", "--wait-timeout", "30"
+    )
+    assert player.wait(timeout=60) == 0, nodes.output(player)
+    assert "no subscriber" not in nodes.output(player)
+    assert nodes.stop(recorder, signal.SIGINT) == 0, nodes.output(recorder)
+
+    recorded = [(m.topic, m.msgtype, m.data) for m in read_bag(first)]
+    again = [(m.topic, m.msgtype, m.data) for m in read_bag(second)]
+    assert len(recorded) == 2 * len(sample_messages)
+    assert [m[:2] for m in again] == [m[:2] for m in recorded]
+    assert again == recorded, "payload bytes differ"
+    latched_qos = inspect_bag(second).topics["/again/LocalMap"].offered_qos_profiles
+    assert [(q["durability"], q["reliability"]) for q in latched_qos] == [
+        ("transient_local", "reliable")
+    ]
+
+
+def test_killed_bag_without_metadata_plays_its_complete_chunks(
+    ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
+) -> None:
+    import rclpy
+    from csam_msgs.msg import FeatureObservations
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.serialization import serialize_message
+
+    bag = tmp_path / "killed"
+    writer = BagWriter(bag, flush_period_s=3600)
+    writer.add_topic(FEATURES, "csam_msgs/msg/FeatureObservations")
+    payloads = [serialize_message(_features(label)) for label in range(15)]
+    for label, data in enumerate(payloads):
+        writer.write(FEATURES, (label + 1) * SECOND // 100, data)
+        if label == 9:
+            writer.flush()
+    writer._file.flush()  # killed: ten messages in a complete chunk, five never written
+    (bag / "metadata.yaml").unlink()
+
+    node = rclpy.create_node("killed_sink", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    received: list[bytes] = []
+    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
+    player = nodes.start("player", bag, "--delay", "0", "--wait-for-subscribers")
+    assert spin(executor, lambda: player.poll() is not None, 30)
+    assert player.returncode == 0, nodes.output(player)
+    spin(executor, lambda: len(received) == 10, 5)
+    assert received == payloads[:10]
+    assert "cut short" in nodes.output(player)
+    executor.shutdown()
+    node.destroy_node()
+
+
+def test_loop_plays_again_until_interrupted(
+    ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
+) -> None:
+    import rclpy
+    from csam_msgs.msg import FeatureObservations
+    from rclpy.executors import SingleThreadedExecutor
+
+    bag = tmp_path / "bag"
+    payloads = _features_bag(bag, count=3, spacing_ns=SECOND)
+    node = rclpy.create_node("loop_sink", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    received: list[bytes] = []
+    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
+    player = nodes.start(
+        "player", bag, "--loop", "--rate", "20", "--topics", FEATURES, "--delay", "0",
+        "--wait-for-subscribers",
+    )  # fmt: skip
+    assert spin(executor, lambda: len(received) >= 3 * len(payloads), 30), nodes.output(player)
+    assert received[: 3 * len(payloads)] == payloads * 3
+    assert nodes.stop(player, signal.SIGINT) == 0, nodes.output(player)
+    executor.shutdown()
+    node.destroy_node()
+
+
+def _bad_bag(tmp_path: Path, case: str) -> tuple[Path, list[str]]:
+    """A bad bag for ``case`` and extra player arguments."""
+    if case == "missing":
+        return tmp_path / "nothing_here", []
+    directory = tmp_path / "bag"
+    directory.mkdir()
+    if case == "no_mcap":
+        (directory / "notes.txt").write_text("no bag here")
+    elif case == "empty_file":
+        (directory / "bag_0.mcap").write_bytes(b"")
+    elif case == "cut_in_header":
+        _features_bag(tmp_path / "good", count=3, spacing_ns=SECOND)
+        good = (tmp_path / "good" / "good_0.mcap").read_bytes()
+        (directory / "bag_0.mcap").write_bytes(good[:5])
+    elif case == "no_messages":
+        with BagWriter(directory / "empty"):
+            pass
+        return directory / "empty", []
+    elif case == "unknown_topic":
+        _features_bag(directory / "good", count=3, spacing_ns=SECOND)
+        return directory / "good", ["--topics", "/not/recorded"]
+    return directory, []
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["missing", "no_mcap", "empty_file", "cut_in_header", "no_messages", "unknown_topic"],
+)
+def test_bad_bag_is_a_one_line_error(nodes: Any, tmp_path: Path, case: str) -> None:
+    bag, extra = _bad_bag(tmp_path, case)
+
+    def files() -> dict[Path, bytes]:
+        return {
+            p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file() and "logs" not in p.parts
+        }
+
+    before = files()
+    player = nodes.start("player", bag, *extra)
+    assert player.wait(timeout=30) == 1
+    stderr = nodes.stderr(player)
+    assert "Traceback" not in stderr
+    assert len(stderr.strip().splitlines()) == 1, stderr
+    assert stderr.startswith("player: ") and str(bag) in stderr
+    assert files() == before
