@@ -48,7 +48,14 @@ from csam_ros.core.covariance import (
     marginal_covariances,
     marginal_sqrt_information,
 )
-from csam_ros.core.joining import RobotMap, covariance_columns, heading_sigmas, joint_solve
+from csam_ros.core.joining import (
+    RobotMap,
+    covariance_columns,
+    find_gauge_factor,
+    heading_sigmas,
+    joint_solve,
+)
+from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
 from csam_ros.core.solver import NormalEquations, SolverOptions
@@ -191,8 +198,7 @@ class CsamResult:
                 for f in self.features
             ],
             "associations": [
-                {"a": a.a, "b": a.b, "mahalanobis": float(a.mahalanobis)}
-                for a in self.associations
+                {"a": a.a, "b": a.b, "mahalanobis": float(a.mahalanobis)} for a in self.associations
             ],
             "timing_s": {k: float(v) for k, v in self.timing_s.items()},
             "statistics": {k: float(v) for k, v in self.statistics.items()},
@@ -246,7 +252,9 @@ def join_maps(
         rendezvous_logs, {m.name: m.stamps for m in maps}, config.stamp_tolerance
     )
     systems = [factorize_at_estimate(m.problem) for m in maps]
-    sigma_local = [heading_sigmas(m.problem, s, m.pose_ids)[0] for m, s in zip(maps, systems)]
+    sigma_local = [
+        heading_sigmas(m.problem, s, m.pose_ids)[0] for m, s in zip(maps, systems, strict=True)
+    ]
     rdv_poses = [
         np.unique(
             np.concatenate(
@@ -258,7 +266,10 @@ def join_maps(
         )
         for r in range(len(maps))
     ]
-    parts = [_local_inputs(m, s, idx, False)[0] for m, s, idx in zip(maps, systems, rdv_poses)]
+    parts = [
+        _local_inputs(m, s, idx, False)[0]
+        for m, s, idx in zip(maps, systems, rdv_poses, strict=True)
+    ]
     lap("local_rendezvous_parts")
 
     alignment = align(parts, measurements, config.alignment_options())
@@ -322,9 +333,7 @@ def join_maps(
     lap("joint_heading_sigmas")
 
     feature_covs = (
-        marginal_covariances(
-            joint, [joint.key(int(i)) for i in solution.feature_var_ids], system
-        )
+        marginal_covariances(joint, [joint.key(int(i)) for i in solution.feature_var_ids], system)
         if len(solution.feature_var_ids)
         else []
     )
@@ -361,14 +370,36 @@ def join_maps(
     )
 
 
-def run_csam(log: MultiRobotLog, config: CsamConfig | None = None) -> CsamResult:
-    """Build every robot's local map from its log (poses at all rendezvous stamps that
-    involve it) and run :func:`join_maps`; ``timing_s["local_maps"]`` is the building time."""
-    from csam_ros.core.local_map import robot_map_from_log
+def robot_map_from_local_map(local: LocalMap) -> RobotMap:
+    """C-SAM's view of a solved :class:`~csam_ros.core.local_map.LocalMap`."""
+    problem = local.problem
+    pose_ids = problem.indices([("x", i) for i in range(len(local.stamps))])
+    labels = local.landmark_labels
+    feature_ids = problem.indices([("l", int(lab)) for lab in labels])
+    return RobotMap(
+        name=local.name,
+        problem=problem,
+        stamps=local.stamps,
+        pose_ids=pose_ids,
+        feature_labels=labels,
+        feature_ids=feature_ids,
+        gauge_factor=find_gauge_factor(problem, int(pose_ids[0])),
+    )
 
+
+def run_csam(
+    log: MultiRobotLog,
+    config: CsamConfig | None = None,
+    local_map_options: LocalMapOptions | None = None,
+) -> CsamResult:
+    """Build every robot's local map from its log (with a pose at every rendezvous stamp that
+    involves it) and run :func:`join_maps`; ``timing_s["local_maps"]`` is the building time."""
     start = time.perf_counter()
     stamps = required_stamps({n: r.rendezvous for n, r in log.robots.items()})
-    maps = [robot_map_from_log(robot, stamps[name]) for name, robot in log.robots.items()]
+    maps = [
+        robot_map_from_local_map(build_local_map(robot, stamps[name], local_map_options))
+        for name, robot in log.robots.items()
+    ]
     built = time.perf_counter() - start
     result = join_maps(maps, {n: r.rendezvous for n, r in log.robots.items()}, config)
     result.timing_s["local_maps"] = built

@@ -127,9 +127,7 @@ def joint_solve(
         )
 
     # features: one unknown per cluster, then one per remaining feature, robot by robot
-    label_index = {
-        r: {int(lab): k for k, lab in enumerate(maps[r].feature_labels)} for r in robots
-    }
+    label_index = {r: {int(lab): k for k, lab in enumerate(maps[r].feature_labels)} for r in robots}
     global_xy = {
         r: se2.transform_point(
             np.broadcast_to(base_nodes[r], (len(maps[r].feature_ids), 3)),
@@ -159,7 +157,9 @@ def joint_solve(
         owner[r][free] = len(members) + np.arange(len(free))
         members.extend([(r, int(maps[r].feature_labels[i]))] for i in free)
         initial_xy.extend(global_xy[r][free])
-    keys = [("feature",) + tuple(x for rl in mem for x in (maps[rl[0]].name, rl[1])) for mem in members]
+    keys = [
+        ("feature",) + tuple(x for rl in mem for x in (maps[rl[0]].name, rl[1])) for mem in members
+    ]
     feature_var_ids = (
         problem.add_variables(POINT, keys, np.array(initial_xy).reshape(-1, 2))
         if members
