@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 from scipy.stats import chi2
@@ -46,6 +47,11 @@ CONFIG = Path(__file__).resolve().parents[2] / "config" / "mrclam.yaml"
 DEFAULT_DATASET = Path("/work/shared/data/mrclam/MRCLAM_Dataset1")
 CAUCHY_SCALE = 2.3849  # 95% efficiency at the normal distribution
 MAD_TO_SIGMA = 1.4826
+# Where the estimation starts (deliberately not the config's values, so that re-running it
+# does not feed its own output back in).
+NEUTRAL_START = MrclamNoise(
+    sigma_range=0.1, sigma_range_per_m=0.0, sigma_bearing=0.02, q_v=0.02, q_vlat=0.01, q_omega=0.04
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -502,6 +508,341 @@ def estimate_odometry_noise(
     )
 
 
+# ---------------------------------------------------------------------------------------------
+# localisation with known landmarks (the smoothing engine), expectation-maximisation of noise
+
+
+@dataclass
+class Localisation:
+    """One robot's smoothed poses at its feature stamps, landmarks held at their truth."""
+
+    robot: str
+    stamps: FloatArray  # (N,) key stamps
+    poses: FloatArray  # (N, 3) world frame
+    pose_covariances: FloatArray  # (N, 3, 3)
+    pair_covariances: FloatArray  # (N-1, 6, 6) joint of consecutive poses
+    odometry_z: FloatArray  # (N-1, 3) composed odometry between keys
+    odometry_unit: FloatArray  # (N-1, 3, 3, 3) covariance per unit density of v, v_lat, omega
+    observation_key: NDArray[np.int64]  # (K,) observation -> key
+    ranges: FloatArray  # (K,)
+    range_residuals: FloatArray  # (K,) measured - predicted
+    bearing_residuals: FloatArray  # (K,)
+    range_variance: FloatArray  # (K,) of the prediction, from the pose covariance
+    bearing_variance: FloatArray  # (K,)
+    iterations: int
+    seconds: float
+
+
+def _unit_density_odometry(
+    odometry: OdometryLog, keys: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Composed odometry between keys and its covariance for a unit density of each input."""
+    from csam_ros.core.motion import odometry_between
+
+    durations = np.diff(odometry.stamps)
+    per_sample = np.concatenate([[durations[0]], durations])
+    unit = []
+    relative = np.zeros((keys.size - 1, 3))
+    for k in range(3):
+        sigmas = np.zeros((odometry.stamps.size, 3))
+        sigmas[:, k] = 1.0 / np.sqrt(per_sample)
+        factors = odometry_between(odometry.stamps, odometry.inputs, sigmas, keys)
+        relative = factors.relative_poses
+        unit.append(factors.covariances)
+    return relative, np.stack(unit, axis=1)
+
+
+def localise(
+    robot: RobotLog,
+    truth: GroundTruth,
+    noise: MrclamNoise,
+    snapshots: Snapshots,
+    robust: bool = True,
+) -> Localisation:
+    """Smooth one robot's poses at its feature stamps given the true landmarks.
+
+    Odometry factors between consecutive feature stamps (covariance from the densities of
+    ``noise``), Cartesian landmark observations with a Cauchy kernel, landmarks tied to their
+    truth by a 1 mm prior. Started from the snapshot poses, dead reckoning in between.
+    """
+    from csam_ros.core.covariance import factorize_at_estimate
+    from csam_ros.core.factors import (
+        POINT,
+        POSE,
+        Cauchy,
+        PointObservation,
+        PointPrior,
+        RelativePose,
+    )
+    from csam_ros.core.sensor import polar_to_cartesian
+    from csam_ros.core.solver import Problem, SolverOptions
+
+    began = time.perf_counter()
+    features = robot.features
+    odometry = robot.odometry
+    inside = (features.stamps >= odometry.stamps[0]) & (features.stamps <= odometry.stamps[-1])
+    keys, key_of = np.unique(features.stamps[inside], return_inverse=True)
+    relative, unit = _unit_density_odometry(odometry, keys)
+    densities = np.array([noise.q_v, noise.q_vlat, noise.q_omega])
+    odometry_cov = np.einsum("k,nkij->nij", densities**2, unit)
+
+    # start: snapshot poses, dead reckoning from the nearest snapshot elsewhere
+    from csam_ros.core.motion import dead_reckoning as compose_chain
+
+    reckoned = compose_chain(relative)
+    snap_key = np.searchsorted(keys, snapshots.stamps)
+    snap_key = np.clip(snap_key, 0, keys.size - 1)
+    exact = keys[snap_key] == snapshots.stamps
+    anchor_keys, anchor_poses = snap_key[exact], snapshots.poses[exact]
+    nearest = np.clip(np.searchsorted(anchor_keys, np.arange(keys.size)), 0, anchor_keys.size - 1)
+    previous = np.clip(nearest - 1, 0, anchor_keys.size - 1)
+    closer = np.abs(anchor_keys[previous] - np.arange(keys.size)) < np.abs(
+        anchor_keys[nearest] - np.arange(keys.size)
+    )
+    anchor = np.where(closer, previous, nearest)
+    initial = se2.compose(
+        anchor_poses[anchor],
+        se2.between(reckoned[anchor_keys[anchor]], reckoned),
+    )
+
+    problem = Problem()
+    pose_ids = problem.add_variables(POSE, [("x", k) for k in range(keys.size)], initial)
+    subjects = np.array(truth.feature_ids)
+    point_ids = problem.add_variables(
+        POINT, [("l", int(s)) for s in subjects], truth.feature_positions
+    )
+    problem.add_factor(PointPrior(point_ids, truth.feature_positions, covariance=np.eye(2) * 1e-6))
+    problem.add_factor(RelativePose(pose_ids[:-1], pose_ids[1:], relative, covariance=odometry_cov))
+    labels = truth.label_to_feature[robot.name]
+    where = {int(s): k for k, s in enumerate(subjects)}
+    obs_subject_row = np.array(
+        [where[labels[int(lab)]] for lab in features.labels[inside]], dtype=np.int64
+    )
+    ranges = features.ranges[inside]
+    bearings = features.bearings[inside]
+    sigma_r = noise.sigma_range + noise.sigma_range_per_m * ranges
+    z, z_cov = polar_to_cartesian(ranges, bearings, sigma_r, noise.sigma_bearing)
+    problem.add_factor(
+        PointObservation(
+            pose_ids[key_of],
+            point_ids[obs_subject_row],
+            z,
+            covariance=z_cov,
+            robust=Cauchy() if robust else None,
+        )
+    )
+    report = problem.solve(SolverOptions(max_iterations=50))
+    poses = problem.values_of(pose_ids)
+
+    # Covariances of the poses and of consecutive pairs. The landmarks are held to 1 mm, so
+    # the pose block of the information matrix (conditional on the landmarks) is block
+    # tridiagonal: its selected inverse comes from one forward and one backward recursion.
+    system = factorize_at_estimate(problem)
+    upper = system.matrix()
+    n_pose = 3 * keys.size
+    information = (upper + sp.triu(upper, 1).T).tocsr()[:n_pose, :n_pose]
+    pose_cov, pair_cov = chain_covariances(information, keys.size)
+    landmarks = truth.feature_positions[obs_subject_row]
+    pose_of = poses[key_of]
+    d = landmarks - pose_of[:, :2]
+    predicted_r = np.linalg.norm(d, axis=1)
+    predicted_b = np.arctan2(d[:, 1], d[:, 0]) - pose_of[:, 2]
+    j_r = np.stack([-d[:, 0] / predicted_r, -d[:, 1] / predicted_r, np.zeros_like(predicted_r)], 1)
+    j_b = np.stack(
+        [d[:, 1] / predicted_r**2, -d[:, 0] / predicted_r**2, -np.ones_like(predicted_r)], 1
+    )
+    c = pose_cov[key_of]
+    return Localisation(
+        robot=robot.name,
+        stamps=keys,
+        poses=poses,
+        pose_covariances=pose_cov,
+        pair_covariances=pair_cov,
+        odometry_z=relative,
+        odometry_unit=unit,
+        observation_key=key_of,
+        ranges=ranges,
+        range_residuals=ranges - predicted_r,
+        bearing_residuals=se2.wrap_angle(bearings - predicted_b),
+        range_variance=np.einsum("ki,kij,kj->k", j_r, c, j_r),
+        bearing_variance=np.einsum("ki,kij,kj->k", j_b, c, j_b),
+        iterations=report.iterations,
+        seconds=time.perf_counter() - began,
+    )
+
+
+def chain_covariances(information: sp.spmatrix, n: int) -> tuple[FloatArray, FloatArray]:
+    """Diagonal and first off-diagonal blocks of the inverse of a block-tridiagonal matrix.
+
+    ``information`` is ``(3n, 3n)`` symmetric with 3x3 blocks, nonzero only on the block
+    diagonal and the first block off-diagonals. Returns the covariances ``(n, 3, 3)`` and the
+    joint covariances of consecutive blocks ``(n-1, 6, 6)``.
+    """
+    block = np.arange(3)
+    rows = 3 * np.arange(n)[:, None, None] + block[None, :, None]
+    cols = 3 * np.arange(n)[:, None, None] + block[None, None, :]
+    rows, cols = np.broadcast_arrays(rows, cols)
+    diagonal = np.asarray(information[rows.reshape(-1), cols.reshape(-1)]).reshape(n, 3, 3)
+    upper = np.asarray(information[rows[:-1].reshape(-1), (cols[:-1] + 3).reshape(-1)]).reshape(
+        n - 1, 3, 3
+    )
+    schur = np.empty_like(diagonal)
+    schur[0] = diagonal[0]
+    for k in range(1, n):
+        schur[k] = diagonal[k] - upper[k - 1].T @ np.linalg.solve(schur[k - 1], upper[k - 1])
+    schur_inverse = np.linalg.inv(schur)
+    cov = np.empty_like(diagonal)
+    cross = np.empty_like(upper)
+    cov[-1] = schur_inverse[-1]
+    for k in range(n - 2, -1, -1):
+        gain = schur_inverse[k] @ upper[k]  # S_k^-1 B_k
+        cross[k] = -gain @ cov[k + 1]
+        cov[k] = schur_inverse[k] - cross[k] @ gain.T
+    pair = np.zeros((n - 1, 6, 6))
+    pair[:, :3, :3] = cov[:-1]
+    pair[:, 3:, 3:] = cov[1:]
+    pair[:, :3, 3:] = cross
+    pair[:, 3:, :3] = cross.transpose(0, 2, 1)
+    return 0.5 * (cov + cov.transpose(0, 2, 1)), pair
+
+
+def _fit_range_sigma(
+    ranges: FloatArray, expected_squares: FloatArray, intercept: float, slope: float
+) -> tuple[float, float]:
+    """Maximum likelihood of ``sigma(r) = a + b r`` (``a > 0``, ``b >= 0``) from expected
+    squared residuals."""
+
+    floor = 1e-3  # m: keeps a > 0 when the data favour a purely proportional model
+
+    def negative_log_likelihood(p: FloatArray) -> float:
+        sigma = floor + np.exp(p[0]) + np.exp(p[1]) * ranges
+        return float(np.sum(np.log(sigma) + 0.5 * expected_squares / sigma**2))
+
+    start = np.log([max(intercept - floor, 1e-4), max(slope, 1e-4)])
+    p = minimize(
+        negative_log_likelihood, start, method="Nelder-Mead", options={"xatol": 1e-5, "fatol": 1e-8}
+    ).x
+    return float(floor + np.exp(p[0])), float(np.exp(p[1]))
+
+
+def _odometry_expected_scatter(loc: Localisation) -> tuple[FloatArray, FloatArray]:
+    """Residuals of the odometry factors and their expected outer products ``e e^T + J P J^T``."""
+    a, b = loc.poses[:-1], loc.poses[1:]
+    residual = se2.between(a, b) - loc.odometry_z
+    residual[:, 2] = se2.wrap_angle(residual[:, 2])
+    j1, j2 = se2.compose_jacobians(se2.inverse(a), b)
+    ja = j1 @ se2.inverse_jacobian(a)
+    jab = np.concatenate([ja, j2], axis=2)  # (n, 3, 6)
+    spread = jab @ loc.pair_covariances @ jab.transpose(0, 2, 1)
+    return residual, residual[:, :, None] * residual[:, None, :] + spread
+
+
+def em_noise(
+    log: MultiRobotLog,
+    noise: MrclamNoise,
+    snapshots: dict[str, Snapshots],
+    rounds: int = 12,
+    gate: float = 5.0,
+    verbose: bool = False,
+    tolerance: float = 0.01,
+) -> tuple[MrclamNoise, dict]:
+    """Expectation-maximisation of the noise model over localisations with known landmarks.
+
+    E-step: :func:`localise` every robot with the current model; each factor's expected
+    squared residual is its residual squared plus the spread of its prediction under the
+    smoothed pose covariance. M-step: range sigma per range bin (fitted ``a + b r``) and one
+    bearing sigma from the expected squares of observations within ``gate`` sigmas; odometry
+    densities maximise the expected log-likelihood of the odometry factors. Stops when no
+    value changes by more than ``tolerance`` (relative) in a round.
+    """
+    assert log.truth is not None
+    history = []
+    for _ in range(rounds):
+        locs = {
+            name: localise(robot, log.truth, noise, snapshots[name])
+            for name, robot in log.robots.items()
+        }
+        ranges = np.concatenate([loc.ranges for loc in locs.values()])
+        e_r = np.concatenate([loc.range_residuals for loc in locs.values()])
+        e_b = np.concatenate([loc.bearing_residuals for loc in locs.values()])
+        v_r = np.concatenate([loc.range_variance for loc in locs.values()])
+        v_b = np.concatenate([loc.bearing_variance for loc in locs.values()])
+        # The gate scales with the robust spread of the residuals themselves, not with the
+        # current model: a gate tied to the model lets outliers inflate it round after round.
+        normalised = e_r / (noise.sigma_range + noise.sigma_range_per_m * ranges)
+        inlier = (np.abs(normalised) < gate * robust_sigma(normalised)) & (
+            np.abs(e_b) < gate * robust_sigma(e_b)
+        )
+        intercept, slope = _fit_range_sigma(
+            ranges[inlier],
+            e_r[inlier] ** 2 + v_r[inlier],
+            noise.sigma_range,
+            noise.sigma_range_per_m,
+        )
+        sigma_b = float(np.sqrt(np.mean(e_b[inlier] ** 2 + v_b[inlier])))
+
+        scatter, unit = [], []
+        for loc in locs.values():
+            scatter.append(_odometry_expected_scatter(loc)[1])
+            unit.append(loc.odometry_unit)
+        scatter_all = np.concatenate(scatter)
+        unit_all = np.concatenate(unit)
+
+        def expected_nll(
+            log_q: FloatArray,
+            unit_all: FloatArray = unit_all,
+            scatter_all: FloatArray = scatter_all,
+        ) -> float:
+            sigma = np.einsum("k,nkij->nij", np.exp(2 * log_q), unit_all)
+            sigma = sigma + np.eye(3) * 1e-12
+            _, logdet = np.linalg.slogdet(sigma)
+            trace = np.einsum("nij,nji->n", np.linalg.inv(sigma), scatter_all)
+            return float(0.5 * np.sum(logdet + trace))
+
+        q0 = np.log([noise.q_v, noise.q_vlat, noise.q_omega])
+        q = np.exp(
+            minimize(
+                expected_nll, q0, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-6}
+            ).x
+        )
+        noise = MrclamNoise(
+            sigma_range=float(intercept),
+            sigma_range_per_m=float(slope),
+            sigma_bearing=sigma_b,
+            q_v=float(q[0]),
+            q_vlat=float(q[1]),
+            q_omega=float(q[2]),
+        )
+        normalised_r = e_r / (intercept + slope * ranges)
+        normalised_b = e_b / sigma_b
+        history.append(
+            {
+                "noise": asdict(noise),
+                "outside_gate": float(1 - inlier.mean()),
+                "range_beyond_3_sigma": float(np.mean(np.abs(normalised_r) > 3)),
+                "bearing_beyond_3_sigma": float(np.mean(np.abs(normalised_b) > 3)),
+                "range_beyond_5_sigma": float(np.mean(np.abs(normalised_r) > 5)),
+                "bearing_beyond_5_sigma": float(np.mean(np.abs(normalised_b) > 5)),
+                "seconds": float(sum(loc.seconds for loc in locs.values())),
+                "iterations": {n: loc.iterations for n, loc in locs.items()},
+            }
+        )
+        previous = history[-2]["noise"] if len(history) > 1 else None
+        if verbose:
+            last = history[-1]
+            print(
+                f"  EM round {len(history)}: "
+                + " ".join(f"{k}={v:.4g}" for k, v in last["noise"].items())
+                + f"  outside gate {100 * last['outside_gate']:.1f}%",
+                flush=True,
+            )
+        if previous is not None:
+            change = max(abs(v / previous[k] - 1) for k, v in history[-1]["noise"].items())
+            if change < tolerance:
+                break
+    return noise, {"rounds": history, "tolerance": tolerance}
+
+
 def landmark_consistency(
     log: MultiRobotLog,
     snapshots: dict[str, Snapshots],
@@ -533,7 +874,9 @@ def landmark_consistency(
 
 @dataclass
 class NoiseEstimate:
-    noise: MrclamNoise
+    noise: MrclamNoise  # the final model (expectation-maximisation)
+    first_estimate: MrclamNoise  # from the snapshots alone
+    em: dict
     sensor: SensorNoiseEstimate
     odometry: OdometryNoiseEstimate
     landmarks: dict[int, dict]
@@ -542,13 +885,16 @@ class NoiseEstimate:
 
 
 def estimate_noise(
-    dataset: str | Path = DEFAULT_DATASET, landmark_swaps: list[tuple[int, int]] | None = None
+    dataset: str | Path = DEFAULT_DATASET,
+    landmark_swaps: list[tuple[int, int]] | None = None,
+    rounds: int = 12,
+    verbose: bool = False,
 ) -> NoiseEstimate:
     """The whole estimation on a data set directory (module docstring)."""
     began = time.perf_counter()
     swaps = [tuple(p) for p in (landmark_swaps or [])]
     log, _ = import_mrclam(dataset, landmark_swaps=swaps)
-    sensor, snapshots = estimate_sensor_noise(log, MrclamNoise())
+    sensor, snapshots = estimate_sensor_noise(log, NEUTRAL_START)
     odometry = estimate_odometry_noise(log, snapshots)
     noise = MrclamNoise(
         sigma_range=sensor.sigma_range,
@@ -559,11 +905,19 @@ def estimate_noise(
         q_omega=odometry.q_omega,
     )
     landmarks = landmark_consistency(log, snapshots)
-    return NoiseEstimate(noise, sensor, odometry, landmarks, swaps, time.perf_counter() - began)
+    final, history = (
+        em_noise(log, noise, snapshots, rounds=rounds, verbose=verbose)
+        if rounds
+        else (noise, {"rounds": []})
+    )
+    return NoiseEstimate(
+        final, noise, history, sensor, odometry, landmarks, swaps, time.perf_counter() - began
+    )
 
 
 def _print_noise(estimate: NoiseEstimate) -> None:
     s, o, n = estimate.sensor, estimate.odometry, estimate.noise
+    print("1. first estimate from snapshot localisation (no odometry)")
     print(
         f"snapshot localisation: {s.n_snapshots} frames with >= 3 landmarks, "
         f"{s.n_observations} landmark measurements"
@@ -601,6 +955,35 @@ def _print_noise(estimate: NoiseEstimate) -> None:
         f"truth swaps applied: {estimate.landmark_swaps}:"
     )
     print("  " + "  ".join(f"{k}:{v['gross_fraction']:.2f}" for k, v in estimate.landmarks.items()))
+    f = estimate.first_estimate
+    print(
+        f"  first estimate: s_r = {f.sigma_range:.4f} + {f.sigma_range_per_m:.4f} r, "
+        f"s_b = {f.sigma_bearing:.4f}, q = ({f.q_v:.4f}, {f.q_vlat:.4f}, {f.q_omega:.4f})"
+    )
+    rounds = estimate.em["rounds"]
+    if rounds:
+        last = rounds[-1]
+        print(
+            f"2. expectation-maximisation over localisations with the known landmarks "
+            f"(smoothing engine, Cauchy kernel), {len(rounds)} rounds:"
+        )
+        print(
+            f"  measurements beyond the 5-robust-sigma gate: {100 * last['outside_gate']:.2f}%; "
+            f"range beyond 3 sigma {100 * last['range_beyond_3_sigma']:.2f}% "
+            f"(5 sigma {100 * last['range_beyond_5_sigma']:.3f}%), bearing beyond 3 sigma "
+            f"{100 * last['bearing_beyond_3_sigma']:.2f}% "
+            f"(5 sigma {100 * last['bearing_beyond_5_sigma']:.3f}%)"
+        )
+        change = (
+            {k: v / rounds[-2]["noise"][k] - 1 for k, v in last["noise"].items()}
+            if len(rounds) > 1
+            else {}
+        )
+        if change:
+            print(
+                "  relative change in the last round: "
+                + " ".join(f"{k} {100 * v:+.1f}%" for k, v in change.items())
+            )
     print("noise model (config/mrclam.yaml, key mrclam.noise):")
     print(f"  sigma_range: {n.sigma_range:.4f}        # m")
     print(f"  sigma_range_per_m: {n.sigma_range_per_m:.4f}  # m per m of range")
@@ -625,10 +1008,11 @@ def main(argv: list[str] | None = None) -> int:
         "--config", type=Path, default=CONFIG, help="landmark_swaps are taken from here"
     )
     noise.add_argument("--no-swaps", action="store_true", help="ignore the config's swaps")
+    noise.add_argument("--rounds", type=int, default=12, help="most EM rounds (0: snapshots only)")
     args = parser.parse_args(argv)
     if args.command == "noise":
         swaps = [] if args.no_swaps else load_config(args.config).get("landmark_swaps") or []
-        estimate = estimate_noise(args.dataset, swaps)
+        estimate = estimate_noise(args.dataset, swaps, rounds=args.rounds, verbose=not args.json)
         if args.json:
             print(json.dumps(asdict(estimate), indent=1))
         else:

@@ -82,12 +82,12 @@ class MrclamNoise:
     sqrt-second (see the module docstring for the per-sample sigmas).
     """
 
-    sigma_range: float = 0.079
-    sigma_range_per_m: float = 0.0154
-    sigma_bearing: float = 0.0048
-    q_v: float = 0.022
-    q_vlat: float = 0.0053
-    q_omega: float = 0.036
+    sigma_range: float = 0.001
+    sigma_range_per_m: float = 0.0383
+    sigma_bearing: float = 0.0047
+    q_v: float = 0.0241
+    q_vlat: float = 0.0073
+    q_omega: float = 0.0559
 
     def __post_init__(self) -> None:
         for name in ("sigma_range", "sigma_bearing", "q_v", "q_vlat", "q_omega"):

@@ -1,0 +1,94 @@
+"""Pieces of the MR.CLAM noise estimation on synthetic cases with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from csam_ros.bench.mrclam import (
+    arc_increments,
+    chain_covariances,
+    dead_reckoning,
+    robust_sigma,
+    snapshot_localisation,
+)
+from csam_ros.core import se2
+from csam_ros.core.log import (
+    FeatureLog,
+    GroundTruth,
+    OdometryLog,
+    RobotLog,
+    empty_rendezvous,
+)
+from csam_ros.core.mrclam import MrclamNoise
+
+
+def test_chain_covariances_match_the_dense_inverse() -> None:
+    rng = np.random.default_rng(1)
+    n = 9
+    information = np.zeros((3 * n, 3 * n))
+    for k in range(n):
+        a = rng.normal(size=(3, 3))
+        information[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] += a @ a.T + np.eye(3)
+    for k in range(n - 1):
+        j = rng.normal(size=(3, 6))
+        information[3 * k : 3 * k + 6, 3 * k : 3 * k + 6] += j.T @ j
+    dense = np.linalg.inv(information)
+    cov, pair = chain_covariances(sp.csr_matrix(information), n)
+    for k in range(n):
+        np.testing.assert_allclose(cov[k], dense[3 * k : 3 * k + 3, 3 * k : 3 * k + 3], atol=1e-12)
+    for k in range(n - 1):
+        np.testing.assert_allclose(pair[k], dense[3 * k : 3 * k + 6, 3 * k : 3 * k + 6], atol=1e-12)
+
+
+def test_dead_reckoning_closes_a_circle() -> None:
+    n = 1001
+    stamps = np.linspace(0.0, 2 * np.pi, n)  # omega = 1 rad/s for 2 pi seconds
+    inputs = np.tile([0.5, 0.0, 1.0], (n, 1))
+    poses = dead_reckoning(OdometryLog(stamps, inputs, np.ones((n, 3))))
+    np.testing.assert_allclose(poses[-1, :2], [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(poses[n // 2, :2], [0.0, 1.0], atol=1e-12)  # radius v / omega
+    straight = arc_increments(np.array([2.0]), np.array([0.0]), np.array([0.5]))
+    np.testing.assert_allclose(straight, [[1.0, 0.0, 0.0]])
+
+
+def test_robust_sigma_of_a_normal_sample() -> None:
+    values = np.random.default_rng(0).normal(scale=0.3, size=20000)
+    values[:500] = 50.0  # 2.5% gross outliers barely move it
+    assert abs(robust_sigma(values) - 0.3) < 0.02
+
+
+def test_snapshot_localisation_recovers_poses_despite_an_outlier() -> None:
+    rng = np.random.default_rng(2)
+    landmarks = np.array([[4.0, 0.0], [4.0, 2.0], [5.0, -1.5], [6.0, 1.0], [3.0, -2.0]])
+    truth = GroundTruth(np.arange(5), landmarks, {"robot1": {10 + k: k for k in range(5)}})
+    poses = np.array([[0.0, 0.0, 0.1], [0.5, 0.2, -0.2], [1.0, -0.3, 0.05]])
+    stamps, labels, ranges, bearings = [], [], [], []
+    for t, pose in enumerate(poses):
+        local = se2.inverse_transform_point(pose, landmarks)
+        r = np.linalg.norm(local, axis=1) + rng.normal(scale=0.01, size=5)
+        b = np.arctan2(local[:, 1], local[:, 0]) + rng.normal(scale=0.002, size=5)
+        if t == 1:
+            r[3] += 2.5  # a gross outlier in the middle frame
+        stamps += [float(t)] * 5
+        labels += list(range(10, 15))
+        ranges += r.tolist()
+        bearings += b.tolist()
+    k = len(stamps)
+    features = FeatureLog(
+        np.array(stamps),
+        np.array(labels),
+        np.array(ranges),
+        np.array(bearings),
+        np.full(k, 0.01),
+        np.full(k, 0.002),
+    )
+    odometry = OdometryLog(np.array([0.0, 3.0]), np.zeros((2, 3)), np.ones((2, 3)))
+    robot = RobotLog("robot1", odometry, features, empty_rendezvous())
+    noise = MrclamNoise(sigma_range=0.01, sigma_range_per_m=0.0, sigma_bearing=0.002)
+    snapshots = snapshot_localisation(robot, truth, noise)
+    np.testing.assert_allclose(snapshots.stamps, [0.0, 1.0, 2.0])
+    np.testing.assert_allclose(snapshots.poses[:, :2], poses[:, :2], atol=0.03)
+    np.testing.assert_allclose(snapshots.poses[:, 2], poses[:, 2], atol=0.01)
+    outlier = (snapshots.snapshot == 1) & (snapshots.labels == 13)
+    assert abs(snapshots.range_residuals[outlier][0] - 2.5) < 0.1
