@@ -1,0 +1,205 @@
+"""merger: joins every robot's local map by C-SAM and publishes the joined map.
+
+Subscribes to ``/<robot>/local_map`` and ``/<robot>/rendezvous_poses`` (transient local) of
+every robot in ``robots`` (the first one is the reference). When a local map or rendezvous part
+changes it re-solves (at most every ``solve_period`` wall-clock seconds) with the core's
+:func:`~csam_ros.core.csam.join_maps`, then writes ``summary_path`` (when set) and publishes
+``/csam/joined_map`` and ``/csam/markers`` (transient local) and ``/csam/status``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from visualization_msgs.msg import MarkerArray
+
+from csam_ros.conversions import time_to_ns
+from csam_ros.core.csam import CsamConfig, join_maps
+from csam_ros.core.validation import DropCounter
+from csam_ros.map_messages import (
+    LocalMapError,
+    joined_map_message,
+    rendezvous_log_from_message,
+    robot_map_from_message,
+)
+from csam_ros.markers import joined_map_markers
+from csam_ros.nodes.common import LATCHED, declare, run_node
+
+STATUS_TOPIC = "/csam/status"
+
+
+def write_json_atomically(path: Path, document: dict) -> None:
+    """Write JSON next to ``path`` and rename it over ``path`` (readers never see half)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(document, indent=1))
+    os.replace(tmp, path)
+
+
+class Merger(Node):
+    """C-SAM merger node (see the module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__("merger")
+        self.robots: list[str] = list(
+            declare(self, "robots", ["robot1", "robot2"], "robot names; the first is the reference")
+        )
+        summary = declare(self, "summary_path", "", "write summary.json here after each solve")
+        self.summary_path = Path(summary) if summary else None
+        period = declare(
+            self, "solve_period", 0.5, "minimum wall-clock seconds between solves", 0.0, 3600.0
+        )
+        defaults = CsamConfig()
+        config = {
+            f.name: declare(self, f.name, getattr(defaults, f.name), f"C-SAM: {f.name}")
+            for f in fields(CsamConfig)
+        }
+        self.config = CsamConfig.from_dict(config, "merger parameters")
+        self.local_maps: dict[str, LocalMap] = {}
+        self.rendezvous: dict[str, RendezvousPoses] = {}
+        self.drops = DropCounter()
+        self.dirty = False
+        self.last_summary: dict | None = None
+        self.solves = 0
+        self.solve_seconds = 0.0
+        self.last_error = ""
+        for robot in self.robots:
+            self.create_subscription(LocalMap, f"/{robot}/local_map", self.on_local_map, LATCHED)
+            self.create_subscription(
+                RendezvousPoses, f"/{robot}/rendezvous_poses", self.on_rendezvous_poses, LATCHED
+            )
+        self.joined_pub = self.create_publisher(JoinedMap, "/csam/joined_map", LATCHED)
+        self.markers_pub = self.create_publisher(MarkerArray, "/csam/markers", LATCHED)
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        self.create_timer(
+            max(period, 0.01), self.on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME)
+        )
+
+    def _known(self, robot: str) -> bool:
+        if robot not in self.robots:
+            self.drops.add("unknown_robot")
+            self.get_logger().warning(f"dropped a message of unknown robot {robot!r}")
+            return False
+        return True
+
+    def on_local_map(self, msg: LocalMap) -> None:
+        if self._known(msg.robot):
+            self.local_maps[msg.robot] = msg
+            self.dirty = True
+
+    def on_rendezvous_poses(self, msg: RendezvousPoses) -> None:
+        if self._known(msg.robot):
+            self.rendezvous[msg.robot] = msg
+            self.dirty = True
+
+    def on_timer(self) -> None:
+        if self.dirty:
+            self.dirty = False
+            self.solve()
+        self.publish_status()
+
+    def solve(self) -> None:
+        reference = self.robots[0]
+        if reference not in self.local_maps:
+            return
+        start = time.perf_counter()
+        maps, logs = [], {}
+        for robot in self.robots:
+            msg = self.local_maps.get(robot)
+            if msg is None:
+                continue
+            try:
+                maps.append(robot_map_from_message(msg))
+            except (LocalMapError, ValueError) as err:
+                self.drops.add("malformed_local_map")
+                self.get_logger().warning(f"dropped the local map of {robot}: {err}")
+                if robot == reference:
+                    return
+                continue
+            if robot in self.rendezvous:
+                logs[robot] = rendezvous_log_from_message(self.rendezvous[robot])
+        try:
+            result = join_maps(maps, logs, self.config)
+        except (ValueError, np.linalg.LinAlgError) as err:
+            self.last_error = str(err)
+            self.drops.add("failed_solve")
+            self.get_logger().error(f"C-SAM failed: {err}")
+            return
+        self.last_error = ""
+        summary = result.to_dict()
+        self.solve_seconds = time.perf_counter() - start
+        self.solves += 1
+        summary["timing_s"]["merger_solve"] = self.solve_seconds
+        summary["merger"] = {"dropped": self.drops.as_dict(), "solves": self.solves}
+        self.last_summary = summary
+        stamps = {r: time_to_ns(m.header.stamp) for r, m in self.local_maps.items()}
+        if self.summary_path is not None:
+            write_json_atomically(self.summary_path, summary)
+        newest = max(stamps.values())
+        self.joined_pub.publish(joined_map_message(summary, newest, stamps, self.robots))
+        self.markers_pub.publish(joined_map_markers(summary, self.get_clock().now().to_msg()))
+
+    def publish_status(self) -> None:
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        robots = (self.last_summary or {}).get("robots", {})
+        for robot in self.robots:
+            r = robots.get(robot)
+            if robot not in self.local_maps:
+                alignment = "pending: no local map received"
+            elif r is None:
+                alignment = "pending: not solved yet"
+            else:
+                alignment = r["alignment"]
+            ok = alignment in ("reference", "aligned")
+            values = {
+                "alignment": alignment,
+                "poses": len(r["stamps"]) if r else 0,
+                "solve_seconds": round(self.solve_seconds, 4),
+            }
+            array.status.append(
+                DiagnosticStatus(
+                    level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+                    name=f"merger/{robot}",
+                    hardware_id=robot,
+                    message=alignment,
+                    values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+                )
+            )
+        summary = self.last_summary or {}
+        values = {
+            "solves": self.solves,
+            "features": len(summary.get("features", [])),
+            "associations": len(summary.get("associations", [])),
+            "solve_seconds": round(self.solve_seconds, 4),
+            "dropped": self.drops.total,
+            "last_error": self.last_error,
+            **{f"dropped/{k}": v for k, v in self.drops.as_dict().items()},
+        }
+        array.status.append(
+            DiagnosticStatus(
+                level=DiagnosticStatus.OK if not self.last_error else DiagnosticStatus.ERROR,
+                name="merger",
+                message=f"{values['solves']} solves, {values['associations']} associations",
+                values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+            )
+        )
+        self.status_pub.publish(array)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(Merger, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,279 @@
+"""smoother: square-root smoothing of one robot's local map, in the robot's namespace.
+
+Subscribes to ``odom``, ``features`` and ``rendezvous`` (relative names: run it with
+``-r __ns:=/robot1``) and to every peer's ``/<peer>/rendezvous`` so that it holds a pose at the
+stamp of every rendezvous measurement that involves its robot. Publishes ``local_map``,
+``rendezvous_poses`` and ``path`` every ``publish_period`` seconds (of the node's clock, so sim
+time under ``use_sim_time``) when new data arrived, and when asked through ``~/flush``
+(std_srvs/Trigger; the reply's message is the published local map's stamp in nanoseconds).
+Bad input is dropped and counted (``/csam/status``); the node keeps running.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from csam_msgs.msg import FeatureObservations, LocalMap, RendezvousObservations, RendezvousPoses
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from csam_ros.conversions import (
+    features_from_message,
+    ns_to_time,
+    odometry_from_message,
+    rendezvous_from_message,
+    stamp_to_ns,
+    time_to_ns,
+)
+from csam_ros.core.csam import robot_map_from_local_map
+from csam_ros.core.factors import Cauchy, Huber
+from csam_ros.core.local_map import LocalMap as CoreLocalMap
+from csam_ros.core.local_map import LocalMapOptions
+from csam_ros.core.log import RendezvousLog
+from csam_ros.core.validation import MeasurementFilter
+from csam_ros.map_messages import rendezvous_poses_message, robot_map_to_message
+from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA, declare, run_node
+
+STATUS_TOPIC = "/csam/status"
+
+
+class Smoother(Node):
+    """One robot's sqrt-SAM smoother (see the module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__("smoother")
+        ns = self.get_namespace().strip("/")
+        self.robot = declare(
+            self, "robot", ns or "robot1", "this robot's name (default: namespace)"
+        )
+        peers = declare(self, "robots", [self.robot], "every robot's name (peers' rendezvous)")
+        fov = declare(
+            self,
+            "field_of_view_deg",
+            360.0,
+            "feature sensor field of view (drops beyond)",
+            0.0,
+            360.0,
+        )
+        self.publish_period = declare(
+            self,
+            "publish_period",
+            1.0,
+            "seconds between publications when data arrived",
+            0.01,
+            3600.0,
+        )
+        key_interval = declare(
+            self, "key_interval", 1.0, "seconds between regular key poses (0: off)", 0.0, 3600.0
+        )
+        kernel = declare(self, "robust_kernel", "", "'' (none), 'huber' or 'cauchy' on features")
+        threshold = declare(self, "robust_threshold", 3.0, "robust kernel threshold", 0.01, 100.0)
+        robust = {"": None, "huber": Huber, "cauchy": Cauchy}[kernel]
+        self.map = CoreLocalMap(
+            self.robot,
+            LocalMapOptions(
+                key_interval=key_interval or None,
+                robust=None if robust is None else robust(threshold),
+            ),
+        )
+        self.robots = list(dict.fromkeys([self.robot, *peers]))
+        self.filter = MeasurementFilter(self.robots, np.deg2rad(fov))
+        self.own_rendezvous: list[tuple[float, dict]] = []
+        self.rendezvous_stamps: set[float] = set()
+        self.last_odometry_ns = -1
+        self.published_ns = -1
+        self.dirty = False
+        self.solve_seconds = 0.0
+        self.errors = 0
+
+        self.create_subscription(Odometry, "odom", self.on_odometry, SENSOR_DATA)
+        self.create_subscription(FeatureObservations, "features", self.on_features, RELIABLE)
+        self.create_subscription(
+            RendezvousObservations, "rendezvous", self.on_own_rendezvous, RELIABLE
+        )
+        for peer in self.robots:
+            if peer != self.robot:
+                self.create_subscription(
+                    RendezvousObservations,
+                    f"/{peer}/rendezvous",
+                    lambda msg, peer=peer: self.on_peer_rendezvous(peer, msg),
+                    RELIABLE,
+                )
+        self.local_map_pub = self.create_publisher(LocalMap, "local_map", LATCHED)
+        self.rendezvous_pub = self.create_publisher(RendezvousPoses, "rendezvous_poses", LATCHED)
+        self.path_pub = self.create_publisher(Path, "path", LATCHED)
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        self.create_service(Trigger, "~/flush", self.on_flush)
+        self.create_timer(self.publish_period, self.on_timer)
+
+    # -- input ----------------------------------------------------------------------------------
+
+    def on_odometry(self, msg: Odometry) -> None:
+        stamp, inputs, sigmas = odometry_from_message(msg)
+        if self.filter.odometry(self.robot, stamp, inputs, sigmas):
+            self.map.add_odometry([stamp], inputs[None], sigmas[None])
+            self.last_odometry_ns = time_to_ns(msg.header.stamp)
+            self.dirty = True
+
+    def on_features(self, msg: FeatureObservations) -> None:
+        stamp, a = features_from_message(msg)
+        keep = self.filter.features(
+            self.robot, stamp, a["ranges"], a["bearings"], a["sigma_range"], a["sigma_bearing"]
+        )
+        if keep is not None:
+            self.map.add_features(
+                np.full(int(keep.sum()), stamp),
+                a["labels"][keep],
+                a["ranges"][keep],
+                a["bearings"][keep],
+                a["sigma_range"][keep],
+                a["sigma_bearing"][keep],
+            )
+            self.dirty = True
+
+    def on_own_rendezvous(self, msg: RendezvousObservations) -> None:
+        stamp, a = rendezvous_from_message(msg)
+        keep = self.filter.rendezvous(
+            self.robot,
+            stamp,
+            a["observed"],
+            a["ranges"],
+            a["bearings"],
+            a["sigma_range"],
+            a["sigma_bearing"],
+        )
+        if keep is not None:
+            kept = {
+                k: np.asarray(v, dtype=object if k == "observed" else float)[keep]
+                for k, v in a.items()
+            }
+            self.own_rendezvous.append((stamp, kept))
+            self.request_pose(stamp)
+
+    def on_peer_rendezvous(self, peer: str, msg: RendezvousObservations) -> None:
+        """A peer's measurements: only the stamps of those of this robot matter here."""
+        stamp, a = rendezvous_from_message(msg)
+        names = list(a["observed"])
+        if self.robot in names and np.isfinite(stamp):
+            self.request_pose(stamp)
+
+    def request_pose(self, stamp: float) -> None:
+        if stamp not in self.rendezvous_stamps:
+            self.rendezvous_stamps.add(stamp)
+            self.map.request_poses([stamp])
+            self.dirty = True
+
+    # -- output ---------------------------------------------------------------------------------
+
+    def on_timer(self) -> None:
+        if self.dirty:
+            self.solve_and_publish()
+
+    def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self.solve_and_publish()
+        response.success = self.published_ns >= 0
+        response.message = str(self.published_ns)
+        return response
+
+    def solve_and_publish(self) -> None:
+        if self.last_odometry_ns < 0:
+            self.publish_status()
+            return
+        start = time.perf_counter()
+        try:
+            report = self.map.update()
+        except ValueError as err:  # a solver failure never kills the node; keep the last map
+            self.errors += 1
+            self.get_logger().error(f"local map update failed: {err}")
+            self.publish_status()
+            return
+        self.dirty = False
+        robot_map = robot_map_from_local_map(self.map)
+        stamp_ns = self.last_odometry_ns
+        msg = robot_map_to_message(
+            robot_map,
+            stamp_ns,
+            self.map.pose_covariances(),
+            self.map.landmark_covariances(),
+            report.solve.iterations if report.solve is not None else 0,
+        )
+        self.local_map_pub.publish(msg)
+        self.rendezvous_pub.publish(self.rendezvous_poses(robot_map, stamp_ns))
+        self.path_pub.publish(self.path(stamp_ns))
+        self.solve_seconds = time.perf_counter() - start
+        self.published_ns = stamp_ns
+        self.publish_status()
+
+    def rendezvous_poses(self, robot_map, stamp_ns: int) -> RendezvousPoses:
+        stamps = np.array(sorted(self.rendezvous_stamps))
+        stamps = stamps[stamps <= self.map.stamps[-1]] if len(stamps) else stamps
+        if len(stamps):
+            root, _, _ = self.map.sqrt_information(stamps)
+            indices = np.unique(self.map.pose_index(stamps))
+        else:
+            root, indices = np.zeros((0, 0)), np.zeros(0, dtype=np.int64)
+        chunks = self.own_rendezvous
+        measurements = RendezvousLog(
+            np.concatenate([np.full(len(c[1]["ranges"]), c[0]) for c in chunks])
+            if chunks
+            else np.zeros(0),
+            [str(o) for c in chunks for o in c[1]["observed"]],
+            *(
+                np.concatenate([c[1][k] for c in chunks]).astype(float) if chunks else np.zeros(0)
+                for k in ("ranges", "bearings", "sigma_range", "sigma_bearing")
+            ),
+        )
+        return rendezvous_poses_message(robot_map, stamp_ns, indices, root, measurements)
+
+    def path(self, stamp_ns: int) -> Path:
+        msg = Path()
+        msg.header.stamp = ns_to_time(stamp_ns)
+        msg.header.frame_id = f"{self.robot}/map"
+        for t, p in zip(self.map.stamps, self.map.poses, strict=True):
+            pose = PoseStamped()
+            pose.header.frame_id = msg.header.frame_id
+            pose.header.stamp = ns_to_time(stamp_to_ns(t))
+            pose.pose.position.x, pose.pose.position.y = float(p[0]), float(p[1])
+            pose.pose.orientation.z = float(np.sin(p[2] / 2))
+            pose.pose.orientation.w = float(np.cos(p[2] / 2))
+            msg.poses.append(pose)
+        return msg
+
+    def publish_status(self) -> None:
+        drops = self.filter.counter(self.robot)
+        values = {
+            "poses": len(self.map.stamps),
+            "features": len(self.map.landmark_labels),
+            "rendezvous_poses": len(self.rendezvous_stamps),
+            "solve_seconds": round(self.solve_seconds, 4),
+            "dropped": drops.total,
+            "errors": self.errors,
+            **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
+        }
+        level = (
+            DiagnosticStatus.OK if drops.total == 0 and self.errors == 0 else DiagnosticStatus.WARN
+        )
+        status = DiagnosticStatus(
+            level=level,
+            name=f"smoother/{self.robot}",
+            hardware_id=self.robot,
+            message=f"{values['poses']} poses, {values['features']} features, "
+            f"{drops.total} inputs dropped",
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+        )
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.status_pub.publish(array)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(Smoother, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
