@@ -132,7 +132,8 @@ class RobotResult:
     sigma_phi_joined: Array | None = None  # (N,) relative to the robot's own first pose
     sigma_phi_joined_reference: Array | None = None  # (N,) in the reference frame
     alignment_method: str = ""  # "mutual" | "registration" | "" (reference, pending)
-    initial_base_node: Array | None = None  # before Algorithm 1
+    alignment_base_node: Array | None = None  # Algorithm 1 (rendezvous parts only)
+    alignment_base_node_cov: Array | None = None
 
 
 @dataclass
@@ -178,7 +179,8 @@ class CsamResult:
                 "base_node_cov": arr(r.base_node_cov),
                 "alignment": r.alignment,
                 "alignment_method": r.alignment_method,
-                "initial_base_node": arr(r.initial_base_node),
+                "alignment_base_node": arr(r.alignment_base_node),
+                "alignment_base_node_cov": arr(r.alignment_base_node_cov),
                 "stamps": arr(r.stamps),
                 "poses_local": arr(r.poses_local),
                 "poses_joined": arr(r.poses_joined) if r.poses_joined is not None else [],
@@ -328,7 +330,8 @@ def join_maps(
                 # G_r is defined by the robot's first pose (module docs of joining)
                 result.base_node = se2.compose(poses[0], se2.inverse(m.poses[0]))
                 result.base_node_cov = base_cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3]
-                result.initial_base_node = alignment.base_nodes[r].copy()
+                result.alignment_base_node = alignment.base_nodes[r].copy()
+                result.alignment_base_node_cov = alignment.base_covariance(r).copy()
         robots[m.name] = result
     lap("joint_heading_sigmas")
 

@@ -1,0 +1,185 @@
+"""Base-node initialisation and Algorithm 1: closed-form cases without noise, observability
+checks (pending), chains through non-reference robots, the connector's Jacobians, and
+agreement of Algorithm 1 (rendezvous parts only) with the full joint solve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from csam_ros.core import se2, sensor
+from csam_ros.core.alignment import (
+    BASE_NODE,
+    Connector,
+    RendezvousPart,
+    align,
+    initial_pair_base,
+)
+from csam_ros.core.csam import CsamConfig, run_csam
+from csam_ros.core.factors import POSE
+from csam_ros.core.rendezvous import RendezvousSet
+from csam_ros.core.scenario import load_scenario
+from csam_ros.core.simulation import simulate
+from csam_ros.core.solver import Problem
+
+
+def _straight(start, heading, step, n):
+    """World poses along a straight line."""
+    t = np.arange(n) * step
+    return np.column_stack(
+        [start[0] + t * np.cos(heading), start[1] + t * np.sin(heading), np.full(n, heading)]
+    )
+
+
+def _measurements(world, pairs, robots) -> RendezvousSet:
+    """Exact (noise-free) measurements ``(observer, observed, pose index)`` at equal stamps."""
+    obs = np.array([p[0] for p in pairs])
+    tgt = np.array([p[1] for p in pairs])
+    idx = np.array([p[2] for p in pairs])
+    rel = np.array([se2.inverse_transform_point(world[o][i], world[t][i, :2]) for o, t, i in pairs])
+    r = np.hypot(rel[:, 0], rel[:, 1])
+    b = np.arctan2(rel[:, 1], rel[:, 0])
+    z, cov = sensor.polar_to_cartesian(r, b, 0.01, 0.012)
+    return RendezvousSet(robots, obs, tgt, idx * 1.0, idx, idx, z, cov, b)
+
+
+def _parts(world, sigma=0.01):
+    """Local poses (first pose = origin) of every robot as rendezvous parts of all poses."""
+    parts, local = [], {}
+    for r, w in enumerate(world):
+        poses = se2.between(w[0], w)
+        local[r] = poses
+        parts.append(RendezvousPart(np.arange(len(w)), poses, np.eye(3 * len(w)) / sigma))
+    return parts, local
+
+
+def _true_base(world, r):
+    return se2.between(world[0][0], world[r][0])
+
+
+@pytest.fixture
+def two_robots():
+    a = _straight((0.0, 0.0), 0.3, 0.5, 8)
+    c = _straight((4.0, 3.0), 0.3 + np.pi - 0.2, 0.5, 8)
+    return [a, c]
+
+
+def test_mutual_initialisation_is_exact(two_robots) -> None:
+    pairs = [(0, 1, 2), (1, 0, 2)]
+    meas = _measurements(two_robots, pairs, ["p", "q"])
+    _, local = _parts(two_robots)
+    init = initial_pair_base(meas, 0, 1, local)
+    assert init.method == "mutual"
+    np.testing.assert_allclose(init.base, _true_base(two_robots, 1), atol=1e-9)
+
+
+def test_registration_initialisation_is_exact(two_robots) -> None:
+    pairs = [(0, 1, i) for i in (1, 3, 5, 7)] + [(1, 0, 6)]
+    meas = _measurements(two_robots, pairs, ["p", "q"])
+    _, local = _parts(two_robots)
+    init = initial_pair_base(meas, 0, 1, local)
+    assert init.method == "registration"
+    np.testing.assert_allclose(init.base, _true_base(two_robots, 1), atol=1e-9)
+    assert 0 < init.heading_sigma < 0.05
+
+
+def test_one_measurement_is_pending(two_robots) -> None:
+    meas = _measurements(two_robots, [(0, 1, 3)], ["p", "q"])
+    parts, local = _parts(two_robots)
+    init = initial_pair_base(meas, 0, 1, local)
+    assert init.base is None and "one rendezvous measurement" in init.reason
+    result = align(parts, meas)
+    assert result.status[1].startswith("pending: ") and "unobservable" in result.status[1]
+    assert np.all(np.isnan(result.base_nodes[1]))
+
+
+def test_positions_not_spread_are_pending(two_robots) -> None:
+    still = np.repeat(two_robots[1][:1], 8, axis=0)  # q does not move; only p observes
+    world = [two_robots[0], still]
+    meas = _measurements(world, [(0, 1, i) for i in range(0, 8, 2)], ["p", "q"])
+    parts, local = _parts(world)
+    init = initial_pair_base(meas, 0, 1, local)
+    assert init.base is None and "undetermined" in init.reason
+    assert align(parts, meas).status[1].startswith("pending: ")
+
+
+def test_chain_through_non_reference_robots_is_exact() -> None:
+    world = [
+        _straight((0.0, 0.0), 0.0, 0.5, 10),
+        _straight((6.0, 2.0), np.pi, 0.5, 10),
+        _straight((1.0, 4.5), 0.4, 0.5, 10),
+        _straight((30.0, 30.0), 1.0, 0.5, 10),  # never meets anyone
+    ]
+    pairs = [(0, 1, i) for i in (1, 4, 8)] + [(1, 2, i) for i in (0, 5)] + [(2, 1, 9)]
+    meas = _measurements(world, pairs, ["r1", "r2", "r3", "r4"])
+    parts, _ = _parts(world)
+    parts[3] = None
+    result = align(parts, meas)
+    assert result.status[:3] == ["reference", "aligned", "aligned"]
+    assert result.status[3] == "pending: no rendezvous with any robot"
+    assert result.parents == {1: 0, 2: 1}
+    for r in (1, 2):
+        np.testing.assert_allclose(result.base_nodes[r], _true_base(world, r), atol=1e-8)
+        assert np.all(np.linalg.eigvalsh(result.base_covariance(r)) > 0)
+    # the refined rendezvous poses of exact data stay where they were
+    np.testing.assert_allclose(result.rendezvous_shift[2], 0.0, atol=1e-8)
+
+
+def test_refinement_moves_a_rough_start_to_the_optimum(two_robots) -> None:
+    pairs = [(0, 1, i) for i in range(8)] + [(1, 0, i) for i in range(0, 8, 3)]
+    meas = _measurements(two_robots, pairs, ["p", "q"])
+    rng = np.random.default_rng(0)
+    meas.position += rng.normal(0, 0.01, meas.position.shape)
+    parts, _ = _parts(two_robots)
+    result = align(parts, meas)
+    assert result.iterations >= 1
+    truth = _true_base(two_robots, 1)
+    err = result.base_nodes[1] - truth
+    err[2] = se2.wrap_angle(err[2])
+    assert err @ np.linalg.solve(result.base_covariance(1), err) < 16.3  # chi2(3) 99.9 %
+
+
+@pytest.mark.parametrize(
+    ("observer_base", "observed_base"), [(False, True), (True, False), (True, True)]
+)
+def test_connector_jacobians(observer_base: bool, observed_base: bool) -> None:
+    rng = np.random.default_rng(5)
+    k = 6
+    problem = Problem()
+    poses = problem.add_variables(POSE, range(2 * k), rng.normal(0, 2, (2 * k, 3)))
+    bases = problem.add_variables(BASE_NODE, ["b0", "b1"], rng.normal(0, 2, (2, 3)))
+    factor = Connector(
+        poses[:k],
+        poses[k:],
+        rng.normal(0, 1, (k, 2)),
+        covariance=np.eye(2),
+        observer_bases=np.full(k, bases[0]) if observer_base else None,
+        observed_bases=np.full(k, bases[1]) if observed_base else None,
+    )
+    blocks = problem._blocks(factor, problem.values)
+    _, jac = factor.evaluate(blocks)
+    for j, block in enumerate(blocks):
+        numeric = np.zeros_like(jac[j])
+        for d in range(block.shape[1]):
+            step = np.zeros_like(block)
+            step[:, d] = 1e-6
+            plus = [b if i != j else block + step for i, b in enumerate(blocks)]
+            minus = [b if i != j else block - step for i, b in enumerate(blocks)]
+            numeric[:, :, d] = (factor.evaluate(plus)[0] - factor.evaluate(minus)[0]) / 2e-6
+        np.testing.assert_allclose(jac[j], numeric, atol=1e-7)
+
+
+@pytest.mark.parametrize("scenario", ["map_joining", "chain"])
+def test_algorithm1_agrees_with_the_joint_solve(scenario: str) -> None:
+    """From the rendezvous parts alone, Algorithm 1 finds the joint solution's base nodes
+    (without association) up to the local maps' linearisation."""
+    result = run_csam(simulate(load_scenario(scenario), 1), CsamConfig(associate=False))
+    for robot in list(result.robots.values())[1:]:
+        assert robot.alignment == "aligned"
+        sigma = np.sqrt(np.diag(robot.base_node_cov))
+        diff = robot.alignment_base_node - robot.base_node
+        diff[2] = se2.wrap_angle(diff[2])
+        assert np.all(np.abs(diff) < 0.05 * sigma)
+        np.testing.assert_allclose(
+            np.sqrt(np.diag(robot.alignment_base_node_cov)), sigma, rtol=0.05
+        )
