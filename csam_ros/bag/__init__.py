@@ -18,7 +18,13 @@ from .reader import (
     read_bag,
     read_bag_messages,
 )
-from .types import MessageDefinition, MessageTypes, UnknownMessageTypeError, message_class
+from .types import (
+    MessageDefinition,
+    MessageTypes,
+    UnknownMessageTypeError,
+    message_class,
+    msgtype_of,
+)
 from .writer import BagError, BagWriter
 
 __all__ = [
@@ -33,6 +39,7 @@ __all__ = [
     "UnknownMessageTypeError",
     "inspect_bag",
     "message_class",
+    "msgtype_of",
     "parse_qos_profiles",
     "publisher_qos",
     "qos_to_dict",

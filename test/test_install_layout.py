@@ -1,0 +1,56 @@
+"""The environment is laid out as colcon lays out an ament_python package, so that
+``ros2 run csam_ros <exe>`` and the ament index work where ROS 2 is installed."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ElementTree
+from pathlib import Path
+
+import pytest
+
+PREFIX = Path(sys.prefix)
+REPO = Path(__file__).resolve().parents[1]
+EXECUTABLES = ["simulator", "smoother", "merger", "recorder", "player", "csam"]
+
+
+@pytest.fixture
+def ament_prefix(monkeypatch: pytest.MonkeyPatch) -> Path:
+    """AMENT_PREFIX_PATH as a ROS setup script would set it for this environment."""
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(PREFIX))
+    return PREFIX
+
+
+def test_ament_index_finds_csam_ros_and_csam_msgs(ament_prefix: Path) -> None:
+    from ament_index_python.packages import (
+        get_package_prefix,
+        get_package_share_directory,
+        get_packages_with_prefixes,
+    )
+
+    assert Path(get_package_prefix("csam_ros")) == ament_prefix
+    share = Path(get_package_share_directory("csam_ros"))
+    assert share == ament_prefix / "share" / "csam_ros"
+    manifest = ElementTree.parse(share / "package.xml").getroot()
+    assert manifest.findtext("name") == "csam_ros"
+    assert (share / "package.xml").read_text() == (REPO / "package.xml").read_text()
+    packages = get_packages_with_prefixes()
+    assert Path(packages["csam_msgs"]) == ament_prefix
+    assert (ament_prefix / "share" / "csam_msgs" / "msg" / "LocalMap.msg").is_file()
+
+
+@pytest.mark.parametrize("name", EXECUTABLES)
+def test_executable_is_installed_where_ros2_run_looks(name: str) -> None:
+    installed = PREFIX / "lib" / "csam_ros" / name
+    assert installed.is_file(), f"{installed} is missing"
+    assert os.access(installed, os.X_OK), f"{installed} is not executable"
+    on_path = PREFIX / "bin" / name
+    assert on_path.resolve() == installed.resolve()
+    result = subprocess.run(
+        [str(installed), "--help"], capture_output=True, text=True, timeout=10, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    assert "usage" in result.stdout.lower()
+    assert "Traceback" not in result.stderr
