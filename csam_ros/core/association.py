@@ -6,13 +6,12 @@ reference). With ``H`` its Jacobian and ``P`` the joint covariance of ``(l_i, B_
 cross terms included, ``S = H P H^T`` and ``D = r^T S^-1 r`` (eq. 26).
 
 Joint covariance, recovered sparsely. Algorithm 1 gives the joint covariance ``Sigma`` of the
-rendezvous poses ``rho`` of all robots and of the base nodes. Inside one local map a feature
-depends on the connector only through the rendezvous poses: ``l = l0 + K (rho - rho0) + eps``
-with the gain ``K = P_l,rho P_rho,rho^-1`` and ``eps`` independent of everything outside that
-map, of covariance ``C = P_ll - K P_rho,rho K^T`` (the local map's marginals). Hence after
-Algorithm 1 a feature's mean is ``l0 + K (rho - rho0)`` and, writing its global position
-``g = B_a (+) l`` to first order as ``G s + J_l eps`` (``s`` the Algorithm 1 state,
-``G = [J_l K | J_B]`` on robot ``a``'s columns),
+rendezvous poses ``rho`` of all robots and of the base nodes (the state ``s``). Inside one
+local map a feature depends on the connector only through the rendezvous poses:
+``l = l0 + K (rho - rho0) + eps`` with the gain ``K = P_l,rho P_rho,rho^-1`` and ``eps``
+independent of everything outside that map, of covariance ``C = P_ll - K P_rho,rho K^T``
+(the local map's marginals). So a feature's global position ``g = B_a (+) l`` is, to first
+order, ``g0 + G (s - s0) + J_l eps`` (``G = [J_l K | J_B]`` on robot ``a``'s columns) and
 
     S_ij = (G_i - G_j) Sigma (G_i - G_j)^T + J_li C_i J_li^T + J_lj C_j J_lj^T.
 
@@ -24,19 +23,27 @@ Candidates. Pairs are found with a k-d tree on global positions (scipy ``cKDTree
 standard deviation of each global position, a pair can pass the gate only if
 ``|r| <= sqrt(xi) (s_i + s_j)``: the search radius, exact, not a heuristic.
 
-Decision. A pair is a match candidate when ``D < xi`` (chi-square, 2 dof; default 9.21, the
-99 % quantile). Between two robots the matches are then made unique both ways by a global
-assignment that maximises ``sum(xi - D)`` over the gated pairs (``linear_sum_assignment`` on
-each connected component of the candidate graph), so a conflict is resolved in favour of the
-overall best-fitting set rather than the first pair found. With more than two robots,
-matches are merged into clusters (union-find) in increasing ``D``; a match that would put two
-features of one robot into one cluster is rejected and counted.
+Decision, in passes. (1) Pairs of still unmatched features with ``D < xi`` (chi-square,
+2 dof; default 9.21, the 99 % quantile) are made unique both ways by a global assignment that
+maximises ``sum(xi - D)`` over the gated pairs of each robot pair (``linear_sum_assignment`` on
+each connected component of the candidate graph): a conflict goes to the best-fitting set, not
+to the first pair found. (2) Joint compatibility: every accepted match is a measurement
+``r = 0`` of the state; the state is conditioned on all of them (a linear update in the small
+state space) and each match is tested against all the others by its leave-one-out distance
+``e_k^T (N_k - H_k Sigma_post H_k^T)^-1 e_k`` (``e_k`` its posterior residual); while the worst
+exceeds ``xi`` it is dropped for good and the update redone. (3) The next pass gates the
+remaining features against the conditioned state, which is now much tighter, so pairs that
+were ambiguous (or out of reach) before are decided; passes stop when nothing changes.
+With more than two robots, matches are merged into clusters (union-find) in increasing ``D``;
+a match that would put two features of one robot into one cluster is rejected and counted.
+Matches that share a feature (clusters over three or more robots) are treated as independent
+in the update, a slight overconfidence of the test only.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -75,6 +82,7 @@ class AssociationOptions:
     """Settings of Algorithm 2."""
 
     chi2_gate: float = CHI2_2DOF_99
+    max_passes: int = 10  # association passes, each conditioned on the matches so far
 
 
 @dataclass
@@ -96,21 +104,22 @@ class Associations:
     clusters: list[list[tuple[int, int]]]  # (robot, label) members of each merged feature
     candidates: int = 0  # pairs inside the spatial search radius
     gated: int = 0  # pairs with D below the gate
-    rejected_conflicts: int = 0  # gated pairs dropped for uniqueness across robots
-    posterior_positions: dict[int, Array] = field(default_factory=dict)  # robot -> (F, 2) local
+    rejected_conflicts: int = 0  # matches dropped for one-feature-per-robot in clusters
+    rejected_incompatible: int = 0  # matches dropped by the joint compatibility test
 
 
 @dataclass
 class _GlobalFeatures:
-    """Global positions of one robot's features and their linearisation on the state."""
+    """Global positions of one robot's features, linearised on the Algorithm 1 state ``s``.
+
+    ``g = position + gain @ (s - s_bar) + J_l eps`` with ``Cov(J_l eps) = noise``.
+    """
 
     robot: int
     labels: IntArray
-    position: Array  # (F, 2) reference frame
-    state_gain: Array  # (F, 2, m_r) on ``columns``
-    columns: IntArray  # state columns of the robot (rho then base)
-    noise: Array  # (F, 2, 2) J_l C J_l^T
-    sigma_max: Array  # (F,) largest std of the global position
+    position: Array  # (F, 2) reference frame, at the Algorithm 1 estimate
+    gain: Array  # (F, 2, d) on the whole state
+    noise: Array  # (F, 2, 2)
 
 
 def _global_features(
@@ -122,48 +131,111 @@ def _global_features(
     gain = features.rendezvous_gain
     local = features.positions + np.einsum("fij,j->fi", gain, shift)
     f = len(local)
-    base_rep = np.broadcast_to(base, (f, 3))
     c, s = np.cos(base[2]), np.sin(base[2])
     rot = np.array([[c, -s], [s, c]])
-    position = se2.transform_point(base_rep, local)
+    position = se2.transform_point(np.broadcast_to(base, (f, 3)), local)
     j_l = np.broadcast_to(rot, (f, 2, 2))
     cond = features.covariances - gain @ sigma_rho_prior @ gain.transpose(0, 2, 1)
     noise = j_l @ cond @ j_l.transpose(0, 2, 1)
-    rho_cols = alignment.rho_columns(r)
+    full = np.zeros((f, 2, len(alignment.covariance)))
+    full[:, :, alignment.rho_columns(r)] = j_l @ gain
     base_cols = alignment.base_columns(r)
-    blocks = [j_l @ gain]
-    columns = [rho_cols]
     if base_cols is not None:
         j_b = np.zeros((f, 2, 3))
         j_b[:, 0, 0] = j_b[:, 1, 1] = 1.0
         j_b[:, 0, 2] = -s * local[:, 0] - c * local[:, 1]
         j_b[:, 1, 2] = c * local[:, 0] - s * local[:, 1]
-        blocks.append(j_b)
-        columns.append(base_cols)
-    state_gain = np.concatenate(blocks, axis=2)
-    cols = np.concatenate(columns)
-    sub = alignment.covariance[np.ix_(cols, cols)]
-    total = state_gain @ sub @ state_gain.transpose(0, 2, 1) + noise
-    sigma_max = np.sqrt(
-        np.maximum(np.linalg.eigvalsh(0.5 * (total + total.transpose(0, 2, 1)))[:, -1], 0)
-    )
-    return _GlobalFeatures(r, features.labels, position, state_gain, cols, noise, sigma_max)
+        full[:, :, base_cols] = j_b
+    return _GlobalFeatures(r, features.labels, position, full, 0.5 * (noise + noise.swapaxes(1, 2)))
+
+
+@dataclass
+class _State:
+    """The Algorithm 1 state after conditioning on a set of matches (linear update)."""
+
+    shift: Array  # (d,) posterior minus Algorithm 1 estimate
+    covariance: Array  # (d, d)
+
+
+def _condition(
+    prior_information: Array,
+    glob: dict[int, _GlobalFeatures],
+    pairs: list[tuple[int, int, int, int]],
+) -> tuple[_State, Array]:
+    """Condition the state on ``r_k = 0`` for matches ``(a, i, c, j)``; returns the state and
+    the leave-one-out distance of every match (module docs)."""
+    if not pairs:
+        cov = np.linalg.inv(prior_information)
+        return _State(np.zeros(len(cov)), cov), np.zeros(0)
+    nu, h, noise = _stack(glob, pairs)
+    w = np.linalg.inv(noise)
+    info = prior_information + np.einsum("kid,kij,kje->de", h, w, h)
+    cov = np.linalg.inv(info)
+    cov = 0.5 * (cov + cov.T)
+    shift = -cov @ np.einsum("kid,kij,kj->d", h, w, nu)
+    resid = nu + h @ shift
+    v = noise - h @ cov @ h.transpose(0, 2, 1)
+    loo = np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])
+    return _State(shift, cov), loo
+
+
+def _stack(
+    glob: dict[int, _GlobalFeatures], pairs: list[tuple[int, int, int, int]]
+) -> tuple[Array, Array, Array]:
+    """Residuals (K, 2), state Jacobians (K, 2, d) and noise (K, 2, 2) of matches."""
+    arr = np.array(pairs, dtype=np.int64).reshape(-1, 4)
+    nu = np.empty((len(arr), 2))
+    h = np.empty((len(arr), 2, glob[arr[0, 0]].gain.shape[2]))
+    noise = np.empty((len(arr), 2, 2))
+    for a in np.unique(arr[:, 0]):
+        for c in np.unique(arr[:, 2]):
+            sel = (arr[:, 0] == a) & (arr[:, 2] == c)
+            if not sel.any():
+                continue
+            i, j = arr[sel, 1], arr[sel, 3]
+            ga, gc = glob[int(a)], glob[int(c)]
+            nu[sel] = ga.position[i] - gc.position[j]
+            h[sel] = ga.gain[i] - gc.gain[j]
+            noise[sel] = ga.noise[i] + gc.noise[j]
+    return nu, h, noise
 
 
 def _pair_distances(
-    ga: _GlobalFeatures, gc: _GlobalFeatures, ia: IntArray, ic: IntArray, sigma: Array
+    ga: _GlobalFeatures, gc: _GlobalFeatures, ia: IntArray, ic: IntArray, state: _State
 ) -> Array:
-    """Mahalanobis distances of candidate pairs ``(ia, ic)`` (module docs, eq. 26)."""
-    cols = np.concatenate([ga.columns, gc.columns])
-    sub = sigma[np.ix_(cols, cols)]
-    ma = len(ga.columns)
-    m = len(cols)
-    g = np.zeros((len(ia), 2, m))
-    g[:, :, :ma] = ga.state_gain[ia]
-    g[:, :, ma:] -= gc.state_gain[ic]
-    s_mat = g @ sub @ g.transpose(0, 2, 1) + ga.noise[ia] + gc.noise[ic]
-    r = ga.position[ia] - gc.position[ic]
+    """Mahalanobis distances of candidate pairs ``(ia, ic)`` given the state (eq. 26)."""
+    h = ga.gain[ia] - gc.gain[ic]
+    r = ga.position[ia] - gc.position[ic] + h @ state.shift
+    s_mat = h @ state.covariance @ h.transpose(0, 2, 1) + ga.noise[ia] + gc.noise[ic]
     return np.einsum("ki,ki->k", r, np.linalg.solve(s_mat, r[:, :, None])[:, :, 0])
+
+
+def _candidates(
+    ga: _GlobalFeatures,
+    gc: _GlobalFeatures,
+    free_a: IntArray,
+    free_c: IntArray,
+    state: _State,
+    root_gate: float,
+) -> tuple[IntArray, IntArray]:
+    """Pairs of free features whose distance can pass the gate (k-d tree, exact bound)."""
+    if len(free_a) == 0 or len(free_c) == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty
+
+    def spread(g: _GlobalFeatures, idx: IntArray) -> tuple[Array, Array]:
+        pos = g.position[idx] + g.gain[idx] @ state.shift
+        cov = g.gain[idx] @ state.covariance @ g.gain[idx].transpose(0, 2, 1) + g.noise[idx]
+        sigma = np.sqrt(np.maximum(np.linalg.eigvalsh(0.5 * (cov + cov.swapaxes(1, 2)))[:, -1], 0))
+        return pos, sigma
+
+    pa, sa = spread(ga, free_a)
+    pc, sc = spread(gc, free_c)
+    lists = cKDTree(pc).query_ball_point(pa, root_gate * (sa + sc.max()))
+    ia = np.repeat(np.arange(len(lists)), [len(x) for x in lists])
+    ic = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=len(ia))
+    near = np.hypot(*(pa[ia] - pc[ic]).T) <= root_gate * (sa[ia] + sc[ic])
+    return free_a[ia[near]], free_c[ic[near]]
 
 
 def _assign(ia: IntArray, ic: IntArray, d: Array, gate: float) -> NDArray[np.bool_]:
@@ -213,7 +285,6 @@ def associate(
     if not gate > 0:
         raise ValueError(f"chi2_gate must be positive, got {gate}")
     glob: dict[int, _GlobalFeatures] = {}
-    posterior: dict[int, Array] = {}
     for r, feats in enumerate(features):
         if feats is None or not alignment.aligned(r) or len(feats.labels) == 0:
             continue
@@ -224,42 +295,60 @@ def associate(
             raise ValueError(f"robot {alignment.robots[r]!r}: aligned but no rendezvous part")
         inv_root = np.linalg.inv(root)
         glob[r] = _global_features(r, feats, alignment, inv_root @ inv_root.T)
-        posterior[r] = se2.inverse_transform_point(
-            np.broadcast_to(alignment.base_nodes[r], (len(feats.labels), 3)), glob[r].position
-        )
     robots = sorted(glob)
-    found: list[tuple[float, int, int, int, int]] = []
+    robot_pairs = [(a, c) for k, a in enumerate(robots) for c in robots[k + 1 :]]
+    if not robot_pairs:
+        return Associations([], [])
+    prior_information = np.linalg.inv(alignment.covariance)
+    root_gate = float(np.sqrt(gate))
+    accepted: dict[tuple[int, int, int, int], float] = {}
+    rejected: set[tuple[int, int, int, int]] = set()
+    state, _ = _condition(prior_information, glob, [])
     candidates = gated = 0
-    root_gate = np.sqrt(gate)
-    for i, a in enumerate(robots):
-        for c in robots[i + 1 :]:
+    for _ in range(options.max_passes):
+        used = {(a, i) for a, i, _, _ in accepted} | {(c, j) for _, _, c, j in accepted}
+        new: dict[tuple[int, int, int, int], float] = {}
+        for a, c in robot_pairs:
             ga, gc = glob[a], glob[c]
-            tree = cKDTree(gc.position)
-            radius = root_gate * (ga.sigma_max + gc.sigma_max.max())
-            lists = tree.query_ball_point(ga.position, radius)
-            ia = np.repeat(np.arange(len(lists)), [len(x) for x in lists])
-            ic = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=len(ia))
-            dist = np.hypot(*(ga.position[ia] - gc.position[ic]).T)
-            near = dist <= root_gate * (ga.sigma_max[ia] + gc.sigma_max[ic])
-            ia, ic = ia[near], ic[near]
+            free_a = np.array([i for i in range(len(ga.labels)) if (a, i) not in used], int)
+            free_c = np.array([j for j in range(len(gc.labels)) if (c, j) not in used], int)
+            ia, ic = _candidates(ga, gc, free_a, free_c, state, root_gate)
+            keep = np.array(
+                [(a, i, c, j) not in rejected for i, j in zip(ia, ic, strict=True)], dtype=bool
+            )
+            ia, ic = ia[keep].astype(np.int64), ic[keep].astype(np.int64)
             candidates += len(ia)
-            d = _pair_distances(ga, gc, ia, ic, alignment.covariance)
+            d = _pair_distances(ga, gc, ia, ic, state)
             inside = d < gate
             ia, ic, d = ia[inside], ic[inside], d[inside]
             gated += len(d)
-            keep = _assign(ia, ic, d, gate)
-            found.extend(
-                (float(dd), a, int(ga.labels[x]), c, int(gc.labels[y]))
-                for dd, x, y in zip(d[keep], ia[keep], ic[keep], strict=True)
+            pick = _assign(ia, ic, d, gate)
+            new.update(
+                ((a, int(i), c, int(j)), float(dd))
+                for i, j, dd in zip(ia[pick], ic[pick], d[pick], strict=True)
             )
-    return _cluster(found, gated, candidates, posterior)
+        if not new:
+            break
+        accepted.update(new)
+        while True:  # joint compatibility: drop the match least compatible with the others
+            pairs = list(accepted)
+            state, loo = _condition(prior_information, glob, pairs)
+            worst = int(np.argmax(loo)) if len(loo) else -1
+            if worst < 0 or loo[worst] < gate:
+                break
+            rejected.add(pairs[worst])
+            del accepted[pairs[worst]]
+    found = [
+        (d, a, int(glob[a].labels[i]), c, int(glob[c].labels[j]))
+        for (a, i, c, j), d in accepted.items()
+    ]
+    result = _cluster(found, gated, candidates)
+    result.rejected_incompatible = len(rejected)
+    return result
 
 
 def _cluster(
-    found: list[tuple[float, int, int, int, int]],
-    gated: int,
-    candidates: int,
-    posterior: dict[int, Array],
+    found: list[tuple[float, int, int, int, int]], gated: int, candidates: int
 ) -> Associations:
     """Merge matches into clusters in increasing ``D``, one feature per robot per cluster."""
     parent: dict[tuple[int, int], tuple[int, int]] = {}
@@ -290,4 +379,4 @@ def _cluster(
         groups.setdefault(root(x), []).append(x)
     clusters = [sorted(g) for g in groups.values() if len(g) > 1]
     clusters.sort()
-    return Associations(matches, clusters, candidates, gated, rejected, posterior)
+    return Associations(matches, clusters, candidates, gated, rejected)
