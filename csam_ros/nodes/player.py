@@ -16,7 +16,9 @@ complete chunk (with a warning); a bag without metadata.yaml plays from its .mca
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -27,6 +29,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 
@@ -39,9 +42,16 @@ CLOCK_TOPIC = "/clock"
 class PlayerNode(Node):
     """Publishers for the played topics and /clock, and the timed playback loop."""
 
-    def __init__(self, bag: BagInfo, topics: Sequence[str], publish_clock: bool = True) -> None:
+    def __init__(
+        self,
+        bag: BagInfo,
+        topics: Sequence[str],
+        publish_clock: bool = True,
+        stop: threading.Event | None = None,
+    ) -> None:
         super().__init__("player")
         self.bag = bag
+        self.stop = stop or threading.Event()
         self.published = 0
         self.skipped_topics: list[str] = []
         self._topic_publishers: dict[str, Publisher] = {}
@@ -77,11 +87,11 @@ class PlayerNode(Node):
             publishers[CLOCK_TOPIC] = self._clock_publisher
         waiting = [topic for topic in topics if topic in publishers]
         deadline = time.monotonic() + timeout_s
-        while self.context.ok():
+        while not self.stop.is_set():
             waiting = [t for t in waiting if publishers[t].get_subscription_count() == 0]
             if not waiting or time.monotonic() >= deadline:
                 break
-            time.sleep(0.02)
+            self.stop.wait(0.02)
         return waiting
 
     def _publish_clock(self, stamp_ns: int) -> None:
@@ -96,12 +106,12 @@ class PlayerNode(Node):
         self, due: float, start_wall: float, start_log_ns: int, rate: float, clock_period_s: float
     ) -> None:
         """Sleep until monotonic time ``due``, publishing the interpolated /clock."""
-        while self.context.ok():
+        while not self.stop.is_set():
             now = time.monotonic()
             if now >= due:
                 return
-            time.sleep(min(due - now, clock_period_s))
-            if time.monotonic() < due:
+            self.stop.wait(min(due - now, clock_period_s))
+            if time.monotonic() < due and not self.stop.is_set():
                 elapsed_ns = int((time.monotonic() - start_wall) * rate * 1e9)
                 self._publish_clock(start_log_ns + elapsed_ns)
 
@@ -118,7 +128,7 @@ class PlayerNode(Node):
             if rate > 0:
                 due = start_wall + (message.log_time_ns - start_log_ns) / 1e9 / rate
                 self._sleep_until(due, start_wall, start_log_ns, rate, clock_period_s)
-            if not self.context.ok():
+            if self.stop.is_set():
                 return
             self._publish_clock(message.log_time_ns)
             publisher.publish(message.data)
@@ -126,20 +136,31 @@ class PlayerNode(Node):
 
     def finish(self, linger_s: float) -> None:
         """Wait until reliable subscribers have acknowledged everything, then ``linger_s``
-        more seconds (transient local late joiners), then log a summary."""
+        more seconds (transient local late joiners), then log a summary; when stopped by a
+        signal, only log."""
         for topic, publisher in self._topic_publishers.items():
-            if publisher.qos_profile.reliability != ReliabilityPolicy.RELIABLE:
+            if (
+                self.stop.is_set()
+                or publisher.qos_profile.reliability != ReliabilityPolicy.RELIABLE
+            ):
                 continue
             if not publisher.wait_for_all_acked(Duration(seconds=5)):
                 self.get_logger().warning(f"not every subscriber of {topic} acknowledged")
-        end = time.monotonic() + linger_s
-        while self.context.ok() and time.monotonic() < end:
-            time.sleep(0.05)
+        self.stop.wait(linger_s)
         skipped = f"; skipped {', '.join(self.skipped_topics)}" if self.skipped_topics else ""
         self.get_logger().info(
             f"published {self.published} messages on {len(self._topic_publishers)} topics from "
             f"{self.bag.path}{skipped}"
         )
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (instead of rclpy's handlers, which would shut the
+    context down under a running publish): playback stops, then the node shuts down."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
 
 
 def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
@@ -216,16 +237,17 @@ def main(args: Sequence[str] | None = None) -> int:
     except BagError as error:
         print(f"player: {error}", file=sys.stderr)
         return 1
-    rclpy.init(args=argv)
+    stop = stop_on_signals()
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
-        node = PlayerNode(bag, topics, publish_clock)
+        node = PlayerNode(bag, topics, publish_clock, stop)
         for warning in bag.warnings:
             node.get_logger().warning(warning)
         if not node.topics:
             node.get_logger().error("no topic of the bag can be played")
             return 1
-        time.sleep(options.delay)
+        stop.wait(options.delay)
         if options.wait_for_subscribers is not None:
             wanted = options.wait_for_subscribers or node.topics
             unmatched = node.wait_for_subscribers(wanted, options.wait_timeout)
@@ -233,7 +255,7 @@ def main(args: Sequence[str] | None = None) -> int:
                 node.get_logger().warning(f"no subscriber on {', '.join(unmatched)}; playing")
         while True:
             node.play(read_bag(bag.path, node.topics), options.rate, options.clock_period)
-            if not options.loop or not node.context.ok():
+            if not options.loop or stop.is_set():
                 break
         node.finish(options.linger)
     except (KeyboardInterrupt, ExternalShutdownException):

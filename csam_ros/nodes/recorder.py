@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
@@ -32,8 +34,9 @@ from rclpy.event_handler import (
     QoSRequestedIncompatibleQoSInfo,
     SubscriptionEventCallbacks,
 )
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
 from rclpy.utilities import remove_ros_args
 
@@ -146,10 +149,16 @@ class RecorderNode(Node):
             f"{len(self.writer.topics)} topics; {self.lost} lost by the middleware, {dropped} "
             "dropped waiting for /clock"
         )
-        if self.context.ok():
-            self.get_logger().info(summary)
-        else:  # after SIGINT/SIGTERM the node can no longer log to /rosout
-            print(f"[recorder] {summary}", file=sys.stderr)
+        self.get_logger().info(summary)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (instead of rclpy's handlers, which would shut the
+    context down under a running callback): the spin loop ends, then the bag is finished."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
 
 
 def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
@@ -188,7 +197,8 @@ def main(args: Sequence[str] | None = None) -> int:
     except BagError as error:
         print(f"recorder: {error}", file=sys.stderr)
         return 1
-    rclpy.init(args=argv)
+    stop = stop_on_signals()
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = RecorderNode(
@@ -198,7 +208,10 @@ def main(args: Sequence[str] | None = None) -> int:
             poll_period_s=options.poll_period,
             flush_period_s=options.flush_period,
         )
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
