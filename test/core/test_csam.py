@@ -1,0 +1,226 @@
+"""C-SAM end to end on simulated runs: the paper's two experiments, base-node consistency
+over many seeds, pending robots, chains and repeated meetings, and the summary structure."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from csam_ros.core import se2
+from csam_ros.core.csam import CsamConfig, CsamResult, run_csam
+from csam_ros.core.evaluation import evaluate
+from csam_ros.core.log import RendezvousLog
+from csam_ros.core.scenario import load_document, load_scenario, scenario_from_dict
+from csam_ros.core.simulation import simulate
+
+
+@pytest.fixture(scope="module")
+def map_joining():
+    log = simulate(load_scenario("map_joining"), 1)
+    return log, run_csam(log)
+
+
+def test_map_joining_lowers_heading_uncertainty_everywhere(map_joining) -> None:
+    log, result = map_joining
+    first_meeting = min(r.rendezvous.stamps.min() for r in log.robots.values())
+    for name, robot in result.robots.items():
+        before, after = robot.sigma_phi_local, robot.sigma_phi_joined
+        assert robot.alignment in ("reference", "aligned"), name
+        # at or below at every pose (up to the two linearisation points)
+        assert np.all(after <= before * (1 + 1e-6) + 1e-9), name
+        later = robot.stamps >= first_meeting
+        assert np.mean(after[later] / before[later]) < 0.8, name
+        # before the rendezvous too, through the associated duplicate features
+        earlier = ~later & (before > 1e-3)
+        assert np.mean(after[earlier] / before[earlier]) < 0.9, name
+
+
+def test_map_joining_associations_are_right(map_joining) -> None:
+    log, result = map_joining
+    metrics = evaluate(result.to_dict(), log.truth)["association"]
+    assert metrics["true_pairs"] > 30
+    assert metrics["precision"] == 1.0
+    assert metrics["recall"] >= 0.9
+    assert all(0 <= a.mahalanobis < 9.21 for a in result.associations)
+
+
+def test_sensor_extension_q_inherits_p_heading_certainty() -> None:
+    result = run_csam(simulate(load_scenario("sensor_extension"), 1))
+    p, q = result.robots["robot1"], result.robots["robot2"]
+    assert q.alignment == "aligned"
+    assert q.sigma_phi_local.mean() > 1.5 * p.sigma_phi_local.mean()  # the scenario's point
+    assert q.sigma_phi_joined.mean() <= 1.5 * p.sigma_phi_joined.mean()
+    assert q.sigma_phi_joined_reference.mean() <= 1.5 * p.sigma_phi_joined.mean()
+    assert q.sigma_phi_joined.mean() < 0.5 * q.sigma_phi_local.mean()
+
+
+SMALL = {
+    "scenario": {
+        "name": "small_meeting",
+        "sample_time": 1.0,
+        "world": {
+            "seed": 3,
+            "areas": [{"center": [0.0, 0.0], "size": [8.0, 5.0], "spacing": 1.5, "jitter": 0.2}],
+        },
+        "defaults": {"odometry_sigma": {"v": 0.03, "v_lat": 0.015, "omega_deg": 2.0}},
+        "robots": [
+            {
+                "name": "robot1",
+                "start": {"x": -4.0, "y": -1.0, "phi_deg": 0.0},
+                "program": [{"duration": 8.0, "v": 1.0}],
+            },
+            {
+                "name": "robot2",
+                "start": {"x": 4.0, "y": 1.0, "phi_deg": 180.0},
+                "program": [{"duration": 8.0, "v": 1.0}],
+            },
+        ],
+    }
+}
+
+
+def _base_error(log, result: CsamResult, name: str) -> np.ndarray:
+    truth = log.truth.trajectories
+    true_base = se2.between(truth["robot1"][0], truth[name][0])
+    err = result.robots[name].base_node - true_base
+    err[2] = se2.wrap_angle(err[2])
+    return err
+
+
+def test_base_node_is_consistent_over_seeds() -> None:
+    scenario = scenario_from_dict(SMALL)
+    nees = []
+    for seed in range(50):
+        log = simulate(scenario, seed)
+        result = run_csam(log)
+        robot = result.robots["robot2"]
+        assert robot.alignment == "aligned"
+        err = _base_error(log, result, "robot2")
+        nees.append(err @ np.linalg.solve(robot.base_node_cov, err))
+    n = len(nees)
+    # sum of n NEES values of 3 dof is chi-square with 3n dof when the estimate is consistent
+    low, high = chi2.ppf([0.025, 0.975], 3 * n) / n
+    assert low <= np.mean(nees) <= high, (np.mean(nees), low, high)
+
+
+def _one_measurement(log):
+    out = copy.deepcopy(log)
+    for robot in out.robots.values():
+        rv = robot.rendezvous
+        keep = slice(0, 1) if robot.name == "robot1" else slice(0, 0)
+        robot.rendezvous = RendezvousLog(
+            rv.stamps[keep],
+            rv.observed[keep],
+            rv.ranges[keep],
+            rv.bearings[keep],
+            rv.sigma_range[keep],
+            rv.sigma_bearing[keep],
+        )
+    return out
+
+
+def test_one_rendezvous_measurement_leaves_the_robot_pending() -> None:
+    log = _one_measurement(simulate(scenario_from_dict(SMALL), 0))
+    result = run_csam(log)
+    robot = result.robots["robot2"]
+    assert robot.alignment.startswith("pending: ")
+    assert "one rendezvous measurement" in robot.alignment
+    assert robot.poses_joined is None and robot.base_node is None
+    summary = result.to_dict()
+    entry = summary["robots"]["robot2"]
+    assert entry["base_node"] is None and entry["poses_joined"] == []
+    assert len(entry["poses_local"]) == len(entry["stamps"]) == len(entry["sigma_phi_local"])
+    assert all(m.startswith("robot1/") for f in summary["features"] for m in f["members"])
+    assert summary["associations"] == []
+
+
+def test_chain_of_four_and_a_robot_that_never_meets() -> None:
+    document = load_document("chain")
+    document["scenario"]["robots"].append(
+        {
+            "name": "robot5",
+            "start": {"x": 40.0, "y": 40.0, "phi_deg": 0.0},
+            "program": [{"duration": 10.0, "v": 0.5}],
+        }
+    )
+    document["scenario"]["world"]["areas"].append(
+        {"center": [42.0, 40.0], "size": [4.0, 4.0], "spacing": 1.5, "jitter": 0.2}
+    )
+    log = simulate(scenario_from_dict(document), 0)
+    result = run_csam(log)
+    status = {n: r.alignment for n, r in result.robots.items()}
+    assert status["robot1"] == "reference"
+    assert all(status[f"robot{k}"] == "aligned" for k in (2, 3, 4))
+    assert status["robot5"] == "pending: no rendezvous with any robot"
+    for k in (2, 3, 4):
+        err = _base_error(log, result, f"robot{k}")
+        cov = result.robots[f"robot{k}"].base_node_cov
+        assert err @ np.linalg.solve(cov, err) < chi2.ppf(0.999, 3)
+    metrics = evaluate(result.to_dict(), log.truth)["association"]
+    assert metrics["precision"] == 1.0 and metrics["recall_aligned"] >= 0.9
+    # clusters over three and four robots
+    assert max(len(f.members) for f in result.features) >= 3
+
+
+def test_repeated_meetings_add_rows_to_one_connector() -> None:
+    document = copy.deepcopy(SMALL)
+    robots = document["scenario"]["robots"]
+    # robot1 drives back and forth past robot2, which waits: three separate meetings
+    robots[0]["start"] = {"x": -6.0, "y": 0.0, "phi_deg": 0.0}
+    robots[0]["program"] = [
+        {"duration": 12.0, "v": 1.0},
+        {"duration": 2.0, "v": 0.0, "omega_deg": 90.0},
+        {"duration": 12.0, "v": 1.0},
+        {"duration": 2.0, "v": 0.0, "omega_deg": -90.0},
+        {"duration": 12.0, "v": 1.0},
+    ]
+    robots[1]["start"] = {"x": 0.0, "y": 3.0, "phi_deg": 0.0}
+    robots[1]["program"] = [{"duration": 40.0, "v": 0.01}]
+    document["scenario"]["world"]["areas"] = [
+        {"center": [0.0, 1.5], "size": [14.0, 6.0], "spacing": 2.0, "jitter": 0.2}
+    ]
+    log = simulate(scenario_from_dict(document), 0)
+    stamps = np.sort(np.concatenate([r.rendezvous.stamps for r in log.robots.values()]))
+    meetings = 1 + int(np.sum(np.diff(stamps) > 3.0))
+    assert meetings == 3
+    result = run_csam(log)
+    assert result.robots["robot2"].alignment == "aligned"
+    assert result.statistics["rendezvous_measurements"] == len(stamps)
+    err = _base_error(log, result, "robot2")
+    assert err @ np.linalg.solve(result.robots["robot2"].base_node_cov, err) < chi2.ppf(0.999, 3)
+
+
+def test_summary_structure(map_joining) -> None:
+    _, result = map_joining
+    summary = json.loads(json.dumps(result.to_dict()))
+    assert summary["reference_frame"] == "robot1/map"
+    ref = summary["robots"]["robot1"]
+    assert ref["alignment"] == "reference" and ref["base_node"] == [0.0, 0.0, 0.0]
+    for entry in summary["robots"].values():
+        n = len(entry["stamps"])
+        for key in ("poses_local", "poses_joined", "sigma_phi_local", "sigma_phi_joined"):
+            assert len(entry[key]) == n, key
+        assert np.shape(entry["base_node_cov"]) == (3, 3)
+    members = [m for f in summary["features"] for m in f["members"]]
+    assert len(members) == len(set(members))
+    assert all(np.shape(f["cov"]) == (2, 2) and len(f["xy"]) == 2 for f in summary["features"])
+    assert {"a", "b", "mahalanobis"} <= set(summary["associations"][0])
+    assert {"alignment", "association", "joint_solve", "total"} <= set(summary["timing_s"])
+    # every associated pair is inside one feature
+    by_member = {m: i for i, f in enumerate(summary["features"]) for m in f["members"]}
+    assert all(by_member[a["a"]] == by_member[a["b"]] for a in summary["associations"])
+
+
+def test_config_from_file_and_errors() -> None:
+    config = CsamConfig.from_dict(load_document("map_joining")["csam"])
+    assert config.chi2_gate == pytest.approx(9.21)
+    with pytest.raises(ValueError, match="chi2_gat"):
+        CsamConfig.from_dict({"chi2_gat": 9.0})
+    with pytest.raises(ValueError, match="chi2_gate"):
+        CsamConfig.from_dict({"chi2_gate": -1})
+    with pytest.raises(ValueError, match="associate"):
+        CsamConfig.from_dict({"associate": "yes"})
