@@ -45,6 +45,7 @@ FIGURE_WIDTH_IN = 10.0
 DPI = 120  # 10 in x 120 dpi = 1200 px wide
 VISIBLE_SEMI_AXIS_PX = 6.0  # a typical ellipse is magnified until its semi-major axis is this
 MAGNIFICATIONS = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
+ROBOT_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 ROBOT_PALETTE = (
     "#1f77b4",
     "#d62728",
@@ -642,13 +643,27 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
         label = (
             robot.name if robot.aligned else _wrap(f"{robot.name} pending: {robot.pending_reason}")
         )
-        handles.append(Patch(color=robot.colour, label=label))
+        marker = ROBOT_MARKERS[parsed.robots.index(robot) % len(ROBOT_MARKERS)]
+        handles.append(Line2D([], [], color=robot.colour, marker=marker, ms=5, label=label))
         for sigma, style in ((robot.sigma_local, "--"), (robot.sigma_joined, "-")):
             if sigma is None or sigma.size == 0:
                 continue
             x = robot.stamps - t0 if use_time else np.arange(sigma.size, dtype=float)
             degrees = np.degrees(sigma)
-            axes.plot(x, degrees, style, color=robot.colour, linewidth=1.3, zorder=3)
+            # markers every ~1/12 of the run, shifted per robot, tell overlapping curves apart
+            step = max(1, sigma.size // 12)
+            offset = (robots.index(robot) * step) // len(robots)
+            axes.plot(
+                x,
+                degrees,
+                style,
+                color=robot.colour,
+                linewidth=1.3,
+                marker=marker,
+                ms=4.5,
+                markevery=(offset, step),
+                zorder=3,
+            )
             plotted.append(degrees)
     handles.append(Line2D([], [], color="0.2", ls="--", label="before C-SAM (local)"))
     handles.append(Line2D([], [], color="0.2", ls="-", label="after C-SAM (joined)"))
@@ -663,16 +678,9 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
             for edge in (start - pad, end + pad):
                 axes.axvline(edge, color="0.35", lw=0.7, ls=":", zorder=1)
         handles.append(Patch(color="0.5", alpha=0.3, label=f"rendezvous ({len(intervals)}×)"))
-    elif stamps:
-        axes.text(
-            0.01,
-            0.98,
-            "rendezvous not marked: poses without stamps",
-            transform=axes.transAxes,
-            va="top",
-            fontsize=8,
-            color="0.4",
-        )
+    else:
+        reason = "poses have no stamps" if stamps else "no rendezvous_stamps in summary"
+        handles.append(Line2D([], [], ls="none", label=f"rendezvous not marked:\n{reason}"))
 
     scale, limits = value_axis_scale(np.concatenate(plotted) if plotted else np.empty(0))
     axes.set_yscale(scale)

@@ -219,29 +219,23 @@ def test_draw_all_reads_summary_json_path(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "drop",
     [
-        "scenario",
-        "reference_frame",
-        "features",
-        "associations",
-        "timing_s",
-        "robots.*.features_local",
-        "robots.*.rendezvous_stamps",
-        "robots.*.sigma_phi_joined",
-        "robots.*.base_node_cov",
-        "robots.*.stamps",
-        "features.*.cov",
+        ("scenario", "reference_frame", "associations", "timing_s"),
+        ("features",),
+        ("robots.*.features_local", "robots.*.rendezvous_stamps"),
+        ("robots.*.sigma_phi_joined", "robots.*.base_node_cov", "robots.*.base_node"),
+        ("robots.*.stamps",),
+        ("features.*.cov", "robots.*.alignment"),
     ],
 )
-def test_missing_optional_keys_do_not_crash(tmp_path: Path, drop: str) -> None:
+def test_missing_optional_keys_do_not_crash(tmp_path: Path, drop: tuple[str, ...]) -> None:
     summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
-    head, _, key = drop.partition(".*.")
-    if not key:
-        del summary[head]
-    elif head == "robots":
-        for robot in summary["robots"].values():
-            robot.pop(key, None)
-    else:
-        for entry in summary[head]:
+    for path in drop:
+        head, _, key = path.partition(".*.")
+        if not key:
+            del summary[head]
+            continue
+        entries = summary[head].values() if head == "robots" else summary[head]
+        for entry in entries:
             entry.pop(key, None)
     for png in figures.draw_all(summary, tmp_path):
         assert_png(png, min_bytes=5_000)
@@ -289,3 +283,20 @@ def test_large_summary_draws(tmp_path: Path) -> None:
     print(f"joined map with {count} features and 2 x 2000 poses: {elapsed:.2f} s")
     assert count > 2000
     assert_png(tmp_path / "joined.png")
+
+
+@pytest.mark.parametrize("scenario", ["map_joining", "sensor_extension"])
+def test_draw_from_a_real_csam_run(tmp_path: Path, scenario: str) -> None:
+    """The summary C-SAM writes (CsamResult.to_dict through JSON) draws, truth included."""
+    from csam_ros.core.csam import run_csam
+    from csam_ros.core.scenario import load_scenario
+    from csam_ros.core.simulation import simulate
+
+    log = simulate(load_scenario(scenario), seed=1)
+    summary = json.loads(json.dumps(run_csam(log).to_dict()))
+    reference = next(iter(summary["robots"]))
+    truth = se2.inverse_transform_point(
+        log.truth.trajectories[reference][0], log.truth.feature_positions
+    )
+    for png in figures.draw_all(summary, tmp_path, truth=truth):
+        assert_png(png)
