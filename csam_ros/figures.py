@@ -502,6 +502,11 @@ def _wrap(text: str, width: int = 34) -> str:
     return "\n".join(textwrap.wrap(text, width)) or text
 
 
+def _key(label: str, **style: Any) -> Line2D:
+    """A legend entry: a marker without a line unless ``style`` gives one."""
+    return Line2D([], [], **{"ls": "none", **style}, label=label)
+
+
 def _note(axes: Axes, text: str) -> None:
     axes.text(0.5, 0.5, text, transform=axes.transAxes, ha="center", va="center", color="0.4")
 
@@ -580,37 +585,13 @@ def draw_local_maps(summary: Mapping[str, Any] | str | Path, path: str | Path) -
     handles: list[Any] = [
         Line2D([], [], color=r.colour, linewidth=1.4, label=f"{r.name} trajectory") for r in robots
     ]
-    handles.append(
-        Line2D([], [], ls="none", marker="o", ms=6, color="0.7", mec="black", label="first pose")
-    )
+    handles.append(_key("first pose", marker="o", ms=6, color="0.7", mec="black"))
     if any(r.features_local.xy.shape[0] for r in robots):
-        handles.append(Line2D([], [], ls="none", marker=".", color="0.1", ms=5, label="feature"))
+        handles.append(_key("feature", marker=".", color="0.1", ms=5))
     if drawn_ellipses:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                ls="none",
-                marker="o",
-                ms=9,
-                mfc="none",
-                mec="0.3",
-                label=_ellipse_label(magnification),
-            )
-        )
+        handles.append(_key(_ellipse_label(magnification), marker="o", ms=9, mfc="none", mec="0.3"))
     if drawn_rendezvous:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                ls="none",
-                marker="o",
-                ms=5,
-                mfc="none",
-                mec="black",
-                label="pose with a rendezvous",
-            )
-        )
+        handles.append(_key("pose with a rendezvous", marker="o", ms=5, mfc="none", mec="black"))
     figure.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 4))
     return _save(figure, path)
 
@@ -680,7 +661,7 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
         handles.append(Patch(color="0.5", alpha=0.3, label=f"rendezvous ({len(intervals)}×)"))
     else:
         reason = "poses have no stamps" if stamps else "no rendezvous_stamps in summary"
-        handles.append(Line2D([], [], ls="none", label=f"rendezvous not marked:\n{reason}"))
+        handles.append(_key(f"rendezvous not marked:\n{reason}"))
 
     scale, limits = value_axis_scale(np.concatenate(plotted) if plotted else np.empty(0))
     axes.set_yscale(scale)
@@ -731,7 +712,7 @@ def draw_joined_map(
 
     if truth_xy is not None and truth_xy.shape[0]:
         axes.plot(*truth_xy.T, "x", color="0.6", ms=5, mew=0.9, zorder=1)
-        handles.append(Line2D([], [], ls="none", marker="x", color="0.6", label="true feature"))
+        handles.append(_key("true feature", marker="x", color="0.6"))
 
     drawn_rendezvous = False
     for robot in aligned:
@@ -762,15 +743,7 @@ def draw_joined_map(
                 zorder=3,
             )
             handles.append(
-                Line2D(
-                    [],
-                    [],
-                    ls="none",
-                    marker="o",
-                    ms=4,
-                    color="0.45",
-                    label="feature of one robot (its colour)",
-                )
+                _key("feature of one robot (its colour)", marker="o", ms=4, color="0.45")
             )
         if multi.any():
             axes.scatter(
@@ -781,17 +754,8 @@ def draw_joined_map(
                 linewidths=0,
                 zorder=5,
             )
-            handles.append(
-                Line2D(
-                    [],
-                    [],
-                    ls="none",
-                    marker="D",
-                    ms=4,
-                    color=MULTI_ROBOT_COLOUR,
-                    label=f"feature seen by several robots ({int(multi.sum())})",
-                )
-            )
+            label = f"feature seen by several robots ({int(multi.sum())})"
+            handles.append(_key(label, marker="D", ms=4, color=MULTI_ROBOT_COLOUR))
         _add_ellipses(
             axes,
             features.xy,
@@ -803,59 +767,18 @@ def draw_joined_map(
         )
         if np.isfinite(features.widths).any():
             handles.append(
-                Line2D(
-                    [],
-                    [],
-                    ls="none",
-                    marker="o",
-                    ms=9,
-                    mfc="none",
-                    mec="0.3",
-                    label=_ellipse_label(magnification),
-                )
+                _key(_ellipse_label(magnification), marker="o", ms=9, mfc="none", mec="0.3")
             )
     if any(r.base_node is not None for r in aligned):
-        handles.append(
-            Line2D(
-                [],
-                [],
-                color="0.2",
-                marker=">",
-                ms=5,
-                lw=1.5,
-                label="base node G_r (x axis; y axis pale)",
-            )
-        )
+        label = "base node G_r (x axis; y axis pale)"
+        handles.append(_key(label, color="0.2", marker=">", ms=5, ls="-", lw=1.5))
     if any(r.poses_joined is not None and r.poses_joined.shape[0] for r in aligned):
-        handles.append(
-            Line2D(
-                [], [], ls="none", marker="o", ms=6, color="0.7", mec="black", label="first pose"
-            )
-        )
+        handles.append(_key("first pose", marker="o", ms=6, color="0.7", mec="black"))
     if drawn_rendezvous:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                ls="none",
-                marker="o",
-                ms=5,
-                mfc="none",
-                mec="black",
-                label="pose with a rendezvous",
-            )
-        )
+        handles.append(_key("pose with a rendezvous", marker="o", ms=5, mfc="none", mec="black"))
     for robot in pending:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                color=robot.colour,
-                linewidth=1.4,
-                ls=":",
-                label=_wrap(f"{robot.name} pending: {robot.pending_reason}"),
-            )
-        )
+        label = _wrap(f"{robot.name} pending: {robot.pending_reason}")
+        handles.append(_key(label, color=robot.colour, ls=":", lw=1.4))
     if not aligned and features.xy.shape[0] == 0:
         _note(axes, "nothing joined yet")
     axes.autoscale_view()
