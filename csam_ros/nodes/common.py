@@ -7,6 +7,7 @@ from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
@@ -27,6 +28,11 @@ LATCHED = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
     history=HistoryPolicy.KEEP_LAST,
 )
+
+
+def steady_clock() -> Clock:
+    """A monotonic wall clock for timers that must not follow /clock (sim time)."""
+    return Clock(clock_type=ClockType.STEADY_TIME)
 
 
 def declare(

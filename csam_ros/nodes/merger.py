@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
@@ -33,7 +32,7 @@ from csam_ros.map_messages import (
     robot_map_from_message,
 )
 from csam_ros.markers import joined_map_markers
-from csam_ros.nodes.common import LATCHED, declare, run_node
+from csam_ros.nodes.common import LATCHED, declare, run_node, steady_clock
 
 STATUS_TOPIC = "/csam/status"
 
@@ -81,9 +80,7 @@ class Merger(Node):
         self.joined_pub = self.create_publisher(JoinedMap, "/csam/joined_map", LATCHED)
         self.markers_pub = self.create_publisher(MarkerArray, "/csam/markers", LATCHED)
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
-        self.create_timer(
-            max(period, 0.01), self.on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME)
-        )
+        self.create_timer(max(period, 0.01), self.on_timer, clock=steady_clock())
 
     def _known(self, robot: str) -> bool:
         if robot not in self.robots:

@@ -29,6 +29,7 @@ from functools import partial
 from pathlib import Path
 
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import (
     QoSMessageLostInfo,
     QoSRequestedIncompatibleQoSInfo,
@@ -70,8 +71,9 @@ class RecorderNode(Node):
         self.lost = 0
         self.held_back_dropped = 0
         self._discover()
-        self.create_timer(poll_period_s, self._discover)
-        self.create_timer(flush_period_s, self.writer.flush)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)  # runs under sim time before /clock
+        self.create_timer(poll_period_s, self._discover, clock=steady)
+        self.create_timer(flush_period_s, self.writer.flush, clock=steady)
         what = "every topic" if self._wanted is None else ", ".join(sorted(self._wanted))
         self.get_logger().info(f"recording {what} to {writer.path}")
 

@@ -14,10 +14,11 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rosgraph_msgs.msg import Clock
 
-from csam_ros.conversions import FEATURES_TRUTH_TOPIC, log_to_messages, ns_to_time
+from csam_ros.bag_io import topic_qos
+from csam_ros.conversions import log_to_messages, ns_to_time
 from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
-from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA, declare, run_node
+from csam_ros.nodes.common import declare, run_node, steady_clock
 
 
 class Simulator(Node):
@@ -43,6 +44,14 @@ class Simulator(Node):
             True,
             "start only once every robot's sensor topics have a subscriber",
         )
+        self.min_subscribers = declare(
+            self,
+            "min_subscribers",
+            1,
+            "subscribers each sensor topic needs before the start",
+            1,
+            100,
+        )
         self.exit_when_done = declare(
             self, "exit_when_done", False, "shut down once everything is published"
         )
@@ -54,7 +63,7 @@ class Simulator(Node):
         for m in self.messages:
             if m.topic not in self.topic_publishers:
                 self.topic_publishers[m.topic] = self.create_publisher(
-                    type(m.message), m.topic, self._qos(m.topic)
+                    type(m.message), m.topic, topic_qos(m.topic)
                 )
         self.clock = self.create_publisher(Clock, "/clock", 10)
         self.next_index = 0
@@ -65,19 +74,12 @@ class Simulator(Node):
             f"scenario {scenario.name}: {len(self.robots)} robots, {len(self.messages)} messages, "
             f"{(self.end_stamp_ns - self.start_stamp_ns) / 1e9:.1f} s at rate {self.rate}"
         )
-        self.timer = self.create_timer(0.01, self._tick)
-
-    @staticmethod
-    def _qos(topic: str):
-        if topic == FEATURES_TRUTH_TOPIC:
-            return LATCHED
-        if topic.endswith("/odom") or topic.endswith("/ground_truth"):
-            return SENSOR_DATA
-        return RELIABLE
+        # the simulator is the clock source: pace by the steady wall clock, never by /clock
+        self.timer = self.create_timer(0.01, self._tick, clock=steady_clock())
 
     def _subscribers_ready(self) -> bool:
         return all(
-            self.count_subscribers(f"/{r}/{s}") > 0
+            self.count_subscribers(f"/{r}/{s}") >= self.min_subscribers
             for r in self.robots
             for s in ("odom", "features", "rendezvous")
         )
@@ -107,7 +109,7 @@ class Simulator(Node):
             self.get_logger().info("all messages published")
             if self.exit_when_done:
                 # let reliable messages drain before the process goes away
-                self.create_timer(1.0, self._finish)
+                self.create_timer(1.0, self._finish, clock=steady_clock())
 
     def _finish(self) -> None:
         raise SystemExit(0)

@@ -1,0 +1,291 @@
+"""The ``csam`` command: demo, replay, import and evaluate (ARCHITECTURE.md, "Command line")."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from csam_ros.launch import executable
+
+RUNS_DIR = Path("runs")
+
+
+class CliError(Exception):
+    """A user error: printed as one line, exit code 2."""
+
+
+def _new_run_dir(name: str) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out = RUNS_DIR / f"{name}-{stamp}"
+    k = 1
+    while out.exists():
+        k += 1
+        out = RUNS_DIR / f"{name}-{stamp}-{k}"
+    return out
+
+
+def _fresh_dir(path: Path | None, name: str) -> Path:
+    out = path or _new_run_dir(name)
+    if out.exists() and any(out.iterdir()):
+        raise CliError(f"{out} exists and is not empty: choose a new --out directory")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _csam_params(document: dict) -> dict:
+    from csam_ros.core.csam import CsamConfig
+
+    CsamConfig.from_dict(document.get("csam"), "csam")  # validate before any node starts
+    return dict(document.get("csam") or {})
+
+
+def _finish(out: Path, summary: dict, truth=None) -> None:
+    from csam_ros.figures import draw_all
+
+    figures = draw_all(summary, out, truth=truth)
+    robots = summary["robots"]
+    print(f"result in {out}/")
+    for name, r in robots.items():
+        print(f"  {name}: {r['alignment']}, {len(r['stamps'])} poses")
+    print(f"  {len(summary['features'])} features, {len(summary['associations'])} associations")
+    print("  summary.json, " + ", ".join(p.name for p in figures))
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from csam_ros.core.scenario import load_document, load_scenario
+    from csam_ros.live import LiveRun, run_live
+
+    scenario = load_scenario(args.scenario)
+    document = load_document(args.scenario)
+    out = _fresh_dir(args.out, scenario.name)
+    robots = [r.name for r in scenario.robots]
+    fov = max(np.rad2deg(r.feature_sensor.field_of_view) for r in scenario.robots)
+    seed = scenario.seed if args.seed is None else args.seed
+    print(
+        f"csam demo: scenario {scenario.name} ({len(robots)} robots), seed {seed}, "
+        f"rate {args.rate}, output {out}/"
+    )
+    run = LiveRun(
+        out_dir=out,
+        robots=robots,
+        source_name="simulator",
+        source_argv=[executable("simulator")],
+        source_ros_args=[
+            "-p",
+            f"scenario:={args.scenario}",
+            "-p",
+            f"seed:={seed}",
+            "-p",
+            f"rate:={args.rate}",
+            "-p",
+            "exit_when_done:=true",
+            "-p",
+            "min_subscribers:=2",
+        ],
+        smoother_params={"field_of_view_deg": float(fov)},
+        merger_params=_csam_params(document),
+    )
+    summary = run_live(run)
+    summary["scenario"] = scenario.name
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    _finish(out, summary)
+    return 0
+
+
+def _bag_robots(bag: Path) -> list[str]:
+    from csam_ros.bag import inspect_bag
+
+    info = inspect_bag(bag)
+    robots = sorted(
+        {t.strip("/").split("/")[0] for t in info.topics if t.endswith(("/odom", "/features"))}
+    )
+    if not robots:
+        raise CliError(f"{bag}: no /<robot>/odom or /<robot>/features topics")
+    return robots
+
+
+def offline_summary(bag: Path, config_document: dict | None = None) -> tuple[dict, object]:
+    """The summary of a bag run through the core in stamp order (no DDS), and its truth."""
+    from csam_ros.bag import read_bag_messages
+    from csam_ros.conversions import FEATURES_TRUTH_TOPIC, LogBuilder, sensor_topics
+    from csam_ros.core.csam import CsamConfig, run_csam
+
+    robots = _bag_robots(bag)
+    builder = LogBuilder(robots)
+    for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]):
+        builder.add(m.topic, m.message)
+    log = builder.build()
+    config = CsamConfig.from_dict((config_document or {}).get("csam"), "csam")
+    summary = run_csam(log, config).to_dict()
+    summary["dropped"] = {r: c.as_dict() for r, c in builder.filter.drops.items()}
+    return summary, log.truth
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from csam_ros.bag import BagError
+
+    bag = args.bag
+    if not bag.exists():
+        raise CliError(f"{bag}: no such bag")
+    document = {}
+    if args.config is not None:
+        import yaml
+
+        document = yaml.safe_load(args.config.read_text()) or {}
+    out = _fresh_dir(args.out, f"replay-{bag.name}")
+    try:
+        if args.offline:
+            summary, _ = offline_summary(bag, document)
+        else:
+            from csam_ros.conversions import FEATURES_TRUTH_TOPIC, sensor_topics
+            from csam_ros.live import LiveRun, run_live
+
+            robots = _bag_robots(bag)
+            topics = [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]
+            run = LiveRun(
+                out_dir=out,
+                robots=robots,
+                source_name="player",
+                source_argv=[
+                    executable("player"),
+                    str(bag),
+                    "--rate",
+                    str(args.rate),
+                    "--topics",
+                    *topics,
+                    "--wait-for-subscribers",
+                    *sensor_topics(robots),
+                ],
+                merger_params=_csam_params(document),
+            )
+            summary = run_live(run)
+    except BagError as err:
+        raise CliError(str(err)) from None
+    summary["source"] = str(bag)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    _finish(out, summary)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from csam_ros.core.evaluation import evaluate
+
+    run_dir = args.dir
+    summary_path = run_dir / "summary.json"
+    if not summary_path.exists():
+        raise CliError(f"{summary_path}: no such file (a run directory holds summary.json)")
+    summary = json.loads(summary_path.read_text())
+    truth = _truth_of(run_dir, summary)
+    if truth is None:
+        raise CliError(f"{run_dir}: no ground truth (/sim/features_truth) in the run's bag")
+    metrics = evaluate(summary, truth)
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    print(json.dumps(metrics, indent=1))
+    return 0
+
+
+def _truth_of(run_dir: Path, summary: dict):
+    from csam_ros.bag import read_bag_messages
+    from csam_ros.conversions import FEATURES_TRUTH_TOPIC, truth_from_message
+
+    candidates = [run_dir / "bag"]
+    if summary.get("source"):
+        candidates.append(Path(summary["source"]))
+    for bag in candidates:
+        if bag.exists():
+            for m in read_bag_messages(bag, [FEATURES_TRUTH_TOPIC]):
+                return truth_from_message(m.message)
+    return None
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from csam_ros.bag_io import write_log_bag
+
+    if args.out.exists():
+        raise CliError(f"{args.out} exists: an import never overwrites a bag")
+    if args.format == "mrclam":
+        from csam_ros.core.mrclam import load_mrclam
+
+        robots = [int(r) for r in args.robots.split(",")] if args.robots else None
+        log, report = load_mrclam(
+            args.source, robots=robots, start=args.start, duration=args.duration
+        )
+        print(report)
+    else:
+        from csam_ros.core.slam2d import read_slam2d_log
+
+        log = read_slam2d_log(args.source)
+    count = write_log_bag(log, args.out)
+    print(f"wrote {count} messages of {len(log.robots)} robot(s) to {args.out}")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="csam", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="simulate, smooth, merge and record a scenario")
+    demo.add_argument(
+        "--scenario",
+        default="map_joining",
+        help="map_joining, sensor_extension, chain, or a scenario YAML file",
+    )
+    demo.add_argument("--out", type=Path, help="output directory (default: runs/<name>-<time>)")
+    demo.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
+    demo.add_argument(
+        "--rate",
+        type=float,
+        default=8.0,
+        help="simulation speed relative to real time (0: as fast as possible)",
+    )
+    demo.set_defaults(func=cmd_demo)
+
+    replay = sub.add_parser("replay", help="run a recorded bag's sensor topics through C-SAM")
+    replay.add_argument("bag", type=Path)
+    replay.add_argument("--out", type=Path)
+    replay.add_argument("--rate", type=float, default=1.0, help="playback speed (0: max)")
+    replay.add_argument(
+        "--offline",
+        action="store_true",
+        help="feed the bag through the core in stamp order, no DDS",
+    )
+    replay.add_argument("--config", type=Path, help="YAML with a csam: section")
+    replay.set_defaults(func=cmd_replay)
+
+    imp = sub.add_parser("import", help="convert a data set into a bag of sensor topics")
+    imp.add_argument("format", choices=["mrclam", "slam2d"])
+    imp.add_argument("source", type=Path, help="MR.CLAM data set directory or 2D SLAM file")
+    imp.add_argument("--out", type=Path, required=True)
+    imp.add_argument("--robots", help="MR.CLAM robots, e.g. 1,2,3")
+    imp.add_argument("--start", type=float, default=0.0, help="MR.CLAM: seconds after start")
+    imp.add_argument("--duration", type=float, help="MR.CLAM: seconds to import")
+    imp.set_defaults(func=cmd_import)
+
+    ev = sub.add_parser("evaluate", help="compare a run with its ground truth: metrics.json")
+    ev.add_argument("dir", type=Path)
+    ev.set_defaults(func=cmd_evaluate)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except CliError as err:
+        print(f"csam {args.command}: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception as err:  # the nodes' shutdown on SIGTERM surfaces here
+        if type(err).__name__ == "ExternalShutdownException":
+            return 143
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

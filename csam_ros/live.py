@@ -1,0 +1,199 @@
+"""A live run: smoothers, merger and recorder as separate node processes fed by a source.
+
+The source is the simulator (``csam demo``) or the player of a bag (``csam replay``). The run
+ends when the source has published everything: every smoother is flushed (``~/flush``), the
+merger's joined map is awaited for those final local maps, the recorder is stopped (which
+finalises the bag) and every process is gone. The merger writes ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from csam_ros.launch import ProcessGroup, executable
+from csam_ros.ros_env import isolate_this_process, isolated_environment, reserve_domain_id
+
+
+class LiveRunError(RuntimeError):
+    """A live run that could not finish (a node died, or a step timed out)."""
+
+
+@dataclass
+class LiveRun:
+    """What a live run needs: where, which robots, how the nodes are configured."""
+
+    out_dir: Path
+    robots: list[str]
+    source_name: str
+    source_argv: list[str]  # the simulator or player command, without --ros-args
+    source_ros_args: list[str] = field(default_factory=list)
+    smoother_params: dict[str, object] = field(default_factory=dict)
+    merger_params: dict[str, object] = field(default_factory=dict)
+    extra_topics: list[str] = field(default_factory=list)
+    timeout_s: float = 600.0
+
+
+def _param(name: str, value: object) -> list[str]:
+    if isinstance(value, bool):
+        text = "true" if value else "false"
+    elif isinstance(value, list | tuple):
+        text = "[" + ",".join(json.dumps(v) if isinstance(v, str) else str(v) for v in value) + "]"
+    else:
+        text = str(value)
+    return ["-p", f"{name}:={text}"]
+
+
+def recorded_topics(robots: list[str]) -> list[str]:
+    """Every topic of a run (ARCHITECTURE.md)."""
+    per_robot = (
+        "odom",
+        "features",
+        "rendezvous",
+        "ground_truth",
+        "local_map",
+        "rendezvous_poses",
+        "path",
+    )
+    return [f"/{r}/{s}" for r in robots for s in per_robot] + [
+        "/sim/features_truth",
+        "/csam/joined_map",
+        "/csam/markers",
+        "/csam/status",
+        "/clock",
+    ]
+
+
+def run_live(run: LiveRun, progress=print) -> dict:
+    """Run the nodes; returns the final summary dict (also in ``out_dir/summary.json``)."""
+    run.out_dir.mkdir(parents=True, exist_ok=True)
+    summary_path = run.out_dir / "summary.json"
+    with reserve_domain_id() as reservation:
+        env = isolated_environment(reservation.domain_id)
+        isolate_this_process(reservation.domain_id)
+        group = ProcessGroup(run.out_dir / "logs", env)
+        try:
+            return _run(run, group, summary_path, progress)
+        finally:
+            group.stop_all()
+
+
+def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> dict:
+    import rclpy
+    from csam_msgs.msg import JoinedMap
+    from rclpy.executors import SingleThreadedExecutor
+    from rosgraph_msgs.msg import Clock
+    from std_srvs.srv import Trigger
+
+    from csam_ros.conversions import time_to_ns
+    from csam_ros.nodes.common import LATCHED
+
+    sim_time = _param("use_sim_time", True)
+    topics = recorded_topics(run.robots) + run.extra_topics
+    group.start(
+        "recorder", [executable("recorder"), "-o", str(run.out_dir / "bag"), "--topics", *topics]
+    )
+    merger_params = {"robots": run.robots, "summary_path": str(summary_path), **run.merger_params}
+    group.start(
+        "merger",
+        [
+            executable("merger"),
+            "--ros-args",
+            *sim_time,
+            *sum((_param(k, v) for k, v in merger_params.items()), []),
+        ],
+    )
+    for robot in run.robots:
+        params = {"robots": run.robots, **run.smoother_params}
+        group.start(
+            f"smoother_{robot}",
+            [
+                executable("smoother"),
+                "--ros-args",
+                "-r",
+                f"__ns:=/{robot}",
+                *sim_time,
+                *sum((_param(k, v) for k, v in params.items()), []),
+            ],
+        )
+
+    rclpy.init()
+    node = rclpy.create_node("csam_run_monitor")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    latest: dict[str, object] = {"clock": None, "joined": None}
+    node.create_subscription(Clock, "/clock", lambda m: latest.__setitem__("clock", m), 10)
+    node.create_subscription(
+        JoinedMap, "/csam/joined_map", lambda m: latest.__setitem__("joined", m), LATCHED
+    )
+    clients = {r: node.create_client(Trigger, f"/{r}/smoother/flush") for r in run.robots}
+    try:
+        deadline = time.monotonic() + 60
+        while not all(c.service_is_ready() for c in clients.values()):
+            _check_alive(group)
+            executor.spin_once(timeout_sec=0.1)
+            if time.monotonic() > deadline:
+                raise LiveRunError("the smoothers did not come up within 60 s")
+        group.start(
+            run.source_name, [*run.source_argv, "--ros-args", *sim_time, *run.source_ros_args]
+        )
+        start = time.monotonic()
+        last_print = 0.0
+        while group.processes[run.source_name].poll() is None:
+            _check_alive(group, ignore=run.source_name)
+            executor.spin_once(timeout_sec=0.1)
+            if time.monotonic() - last_print > 2.0:
+                clock = latest["clock"]
+                t = time_to_ns(clock.clock) / 1e9 if clock is not None else 0.0
+                progress(
+                    f"  {run.source_name}: t = {t:8.1f} s  ({time.monotonic() - start:5.1f} s wall)"
+                )
+                last_print = time.monotonic()
+            if time.monotonic() - start > run.timeout_s:
+                raise LiveRunError(f"{run.source_name} did not finish within {run.timeout_s} s")
+        code = group.processes[run.source_name].returncode
+        if code != 0:
+            raise LiveRunError(
+                f"{run.source_name} exited with {code}:\n{group.log_tail(run.source_name)}"
+            )
+        progress("  source done; flushing the smoothers")
+        final: dict[str, int] = {}
+        for robot, client in clients.items():
+            future = client.call_async(Trigger.Request())
+            executor.spin_until_future_complete(future, timeout_sec=120)
+            reply = future.result()
+            if reply is None or not reply.success:
+                raise LiveRunError(f"smoother of {robot} did not flush: {reply}")
+            final[robot] = int(reply.message)
+        progress("  waiting for the merger's final joined map")
+        deadline = time.monotonic() + 300
+
+        def joined_is_final() -> bool:
+            joined = latest["joined"]
+            if joined is None:
+                return False
+            stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in joined.base_nodes}
+            return all(stamps.get(r) == s for r, s in final.items())
+
+        while not joined_is_final():
+            _check_alive(group, ignore=run.source_name)
+            executor.spin_once(timeout_sec=0.1)
+            if time.monotonic() > deadline:
+                raise LiveRunError(
+                    f"no final joined map from the merger within 300 s:\n{group.log_tail('merger')}"
+                )
+    finally:
+        node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+    group.stop("recorder", timeout=20)
+    group.stop_all()
+    return json.loads(summary_path.read_text())
+
+
+def _check_alive(group: ProcessGroup, ignore: str | None = None) -> None:
+    for name, code in group.dead().items():
+        if name != ignore:
+            raise LiveRunError(f"{name} exited with {code}:\n{group.log_tail(name)}")
