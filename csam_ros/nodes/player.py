@@ -67,7 +67,7 @@ class PlayerNode(Node):
             self._topic_publishers[topic] = self.create_publisher(cls, topic, qos)
         self._clock_publisher = (
             self.create_publisher(
-                Clock, CLOCK_TOPIC, QoSProfile(depth=1, durability=DurabilityPolicy.VOLATILE)
+                Clock, CLOCK_TOPIC, QoSProfile(depth=10, durability=DurabilityPolicy.VOLATILE)
             )
             if publish_clock
             else None

@@ -135,6 +135,12 @@ def test_sigterm_finishes_and_sigkill_leaves_a_readable_bag(
     for label in range(60, 70):  # and these are still pending in the killed recorder
         publisher.publish(FeatureObservations(observations=[FeatureObservation(label=label)]))
     assert nodes.stop(recorders["killed"], signal.SIGKILL) == -signal.SIGKILL
+
+    def flushed(bag: Path) -> int:  # what metadata.yaml counts: refreshed at every flush
+        text = (bag / "metadata.yaml").read_text()
+        return yaml.safe_load(text)["rosbag2_bagfile_information"]["message_count"]
+
+    assert _wait_until(lambda: flushed(bags["terminated"]) == 70)
     assert nodes.stop(recorders["terminated"], signal.SIGTERM) == 0
 
     def labels(bag: Path) -> list[int]:
@@ -178,3 +184,46 @@ def test_bad_output_path_is_a_one_line_error(nodes: Any, tmp_path: Path, case: s
     assert sorted(p.name for p in existing.iterdir()) == ["metadata.yaml"]
     assert (existing / "metadata.yaml").read_text() == "keep me"
     assert plain_file.read_text() == "keep me too"
+
+
+def test_log_time_is_the_clock_time_under_sim_time(
+    ros_context: Any, nodes: Any, tmp_path: Path
+) -> None:
+    from csam_msgs.msg import FeatureObservation, FeatureObservations
+    from rclpy.duration import Duration
+    from rclpy.serialization import deserialize_message
+    from rosgraph_msgs.msg import Clock
+
+    node = _node(ros_context, "sim_source")
+    clock = node.create_publisher(Clock, "/clock", 10)
+    features = node.create_publisher(FeatureObservations, "/sim/features", 10)
+    bag = tmp_path / "bag"
+    recorder = nodes.start(
+        "recorder", "-o", bag, "--topics", "/sim/features",
+        "--ros-args", "-p", "use_sim_time:=true",
+    )  # fmt: skip
+    assert _wait_until(lambda: clock.get_subscription_count() and features.get_subscription_count())
+
+    def send(label: int | None = None, clock_s: int | None = None) -> None:
+        if clock_s is not None:
+            message = Clock()
+            message.clock.sec = clock_s
+            clock.publish(message)
+        if label is not None:
+            features.publish(FeatureObservations(observations=[FeatureObservation(label=label)]))
+        time.sleep(0.2)
+
+    send(label=0)  # before any /clock: held back until the first clock time
+    send(clock_s=42)
+    send(label=1)
+    send(clock_s=50)
+    send(label=2)
+    assert features.wait_for_all_acked(Duration(seconds=10))
+    assert nodes.stop(recorder, signal.SIGINT) == 0, nodes.output(recorder)
+    recorded = [
+        (deserialize_message(m.data, FeatureObservations).observations[0].label, m.log_time_ns)
+        for m in read_bag(bag)
+    ]
+    second = 1_000_000_000
+    assert recorded == [(0, 42 * second), (1, 42 * second), (2, 50 * second)]
+    node.destroy_node()
