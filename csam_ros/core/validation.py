@@ -24,6 +24,9 @@ STAMP_BACKWARDS = "stamp_backwards"
 DUPLICATE = "duplicate"
 EMPTY = "empty"
 
+# A noisy bearing may fall a little outside the field of view: allow this many sigmas.
+BEARING_MARGIN_SIGMAS = 5.0
+
 
 @dataclass
 class DropCounter:
@@ -45,20 +48,26 @@ class DropCounter:
 
 @dataclass
 class StampGuard:
-    """Rejects a message whose stamp goes backwards or repeats on one stream (topic)."""
+    """Rejects a message whose stamp goes backwards or repeats on one stream (topic).
+
+    Only accepted messages move the guard, so a rejected message (say, a garbage stamp far in
+    the future with invalid content) cannot block the stream.
+    """
 
     last_stamp: float = -np.inf
 
-    def check(self, stamp: float) -> str | None:
-        """The drop reason for a message at ``stamp``, or None (and the stamp is accepted)."""
+    def reason(self, stamp: float) -> str | None:
+        """The drop reason for a message at ``stamp``, or None if its stamp is acceptable."""
         if not np.isfinite(stamp):
             return NOT_FINITE
         if stamp < self.last_stamp:
             return STAMP_BACKWARDS
         if stamp == self.last_stamp:
             return DUPLICATE
-        self.last_stamp = stamp
         return None
+
+    def accept(self, stamp: float) -> None:
+        self.last_stamp = stamp
 
 
 def range_bearing_mask(
@@ -82,7 +91,7 @@ def range_bearing_mask(
         (NOT_FINITE, ~(np.isfinite(r) & np.isfinite(b) & np.isfinite(sr) & np.isfinite(sb))),
         (NON_POSITIVE_RANGE, r <= 0),
         (NON_POSITIVE_SIGMA, (sr <= 0) | (sb <= 0)),
-        (OUTSIDE_FIELD_OF_VIEW, np.abs(b) > 0.5 * field_of_view + 1e-9),
+        (OUTSIDE_FIELD_OF_VIEW, np.abs(b) > 0.5 * field_of_view + BEARING_MARGIN_SIGMAS * sb),
     ):
         fault = keep & bad
         drops.add(reason, int(fault.sum()))
@@ -109,7 +118,7 @@ class MeasurementFilter:
     ``robots`` lists the known robot names (None: any name is accepted as a robot, but a
     rendezvous must still name another robot). Each (robot, stream) pair has its own
     :class:`StampGuard`. Within a message, single bad observations are dropped and the rest kept;
-    a message left with no observation is dropped as ``empty``.
+    a message that arrives with no observation is dropped as ``empty``.
     """
 
     def __init__(self, robots: list[str] | None = None, field_of_view: float = 2 * np.pi) -> None:
@@ -122,22 +131,24 @@ class MeasurementFilter:
         """The drop counter of ``robot`` (unknown robots are counted under their own name)."""
         return self.drops.setdefault(robot, DropCounter())
 
-    def _accept_message(self, robot: str, stream: str, stamp: float) -> bool:
-        drops = self.counter(robot)
+    def _stamp_fault(self, robot: str, stream: str, stamp: float) -> str | None:
         if self.robots is not None and robot not in self.robots:
-            drops.add(UNKNOWN_ROBOT)
-            return False
-        reason = self._guards.setdefault((robot, stream), StampGuard()).check(stamp)
-        if reason is not None:
-            drops.add(reason)
-            return False
-        return True
+            return UNKNOWN_ROBOT
+        return self._guards.setdefault((robot, stream), StampGuard()).reason(stamp)
+
+    def _accept(self, robot: str, stream: str, stamp: float) -> None:
+        self._guards[(robot, stream)].accept(stamp)
 
     def odometry(self, robot: str, stamp: float, inputs: ArrayLike, sigmas: ArrayLike) -> bool:
         """Whether an odometry sample is accepted."""
+        fault = self._stamp_fault(robot, "odometry", stamp)
+        if fault is not None:
+            self.counter(robot).add(fault)
+            return False
         if not odometry_ok(inputs, sigmas, self.counter(robot)):
             return False
-        return self._accept_message(robot, "odometry", stamp)
+        self._accept(robot, "odometry", stamp)
+        return True
 
     def features(
         self,
@@ -187,7 +198,9 @@ class MeasurementFilter:
             else:
                 drops.add(UNKNOWN_ROBOT)
             return None
-        if not self._accept_message(robot, stream, stamp):
+        fault = self._stamp_fault(robot, stream, stamp)
+        if fault is not None:
+            drops.add(fault)
             return None
         keep = range_bearing_mask(
             r, bearings, sigma_range, sigma_bearing, self.field_of_view, drops
@@ -201,7 +214,7 @@ class MeasurementFilter:
                 unknown = keep & ~np.isin(names, self.robots)
                 drops.add(UNKNOWN_ROBOT, int(unknown.sum()))
                 keep &= ~unknown
-        if not keep.any():
-            drops.add(EMPTY)
+        if not keep.any():  # every observation was counted under its own fault
             return None
+        self._accept(robot, stream, stamp)
         return keep

@@ -19,6 +19,11 @@ from rclpy.qos import (
 )
 
 SENSOR_DATA = qos_profile_sensor_data
+# Subscribing to sensor data: best effort like its publishers, but a deep queue so that a burst
+# (a bag played as fast as possible) is buffered rather than overwritten.
+SENSOR_DATA_BUFFERED = QoSProfile(
+    depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST
+)
 RELIABLE = QoSProfile(
     depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
 )

@@ -15,6 +15,7 @@ import sys
 import time
 from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
@@ -48,8 +49,8 @@ def write_json_atomically(path: Path, document: dict) -> None:
 class Merger(Node):
     """C-SAM merger node (see the module docstring)."""
 
-    def __init__(self) -> None:
-        super().__init__("merger")
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__("merger", **node_options)
         self.robots: list[str] = list(
             declare(self, "robots", ["robot1", "robot2"], "robot names; the first is the reference")
         )

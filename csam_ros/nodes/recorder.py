@@ -147,7 +147,8 @@ class RecorderNode(Node):
         self._held_back.clear()
         self.writer.close()
         summary = (
-            f"bag {self.writer.path}: {self.writer.message_count} messages on "
+            f"bag {self.writer.path}: {self.writer.message_count} of {self.received} received "
+            f"messages written on "
             f"{len(self.writer.topics)} topics; {self.lost} lost by the middleware, {dropped} "
             "dropped waiting for /clock"
         )

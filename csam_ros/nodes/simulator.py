@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -24,8 +25,8 @@ from csam_ros.nodes.common import declare, run_node, steady_clock
 class Simulator(Node):
     """Publishes a simulated run at ``rate`` times real time (0: as fast as possible)."""
 
-    def __init__(self) -> None:
-        super().__init__("simulator")
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__("simulator", **node_options)
         scenario_name = declare(
             self, "scenario", "map_joining", "scenario name in config/ or path to a YAML file"
         )

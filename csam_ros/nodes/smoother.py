@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 import numpy as np
 from csam_msgs.msg import FeatureObservations, LocalMap, RendezvousObservations, RendezvousPoses
@@ -37,7 +38,7 @@ from csam_ros.core.local_map import LocalMapOptions
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.validation import MeasurementFilter
 from csam_ros.map_messages import rendezvous_poses_message, robot_map_to_message
-from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA, declare, run_node
+from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA_BUFFERED, declare, run_node
 
 STATUS_TOPIC = "/csam/status"
 
@@ -45,8 +46,8 @@ STATUS_TOPIC = "/csam/status"
 class Smoother(Node):
     """One robot's sqrt-SAM smoother (see the module docstring)."""
 
-    def __init__(self) -> None:
-        super().__init__("smoother")
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__("smoother", **node_options)
         ns = self.get_namespace().strip("/")
         self.robot = declare(
             self, "robot", ns or "robot1", "this robot's name (default: namespace)"
@@ -91,7 +92,7 @@ class Smoother(Node):
         self.solve_seconds = 0.0
         self.errors = 0
 
-        self.create_subscription(Odometry, "odom", self.on_odometry, SENSOR_DATA)
+        self.create_subscription(Odometry, "odom", self.on_odometry, SENSOR_DATA_BUFFERED)
         self.create_subscription(FeatureObservations, "features", self.on_features, RELIABLE)
         self.create_subscription(
             RendezvousObservations, "rendezvous", self.on_own_rendezvous, RELIABLE
