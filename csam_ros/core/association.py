@@ -169,10 +169,12 @@ def _condition(
         return _State(np.zeros(len(cov)), cov), np.zeros(0)
     nu, h, noise = _stack(glob, pairs)
     w = np.linalg.inv(noise)
-    info = prior_information + np.einsum("kid,kij,kje->de", h, w, h)
+    d = h.shape[2]
+    wh = w @ h
+    info = prior_information + h.reshape(-1, d).T @ wh.reshape(-1, d)
     cov = np.linalg.inv(info)
     cov = 0.5 * (cov + cov.T)
-    shift = -cov @ np.einsum("kid,kij,kj->d", h, w, nu)
+    shift = -cov @ (wh.reshape(-1, d).T @ nu.reshape(-1))
     resid = nu + h @ shift
     v = noise - h @ cov @ h.transpose(0, 2, 1)
     loo = np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])

@@ -42,14 +42,10 @@ from csam_ros.core.association import (
     MapFeatures,
     associate,
 )
-from csam_ros.core.covariance import (
-    factorize_at_estimate,
-    marginal_covariance,
-    marginal_covariances,
-    marginal_sqrt_information,
-)
+from csam_ros.core.covariance import factorize_at_estimate, marginal_sqrt_information
 from csam_ros.core.joining import (
     RobotMap,
+    SelectedInverse,
     covariance_columns,
     find_gauge_factor,
     heading_sigmas,
@@ -209,7 +205,10 @@ class CsamResult:
 
 
 def _local_inputs(
-    m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64], with_features: bool
+    m: RobotMap,
+    system: NormalEquations,
+    rendezvous_poses: NDArray[np.int64],
+    inverse: SelectedInverse | None,
 ) -> tuple[RendezvousPart | None, MapFeatures | None]:
     """A robot's rendezvous part and (optionally) its features' gains and covariances."""
     if len(rendezvous_poses) == 0:
@@ -218,14 +217,15 @@ def _local_inputs(
     keys = [problem.key(int(i)) for i in m.pose_ids[rendezvous_poses]]
     root, _ = marginal_sqrt_information(problem, keys, system)
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
-    if not with_features or len(m.feature_ids) == 0:
+    if inverse is None or len(m.feature_ids) == 0:
         return part, None
     columns = covariance_columns(system, problem.scalar_indices(m.pose_ids[rendezvous_poses]))
     cross = columns[problem.scalar_indices(m.feature_ids)].reshape(len(m.feature_ids), 2, -1)
     gain = cross @ (root.T @ root)
-    covs = np.array(
-        marginal_covariances(problem, [problem.key(int(i)) for i in m.feature_ids], system)
-    )
+    if m.feature_covariances is not None:
+        covs = np.asarray(m.feature_covariances, dtype=float)
+    else:
+        covs = inverse.blocks(problem, m.feature_ids)
     return part, MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
 
 
@@ -254,9 +254,6 @@ def join_maps(
         rendezvous_logs, {m.name: m.stamps for m in maps}, config.stamp_tolerance
     )
     systems = [factorize_at_estimate(m.problem) for m in maps]
-    sigma_local = [
-        heading_sigmas(m.problem, s, m.pose_ids)[0] for m, s in zip(maps, systems, strict=True)
-    ]
     rdv_poses = [
         np.unique(
             np.concatenate(
@@ -269,7 +266,7 @@ def join_maps(
         for r in range(len(maps))
     ]
     parts = [
-        _local_inputs(m, s, idx, False)[0]
+        _local_inputs(m, s, idx, None)[0]
         for m, s, idx in zip(maps, systems, rdv_poses, strict=True)
     ]
     lap("local_rendezvous_parts")
@@ -278,12 +275,22 @@ def join_maps(
     aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
     lap("alignment")
 
+    # the local marginals the summary reports and association uses
+    inverses = [SelectedInverse(s) for s in systems]
+    sigma_local = [
+        np.sqrt(np.maximum(inv.entries(h, h), 0.0))
+        for inv, h in (
+            (inv, m.problem.scalar_indices(m.pose_ids)[2::3])
+            for m, inv in zip(maps, inverses, strict=True)
+        )
+    ]
+    lap("local_marginals")
+
     associations = Associations([], [])
     if config.associate and len(aligned) > 1:
         feats: list[MapFeatures | None] = [None] * len(maps)
         for r in aligned:
-            feats[r] = _local_inputs(maps[r], systems[r], rdv_poses[r], True)[1]
-        lap("local_feature_covariances")
+            feats[r] = _local_inputs(maps[r], systems[r], rdv_poses[r], inverses[r])[1]
         associations = associate(
             feats,
             alignment,
@@ -304,8 +311,11 @@ def join_maps(
 
     joint = solution.problem
     system = factorize_at_estimate(joint)
-    first_keys = [joint.key(int(solution.pose_ids[r][0])) for r in aligned]
-    base_cov = marginal_covariance(joint, first_keys, system)
+    first = joint.scalar_indices([int(solution.pose_ids[r][0]) for r in aligned])
+    base_cov = covariance_columns(system, first)[first].reshape(len(aligned), 3, -1, 3)
+    base_cov = base_cov[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
+    lap("joint_base_node_covariance")
+    inverse = SelectedInverse(system)
     robots: dict[str, RobotResult] = {}
     for r, m in enumerate(maps):
         result = RobotResult(
@@ -317,9 +327,8 @@ def join_maps(
             alignment_method=alignment.methods.get(r, ""),
         )
         if r in aligned:
-            k = aligned.index(r)
             poses = joint.values_of(solution.pose_ids[r])
-            in_reference, own = heading_sigmas(joint, system, solution.pose_ids[r])
+            in_reference, own = heading_sigmas(joint, system, solution.pose_ids[r], inverse)
             result.poses_joined = poses
             result.sigma_phi_joined = own
             result.sigma_phi_joined_reference = in_reference
@@ -329,23 +338,17 @@ def join_maps(
             else:
                 # G_r is defined by the robot's first pose (module docs of joining)
                 result.base_node = se2.compose(poses[0], se2.inverse(m.poses[0]))
-                result.base_node_cov = base_cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3]
+                result.base_node_cov = base_cov[aligned.index(r)]
                 result.alignment_base_node = alignment.base_nodes[r].copy()
                 result.alignment_base_node_cov = alignment.base_covariance(r).copy()
         robots[m.name] = result
-    lap("joint_heading_sigmas")
-
-    feature_covs = (
-        marginal_covariances(joint, [joint.key(int(i)) for i in solution.feature_var_ids], system)
-        if len(solution.feature_var_ids)
-        else []
-    )
+    feature_covs = inverse.blocks(joint, solution.feature_var_ids)
     xy = joint.values_of(solution.feature_var_ids) if len(solution.feature_var_ids) else []
     features = [
         FeatureResult([f"{names[r]}/{lab}" for r, lab in members], xy[i], feature_covs[i])
         for i, members in enumerate(solution.features)
     ]
-    lap("joint_feature_covariances")
+    lap("joint_marginals")
     records = [
         AssociationRecord(
             f"{names[mt.robot_a]}/{mt.label_a}", f"{names[mt.robot_c]}/{mt.label_c}", mt.mahalanobis
@@ -373,8 +376,9 @@ def join_maps(
     )
 
 
-def robot_map_from_local_map(local: LocalMap) -> RobotMap:
-    """C-SAM's view of a solved :class:`~csam_ros.core.local_map.LocalMap`."""
+def robot_map_from_local_map(local: LocalMap, with_covariances: bool = False) -> RobotMap:
+    """C-SAM's view of a solved :class:`~csam_ros.core.local_map.LocalMap` (with its feature
+    covariances when ``with_covariances``)."""
     problem = local.problem
     pose_ids = problem.indices([("x", i) for i in range(len(local.stamps))])
     labels = local.landmark_labels
@@ -387,6 +391,11 @@ def robot_map_from_local_map(local: LocalMap) -> RobotMap:
         feature_labels=labels,
         feature_ids=feature_ids,
         gauge_factor=find_gauge_factor(problem, int(pose_ids[0])),
+        feature_covariances=(
+            SelectedInverse(factorize_at_estimate(problem)).blocks(problem, feature_ids)
+            if with_covariances
+            else None
+        ),
     )
 
 

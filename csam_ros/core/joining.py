@@ -53,6 +53,7 @@ class RobotMap:
     feature_labels: IntArray
     feature_ids: IntArray
     gauge_factor: int
+    feature_covariances: Array | None = None
 
     def __post_init__(self) -> None:
         if len(self.stamps) != len(self.pose_ids) or len(self.pose_ids) == 0:
@@ -61,6 +62,15 @@ class RobotMap:
             )
         if len(self.feature_labels) != len(self.feature_ids):
             raise ValueError(f"robot {self.name!r}: feature labels and ids differ in length")
+        if self.feature_covariances is not None and np.shape(self.feature_covariances) != (
+            len(self.feature_ids),
+            2,
+            2,
+        ):
+            raise ValueError(
+                f"robot {self.name!r}: feature_covariances must have shape "
+                f"({len(self.feature_ids)}, 2, 2), got {np.shape(self.feature_covariances)}"
+            )
         gauge = self.problem.factors[self.gauge_factor]
         if not isinstance(gauge, PosePrior) or np.any(gauge.variables != self.pose_ids[0]):
             raise ValueError(
@@ -217,13 +227,136 @@ def covariance_columns(system: NormalEquations, scalar_indices: IntArray) -> Arr
 
 
 def heading_sigmas(
-    problem: Problem, system: NormalEquations, pose_ids: IntArray
+    problem: Problem,
+    system: NormalEquations,
+    pose_ids: IntArray,
+    inverse: SelectedInverse | None = None,
 ) -> tuple[Array, Array]:
     """Heading standard deviation of each pose, in the problem's frame and relative to the
-    first of ``pose_ids`` (the robot's own frame), both (N,)."""
+    first of ``pose_ids`` (the robot's own frame), both (N,).
+
+    The variances come from ``inverse`` (or one solve per pose without it); the covariances
+    with the first heading from one solve.
+    """
     heading = problem.scalar_indices(pose_ids).reshape(-1, 3)[:, 2]
-    cols = covariance_columns(system, heading)
-    sub = cols[heading]
-    var = np.diag(sub).copy()
-    relative = var + var[0] - 2.0 * sub[:, 0]
+    if inverse is not None:
+        var = inverse.entries(heading, heading)
+        cross = covariance_columns(system, heading[:1])[heading, 0]
+    else:
+        sub = covariance_columns(system, heading)[heading]
+        var = np.diag(sub).copy()
+        cross = sub[:, 0]
+    relative = var + var[0] - 2.0 * cross
     return np.sqrt(np.maximum(var, 0.0)), np.sqrt(np.maximum(relative, 0.0))
+
+
+class SelectedInverse:
+    """Entries of ``(A^T A)^-1`` on the sparsity pattern of its factor (Takahashi et al.).
+
+    With ``P (A^T A) P^T = L D L^T`` (the solver's qdldl factorisation at the estimate) the
+    inverse ``Z`` is computed on the (filled) pattern of ``L`` from the last column to the
+    first, one supernode at a time (consecutive columns ``J`` sharing their rows ``S`` below,
+    e.g. the components of one pose): with ``U = L_SJ L_JJ^-1``,
+
+        Z_SJ = -Z_SS U,        Z_JJ = L_JJ^-T D_J^-1 L_JJ^-1 - U^T Z_SJ,
+
+    where ``Z_SS`` lies on the pattern already computed (``S`` is a clique of the filled
+    graph). This gives every marginal covariance block of single variables, and of variables
+    that share a factor, in time linear in the size of the factor, instead of one triangular
+    solve per wanted column.
+    """
+
+    def __init__(self, system: NormalEquations) -> None:
+        factorization = system._factorization  # the solver's qdldl factor
+        if factorization is None or system.backend != "qdldl":
+            raise ValueError("SelectedInverse needs a qdldl factorisation (factorize() first)")
+        lower, d, perm = factorization.factors()
+        lower = lower.tocsc()
+        lower.sort_indices()
+        n = system.n
+        self.n = n
+        self.perm = np.asarray(perm, dtype=np.int64)
+        self.inverse_perm = np.empty(n, dtype=np.int64)
+        self.inverse_perm[self.perm] = np.arange(n)
+        indptr = lower.indptr.astype(np.int64)
+        indices = lower.indices.astype(np.int64)
+        data = lower.data
+        d = np.asarray(d, dtype=float)
+        self._keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
+        values = np.zeros(len(data))
+        diag = np.zeros(n)
+        counts = np.diff(indptr)
+        first = np.full(n, -1, dtype=np.int64)
+        first[counts > 0] = indices[indptr[:-1][counts > 0]]
+        merges = np.zeros(n, dtype=bool)  # column j is in the supernode of column j + 1
+        merges[:-1] = (first[:-1] == np.arange(1, n)) & (counts[:-1] == counts[1:] + 1)
+        ends = np.flatnonzero(np.r_[~merges[:-1], True])  # last column of each supernode
+        begins = np.r_[0, ends[:-1] + 1]
+        upper: dict[int, tuple[IntArray, IntArray, IntArray]] = {}
+        lower_jj: dict[int, tuple[IntArray, IntArray, IntArray]] = {}
+        for c, e in zip(begins[::-1].tolist(), ends[::-1].tolist(), strict=True):
+            w = e - c + 1
+            below = indices[indptr[e] : indptr[e + 1]]
+            ms = len(below)
+            if w not in lower_jj:
+                jj_i, jj_j = np.tril_indices(w, -1)
+                lower_jj[w] = (jj_i, jj_j, jj_i - jj_j - 1)
+            jj_i, jj_j, jj_off = lower_jj[w]
+            # positions in ``data`` of L_SJ (ms, w) and of the strict lower part of L_JJ
+            col_start = indptr[c : e + 1]
+            pos_jj = col_start[jj_j] + jj_off
+            if w == 1:
+                inv_l = np.ones((1, 1))
+            else:
+                l_jj = np.eye(w)
+                l_jj[jj_i, jj_j] = data[pos_jj]
+                inv_l = np.linalg.inv(l_jj)
+            z_jj = inv_l.T @ (inv_l / d[c : e + 1, None])
+            if ms:
+                if ms not in upper:
+                    ia, ib = np.triu_indices(ms, 1)
+                    upper[ms] = (ia, ib, np.arange(ms))
+                ia, ib, every = upper[ms]
+                z_ss = np.empty((ms, ms))
+                if len(ia):
+                    found = values[np.searchsorted(self._keys, below[ia] * n + below[ib])]
+                    z_ss[ia, ib] = found
+                    z_ss[ib, ia] = found
+                z_ss[every, every] = diag[below]
+                pos_s = (col_start + np.arange(e - c, -1, -1))[None, :] + every[:, None]
+                u = data[pos_s] @ inv_l
+                z_sj = -(z_ss @ u)
+                z_jj -= u.T @ z_sj
+                values[pos_s] = z_sj
+            if w > 1:
+                values[pos_jj] = z_jj[jj_i, jj_j]
+            diag[c : e + 1] = z_jj.diagonal()
+        self._values = values
+        self._diag = diag
+
+    def entries(self, rows: IntArray, cols: IntArray) -> Array:
+        """``Z[rows, cols]`` (original scalar order) for pairs on the factor's pattern."""
+        pr = self.inverse_perm[np.asarray(rows, dtype=np.int64)]
+        pc = self.inverse_perm[np.asarray(cols, dtype=np.int64)]
+        lo, hi = np.minimum(pr, pc), np.maximum(pr, pc)
+        out = np.empty(lo.shape)
+        same = lo == hi
+        out[same] = self._diag[lo[same]]
+        off = ~same
+        keys = lo[off] * self.n + hi[off]
+        pos = np.clip(np.searchsorted(self._keys, keys), 0, max(len(self._keys) - 1, 0))
+        if np.any(self._keys[pos] != keys):
+            raise ValueError("requested covariance entries are not on the factor's pattern")
+        out[off] = self._values[pos]
+        return out
+
+    def blocks(self, problem: Problem, ids: IntArray) -> Array:
+        """Marginal covariance blocks (K, dim, dim) of variables ``ids`` (one dimension)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0:
+            return np.zeros((0, 0, 0))
+        scalars = problem.scalar_indices(ids).reshape(len(ids), -1)
+        dim = scalars.shape[1]
+        rows = np.repeat(scalars, dim, axis=1)
+        cols = np.tile(scalars, (1, dim))
+        return self.entries(rows.ravel(), cols.ravel()).reshape(len(ids), dim, dim)

@@ -15,7 +15,7 @@ Layout (see ``config/map_joining.yaml`` for a commented example)::
       defaults:                # every robot inherits these unless it overrides them
         odometry_sigma: {v: 0.02, v_lat: 0.01, omega_deg: 0.3}
         feature_sensor: {max_range: 4.0, field_of_view_deg: 240,
-                         sigma_range: 0.01, sigma_bearing: 0.012}
+                         sigma_range: 0.01, sigma_bearing: 0.012}   # min_range: 0.1
         rendezvous_sensor: {...same keys...}   # or null: this robot observes no robot
         rendezvous_every: 1
       robots:
@@ -82,7 +82,7 @@ def _pair(node: Mapping[str, Any], key: str, where: str) -> tuple[float, float]:
     return float(value[0]), float(value[1])
 
 
-_SENSOR_KEYS = {"max_range", "field_of_view_deg", "sigma_range", "sigma_bearing"}
+_SENSOR_KEYS = {"max_range", "min_range", "field_of_view_deg", "sigma_range", "sigma_bearing"}
 
 
 def _sensor(node: Any, where: str, base: RangeBearingSensor | None) -> RangeBearingSensor | None:
@@ -97,9 +97,12 @@ def _sensor(node: Any, where: str, base: RangeBearingSensor | None) -> RangeBear
         field_of_view=float(np.deg2rad(fov)),
         sigma_range=_number(node, "sigma_range", where, base.sigma_range),
         sigma_bearing=_number(node, "sigma_bearing", where, base.sigma_bearing),
+        min_range=_number(node, "min_range", where, base.min_range),
     )
-    if sensor.max_range <= 0 or not 0 < fov <= 360:
-        raise ScenarioError(f"{where}: max_range must be > 0 and field_of_view_deg in (0, 360]")
+    if not 0 <= sensor.min_range < sensor.max_range or not 0 < fov <= 360:
+        raise ScenarioError(
+            f"{where}: need 0 <= min_range < max_range and field_of_view_deg in (0, 360]"
+        )
     if sensor.sigma_range <= 0 or sensor.sigma_bearing <= 0:
         raise ScenarioError(f"{where}: sensor sigmas must be positive")
     return sensor

@@ -54,10 +54,15 @@ class RangeBearingSensor:
     field_of_view: float = np.deg2rad(240.0)  # full opening angle, rad
     sigma_range: float = 0.01
     sigma_bearing: float = 0.012
+    min_range: float = 0.1  # closer targets are not seen (keeps measured ranges positive)
 
     def visible(self, ranges: FloatArray, bearings: FloatArray) -> NDArray[np.bool_]:
         """Which of the given true ranges and bearings the sensor sees."""
-        return (ranges <= self.max_range) & (np.abs(bearings) <= 0.5 * self.field_of_view)
+        return (
+            (ranges <= self.max_range)
+            & (ranges >= self.min_range)
+            & (np.abs(bearings) <= 0.5 * self.field_of_view)
+        )
 
 
 @dataclass(frozen=True)
@@ -148,12 +153,12 @@ def _scan(
     """Noisy observations of ``targets`` (M, 2) from every pose (N, 3) that sees them.
 
     Returns pose index, target index, measured range and measured bearing of each hit.
-    Targets at (near) zero range are never observed.
+    Targets closer than the sensor's ``min_range`` are never observed.
     """
     rel = se2.inverse_transform_point(poses[:, None, :], targets[None, :, :])  # (N, M, 2)
     ranges = np.hypot(rel[..., 0], rel[..., 1])
     bearings = np.arctan2(rel[..., 1], rel[..., 0])
-    seen = sensor.visible(ranges, bearings) & (ranges > 1e-3)
+    seen = sensor.visible(ranges, bearings)
     pose_idx, target_idx = np.nonzero(seen)
     k = len(pose_idx)
     r = ranges[seen] + sensor.sigma_range * rng.standard_normal(k)
@@ -247,7 +252,7 @@ def _rendezvous(
             rel = se2.inverse_transform_point(own[samples], theirs[samples, :2])
             true_r = np.hypot(rel[:, 0], rel[:, 1])
             true_b = np.arctan2(rel[:, 1], rel[:, 0])
-            seen = sensor.visible(true_r, true_b) & (true_r > 1e-3)
+            seen = sensor.visible(true_r, true_b)
             k = int(seen.sum())
             stamp_list.append(samples[seen] * scenario.sample_time)
             observed += [other] * k

@@ -21,6 +21,7 @@ from csam_ros.core.association import (
 )
 from csam_ros.core.covariance import factorize_at_estimate
 from csam_ros.core.csam import _local_inputs, robot_map_from_local_map
+from csam_ros.core.joining import SelectedInverse
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.rendezvous import collect, required_stamps
 from csam_ros.core.scenario import load_scenario
@@ -41,7 +42,8 @@ def _stage(scenario: str, seed: int):
                 [meas.observer_pose[meas.observer == r], meas.observed_pose[meas.observed == r]]
             )
         )
-        part, feat = _local_inputs(m, factorize_at_estimate(m.problem), idx, True)
+        system = factorize_at_estimate(m.problem)
+        part, feat = _local_inputs(m, system, idx, SelectedInverse(system))
         parts.append(part)
         feats.append(feat)
     alignment = align(parts, meas)

@@ -10,7 +10,7 @@ import pytest
 from csam_ros.core import motion, se2, sensor
 from csam_ros.core.csam import CsamResult, robot_map_from_local_map, run_csam
 from csam_ros.core.factors import POSE, PosePrior, RelativePose
-from csam_ros.core.joining import RobotMap, heading_sigmas
+from csam_ros.core.joining import RobotMap, SelectedInverse, heading_sigmas
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.scenario import load_scenario
@@ -233,3 +233,24 @@ def test_robot_map_checks_its_gauge() -> None:
             good.feature_ids,
             0,
         )
+
+
+def test_selected_inverse_matches_the_dense_inverse() -> None:
+    log = simulate(load_scenario("map_joining"), 0)
+    local = robot_map_from_local_map(build_local_map(log.robots["robot2"]))
+    problem = local.problem
+    system = problem.normal_equations()
+    system.linearize(problem.values)
+    system.factorize()
+    upper = system.matrix().toarray()
+    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    inverse = SelectedInverse(system)
+    for ids in (local.pose_ids, local.feature_ids):
+        blocks = inverse.blocks(problem, ids)
+        scalars = problem.scalar_indices(ids).reshape(len(ids), -1)
+        expected = np.array([dense[np.ix_(s, s)] for s in scalars])
+        np.testing.assert_allclose(blocks, expected, rtol=1e-8, atol=1e-14)
+    # entries off the factor's pattern are refused, not invented
+    far = problem.scalar_indices(local.pose_ids[[0, -1]])
+    with pytest.raises(ValueError, match="pattern"):
+        inverse.entries(np.array([far[0]]), np.array([far[-1]]))

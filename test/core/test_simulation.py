@@ -150,8 +150,10 @@ def test_chain_meets_only_neighbours() -> None:
 
 def test_sensor_visibility_edges() -> None:
     sensor = RangeBearingSensor(max_range=4.0, field_of_view=np.pi)
-    seen = sensor.visible(np.array([4.0, 4.01, 1.0, 1.0]), np.array([0.0, 0.0, np.pi / 2, 1.6]))
-    np.testing.assert_array_equal(seen, [True, False, True, False])
+    seen = sensor.visible(
+        np.array([4.0, 4.01, 1.0, 1.0, 0.05]), np.array([0.0, 0.0, np.pi / 2, 1.6, 0.0])
+    )
+    np.testing.assert_array_equal(seen, [True, False, True, False, False])
 
 
 def test_bad_segment_duration_is_named() -> None:
