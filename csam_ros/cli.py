@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from csam_ros.launch import executable
+from csam_ros.live import LiveRunError
 
 RUNS_DIR = Path("runs")
 
@@ -279,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as err:
         print(f"csam {args.command}: {err}", file=sys.stderr)
         return 2
+    except LiveRunError as err:
+        print(f"csam {args.command}: the run failed: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
     except Exception as err:  # the nodes' shutdown on SIGTERM surfaces here

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -64,8 +65,22 @@ def declare(
     return node.declare_parameter(name, default, descriptor).value
 
 
-def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
-    """Init rclpy, spin the node until shutdown (Ctrl-C, SIGTERM, or the node finishing)."""
+def run_node(factory: Callable[[], Node], args: list[str] | None = None, doc: str = "") -> int:
+    """Init rclpy, spin the node until shutdown (Ctrl-C, SIGTERM, or the node finishing).
+
+    ``-h`` / ``--help`` (before ``--ros-args``) prints ``doc`` and returns at once.
+    """
+    argv = sys.argv if args is None else args
+    own = argv[1 : argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in own or "--help" in own:
+        prog = argv[0].rsplit("/", 1)[-1] if argv else "node"
+        print(f"usage: {prog} [-h] [--ros-args ...]\n")
+        print(doc.strip() or "a csam_ros node")
+        print(
+            "\nROS arguments go after --ros-args, e.g. --ros-args -r __ns:=/robot1 "
+            "-p name:=value --params-file config/FILE.yaml"
+        )
+        return 0
     rclpy.init(args=args)
     node = None
     try:

@@ -196,7 +196,7 @@ class Merger(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(Merger, args)
+    return run_node(Merger, args, __doc__)
 
 
 if __name__ == "__main__":

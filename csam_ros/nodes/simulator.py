@@ -118,7 +118,7 @@ class Simulator(Node):
 
 def main(args: list[str] | None = None) -> int:
     try:
-        return run_node(Simulator, args)
+        return run_node(Simulator, args, __doc__)
     except SystemExit as done:
         return int(done.code or 0)
 

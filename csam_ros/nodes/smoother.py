@@ -182,18 +182,23 @@ class Smoother(Node):
         return response
 
     def solve_and_publish(self) -> None:
-        if self.last_odometry_ns < 0:
-            self.publish_status()
-            return
+        """Update the local map and publish it; a failure is logged and counted, never fatal
+        (the last published map stays valid)."""
         start = time.perf_counter()
         try:
-            report = self.map.update()
-        except ValueError as err:  # a solver failure never kills the node; keep the last map
+            if self.last_odometry_ns >= 0:
+                self._solve_and_publish()
+        except Exception as err:  # noqa: BLE001 (a node never dies of its input)
             self.errors += 1
-            self.get_logger().error(f"local map update failed: {err}")
-            self.publish_status()
-            return
+            self.get_logger().error(f"local map update failed: {type(err).__name__}: {err}")
+        self.solve_seconds = time.perf_counter() - start
+        self.publish_status()
+
+    def _solve_and_publish(self) -> None:
+        report = self.map.update()
         self.dirty = False
+        if len(self.map.stamps) < 2:  # only the start pose: nothing to publish yet
+            return
         robot_map = robot_map_from_local_map(self.map)
         stamp_ns = self.last_odometry_ns
         msg = robot_map_to_message(
@@ -206,9 +211,7 @@ class Smoother(Node):
         self.local_map_pub.publish(msg)
         self.rendezvous_pub.publish(self.rendezvous_poses(robot_map, stamp_ns))
         self.path_pub.publish(self.path(stamp_ns))
-        self.solve_seconds = time.perf_counter() - start
         self.published_ns = stamp_ns
-        self.publish_status()
 
     def rendezvous_poses(self, robot_map, stamp_ns: int) -> RendezvousPoses:
         stamps = np.array(sorted(self.rendezvous_stamps))
@@ -273,7 +276,7 @@ class Smoother(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(Smoother, args)
+    return run_node(Smoother, args, __doc__)
 
 
 if __name__ == "__main__":
