@@ -184,6 +184,20 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> dic
                 raise LiveRunError(
                     f"no final joined map from the merger within 300 s:\n{group.log_tail('merger')}"
                 )
+
+        def recorder_has_results() -> bool:
+            # the recorder must hold the final (latched) results before it is stopped
+            return all(
+                any(i.node_name == "recorder" for i in node.get_subscriptions_info_by_topic(t))
+                for t in ("/csam/joined_map", "/csam/markers")
+            )
+
+        deadline = time.monotonic() + 15
+        while not recorder_has_results() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        grace = time.monotonic() + 1.0
+        while time.monotonic() < grace:
+            executor.spin_once(timeout_sec=0.1)
     finally:
         node.destroy_node()
         executor.shutdown()

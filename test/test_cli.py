@@ -1,0 +1,126 @@
+"""The `csam` command end to end: demo, its bag read by rosbags, replay and evaluate."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from csam_ros.bag import MessageTypes
+
+REPO = Path(__file__).resolve().parents[1]
+CSAM = [sys.executable, "-m", "csam_ros.cli"]
+
+
+def csam(*args: str | Path, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*CSAM, *map(str, args)], capture_output=True, text=True, timeout=timeout, cwd=REPO
+    )
+
+
+def _last_joined_map(bag: Path):
+    """The final /csam/joined_map recorded in a bag, read with rosbags."""
+    store = MessageTypes().register_custom_types()
+    with AnyReader([bag], default_typestore=store) as reader:
+        connections = [c for c in reader.connections if c.topic == "/csam/joined_map"]
+        last = None
+        for connection, _, raw in reader.messages(connections=connections):
+            last = reader.deserialize(raw, connection.msgtype)
+    return last
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("demo") / "run"
+    result = csam("demo", "--scenario", "map_joining", "--rate", "0", "--out", out)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return out
+
+
+def test_demo_writes_bag_summary_and_figures(demo_run: Path) -> None:
+    summary = json.loads((demo_run / "summary.json").read_text())
+    assert summary["reference_frame"] == "robot1/map"
+    assert summary["robots"]["robot1"]["alignment"] == "reference"
+    assert summary["robots"]["robot2"]["alignment"] == "aligned"
+    for name in ("local_maps.png", "heading_sigma.png", "joined_map.png"):
+        assert (demo_run / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the bag, read by rosbags alone
+    store = MessageTypes().register_custom_types()
+    with AnyReader([demo_run / "bag"], default_typestore=store) as reader:
+        topics = {c.topic: c.msgcount for c in reader.connections}
+    for topic in (
+        "/robot1/odom",
+        "/robot1/features",
+        "/robot2/rendezvous",
+        "/robot1/local_map",
+        "/robot2/rendezvous_poses",
+        "/csam/joined_map",
+        "/csam/markers",
+        "/sim/features_truth",
+    ):
+        assert topics.get(topic, 0) > 0, topic
+    joined = _last_joined_map(demo_run / "bag")
+    assert len(joined.features) == len(summary["features"])
+
+
+def test_offline_replay_reproduces_the_live_run(demo_run: Path, tmp_path: Path) -> None:
+    live = json.loads((demo_run / "summary.json").read_text())
+    first, second = tmp_path / "a", tmp_path / "b"
+    for out in (first, second):
+        result = csam("replay", demo_run / "bag", "--offline", "--out", out)
+        assert result.returncode == 0, result.stderr
+    a = json.loads((first / "summary.json").read_text())
+    b = json.loads((second / "summary.json").read_text())
+    a.pop("timing_s"), b.pop("timing_s")
+    a.pop("source"), b.pop("source")
+    assert a == b  # offline replay is deterministic
+    for name, robot in live["robots"].items():
+        np.testing.assert_allclose(
+            a["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-6
+        )
+    assert {(x["a"], x["b"]) for x in a["associations"]} == {
+        (x["a"], x["b"]) for x in live["associations"]
+    }
+
+
+def test_evaluate_scores_the_demo(demo_run: Path) -> None:
+    result = csam("evaluate", demo_run)
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((demo_run / "metrics.json").read_text())
+    assert metrics["association"]["precision"] == 1.0
+    assert metrics["association"]["recall"] >= 0.9
+    assert metrics["landmark_error"]["rmse_m"] < 0.1
+
+
+@pytest.mark.parametrize("scenario", ["map_joining", "sensor_extension"])
+def test_recorded_bags_replay_to_their_recorded_joined_map(scenario: str, tmp_path: Path) -> None:
+    bag = REPO / "bags" / scenario
+    result = csam("replay", bag, "--offline", "--out", tmp_path / "out")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    recorded = _last_joined_map(bag)
+    for trajectory in recorded.trajectories:
+        poses = np.array([[p.x, p.y, p.theta] for p in trajectory.poses])
+        np.testing.assert_allclose(
+            summary["robots"][trajectory.robot]["poses_joined"], poses, atol=1e-6
+        )
+    assert len(summary["associations"]) == len(recorded.associations)
+
+
+def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
+    missing = csam("replay", tmp_path / "no_such_bag", "--offline")
+    assert missing.returncode == 2
+    assert "no such bag" in missing.stderr and "Traceback" not in missing.stderr
+    occupied = tmp_path / "occupied"
+    occupied.mkdir()
+    (occupied / "keep.txt").write_text("mine")
+    taken = csam("demo", "--out", occupied)
+    assert taken.returncode == 2 and "not empty" in taken.stderr
+    assert (occupied / "keep.txt").read_text() == "mine"
+    exists = csam("import", "mrclam", tmp_path, "--out", occupied)
+    assert exists.returncode == 2 and "never overwrites" in exists.stderr
