@@ -1,4 +1,4 @@
-"""RViz / Foxglove markers of a joined map: trajectories per robot, features, covariance ellipses."""
+"""RViz and Foxglove markers of a joined map: trajectories, features, covariance ellipses."""
 
 from __future__ import annotations
 
