@@ -24,9 +24,11 @@ square-root information ``R_r`` of its rendezvous poses at its own estimate (a d
 prior ``||R_r (rho_r - rho_r^0)||^2`` that is never relinearised); only the connector rows
 (eq. 22-24, :class:`Connector`) are relinearised. Stopping rule: the solver stops after a step
 whose largest component is below ``step_tolerance`` (m, rad) or whose relative cost decrease
-is below ``relative_tolerance``, at most ``max_iterations`` steps. A base node whose heading
-standard deviation after refinement still exceeds ``max_heading_sigma`` makes its robot (and
-every robot placed through it) pending.
+is below ``relative_tolerance``, at most ``max_iterations`` steps.
+
+The observability check is on what the rendezvous rows determine (local poses fixed), not on
+the base node's marginal after Algorithm 1, which also carries each map's own drift between
+its first pose and the rendezvous and may legitimately be large.
 """
 
 from __future__ import annotations
@@ -161,7 +163,7 @@ class RendezvousPart:
 class AlignmentOptions:
     """Settings of base-node initialisation and Algorithm 1."""
 
-    max_heading_sigma: float = np.deg2rad(5.0)  # rad; above this a base node is pending
+    max_heading_sigma: float = np.deg2rad(5.0)  # rad; relative heading from the rendezvous
     mutual_time_tolerance: float = 1e-3  # s; "same stamp" for mutual measurements
     max_iterations: int = 50
     step_tolerance: float = 1e-9
@@ -263,8 +265,24 @@ def _whitening(rows: RendezvousSet) -> Array:
     return sqrt_information_from_covariance(rows.covariance, "rendezvous measurement")
 
 
+def _centred(jac: Array, base: Array, pivot: Array) -> tuple[Array, Array]:
+    """Jacobians w.r.t. ``b`` re-expressed about ``pivot`` (a point of ``G_c``) and the map
+    from a step in that parametrisation to a step of ``b``.
+
+    ``b``'s translation and heading are nearly collinear when the rendezvous happen far from
+    ``G_c``'s origin; turning about the rendezvous instead of about that origin decouples
+    them (the heading marginal is the same in both parametrisations).
+    """
+    c, s = np.cos(base[2]), np.sin(base[2])
+    to_base = np.eye(3)
+    to_base[0, 2] = s * pivot[0] + c * pivot[1]  # t = t' - R(phi) pivot
+    to_base[1, 2] = -c * pivot[0] + s * pivot[1]
+    return jac @ to_base, to_base
+
+
 def _heading_sigma(jac: Array, w: Array) -> float:
-    """Heading standard deviation of ``b`` from whitened rows ``W J`` (inf if unobservable)."""
+    """Heading standard deviation from whitened rows ``W J`` (inf if unobservable); ``J``
+    should be centred (:func:`_centred`)."""
     a = np.matmul(w, jac).reshape(-1, 3)
     info = a.T @ a
     eig = np.linalg.eigvalsh(info)
@@ -331,20 +349,23 @@ def initial_pair_base(
     base = np.array([translation[0], translation[1], heading])
 
     w = _whitening(rows)
+    pivot = q_pts.mean(axis=0)
     for _ in range(10):  # Gauss-Newton on b_ac alone, local poses fixed
         err, jac = _pair_prediction(rows, a, poses, base)
+        jac, to_base = _centred(jac, base, pivot)
         a_mat = np.matmul(w, jac).reshape(-1, 3)
         r_vec = np.einsum("kij,kj->ki", w, err).reshape(-1)
         info = a_mat.T @ a_mat
-        if np.linalg.eigvalsh(info)[0] <= 1e-9 * max(np.linalg.eigvalsh(info)[-1], 1e-300):
+        eig = np.linalg.eigvalsh(info)
+        if eig[0] <= 1e-9 * max(eig[-1], 1e-300):
             break
-        step = -np.linalg.solve(info, a_mat.T @ r_vec)
+        step = to_base @ -np.linalg.solve(info, a_mat.T @ r_vec)
         base = base + step
         base[2] = float(se2.wrap_angle(base[2]))
         if np.abs(step).max() < 1e-10:
             break
     _, jac = _pair_prediction(rows, a, poses, base)
-    sigma = _heading_sigma(jac, w)
+    sigma = _heading_sigma(_centred(jac, base, pivot)[0], w)
     if not sigma <= options.max_heading_sigma:
         return PairInitialisation(
             None,
@@ -399,18 +420,10 @@ def align(
         )
         result = _refine(parts, measurements, placed, initial, status, options)
         result.parents, result.methods = parents, methods
-        newly = {}
-        for r in placed[1:]:
-            sigma = float(np.sqrt(result.base_covariance(r)[2, 2]))
-            if not sigma <= options.max_heading_sigma:
-                newly[r] = (
-                    f"base node heading undetermined after Algorithm 1 (sigma "
-                    f"{np.rad2deg(sigma):.3g} deg > "
-                    f"{np.rad2deg(options.max_heading_sigma):.3g} deg)"
-                )
-        if not newly:
+        if np.all(np.isfinite(result.covariance)):
             return result
-        excluded.update(newly)  # place again without them (and without robots placed via them)
+        # a singular Algorithm 1 system (the pairwise checks should prevent it): do not join
+        excluded.update({r: "the Algorithm 1 system is singular" for r in placed[1:]})
 
 
 def _place(

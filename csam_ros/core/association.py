@@ -120,6 +120,20 @@ class _GlobalFeatures:
     position: Array  # (F, 2) reference frame, at the Algorithm 1 estimate
     gain: Array  # (F, 2, d) on the whole state
     noise: Array  # (F, 2, 2)
+    columns: IntArray  # the state columns the gain is not zero on (the robot's rho and base)
+
+    @property
+    def compact(self) -> Array:
+        """The gain on :attr:`columns` only, (F, 2, m)."""
+        return self.gain[:, :, self.columns]
+
+    def moments(self, state: _State, idx: IntArray) -> tuple[Array, Array]:
+        """Mean (K, 2) and covariance (K, 2, 2) of global positions ``idx`` given the state."""
+        g = self.gain[idx][:, :, self.columns]
+        sub = state.covariance[np.ix_(self.columns, self.columns)]
+        pos = self.position[idx] + g @ state.shift[self.columns]
+        cov = g @ sub @ g.transpose(0, 2, 1) + self.noise[idx]
+        return pos, 0.5 * (cov + cov.swapaxes(1, 2))
 
 
 def _global_features(
@@ -146,7 +160,12 @@ def _global_features(
         j_b[:, 0, 2] = -s * local[:, 0] - c * local[:, 1]
         j_b[:, 1, 2] = c * local[:, 0] - s * local[:, 1]
         full[:, :, base_cols] = j_b
-    return _GlobalFeatures(r, features.labels, position, full, 0.5 * (noise + noise.swapaxes(1, 2)))
+    columns = alignment.rho_columns(r)
+    if base_cols is not None:
+        columns = np.concatenate([columns, base_cols])
+    return _GlobalFeatures(
+        r, features.labels, position, full, 0.5 * (noise + noise.swapaxes(1, 2)), columns
+    )
 
 
 @dataclass
@@ -203,13 +222,37 @@ def _stack(
 
 
 def _pair_distances(
-    ga: _GlobalFeatures, gc: _GlobalFeatures, ia: IntArray, ic: IntArray, state: _State
+    ga: _GlobalFeatures,
+    gc: _GlobalFeatures,
+    ia: IntArray,
+    ic: IntArray,
+    state: _State,
+    chunk: int = 20000,
 ) -> Array:
-    """Mahalanobis distances of candidate pairs ``(ia, ic)`` given the state (eq. 26)."""
-    h = ga.gain[ia] - gc.gain[ic]
-    r = ga.position[ia] - gc.position[ic] + h @ state.shift
-    s_mat = h @ state.covariance @ h.transpose(0, 2, 1) + ga.noise[ia] + gc.noise[ic]
-    return np.einsum("ki,ki->k", r, np.linalg.solve(s_mat, r[:, :, None])[:, :, 0])
+    """Mahalanobis distances of candidate pairs ``(ia, ic)`` given the state (eq. 26).
+
+    ``S = V_i + V_j - X_ij - X_ij^T`` with ``V`` each global position's covariance and
+    ``X_ij = G_i Sigma G_j^T`` the cross term, computed on each robot's own state columns.
+    """
+    out = np.empty(len(ia))
+    if len(ia) == 0:
+        return out
+    ua, inv_a = np.unique(ia, return_inverse=True)
+    uc, inv_c = np.unique(ic, return_inverse=True)
+    pa, va = ga.moments(state, ua)
+    pc, vc = gc.moments(state, uc)
+    sigma_ac = state.covariance[np.ix_(ga.columns, gc.columns)]
+    left = ga.gain[ua][:, :, ga.columns] @ sigma_ac  # (A, 2, m_c)
+    right = gc.gain[uc][:, :, gc.columns]  # (C, 2, m_c)
+    for lo in range(0, len(ia), chunk):
+        a, c = inv_a[lo : lo + chunk], inv_c[lo : lo + chunk]
+        cross = left[a] @ right[c].transpose(0, 2, 1)
+        s_mat = va[a] + vc[c] - cross - cross.transpose(0, 2, 1)
+        r = pa[a] - pc[c]
+        out[lo : lo + chunk] = np.einsum(
+            "ki,ki->k", r, np.linalg.solve(s_mat, r[:, :, None])[:, :, 0]
+        )
+    return out
 
 
 def _candidates(
@@ -226,10 +269,8 @@ def _candidates(
         return empty, empty
 
     def spread(g: _GlobalFeatures, idx: IntArray) -> tuple[Array, Array]:
-        pos = g.position[idx] + g.gain[idx] @ state.shift
-        cov = g.gain[idx] @ state.covariance @ g.gain[idx].transpose(0, 2, 1) + g.noise[idx]
-        sigma = np.sqrt(np.maximum(np.linalg.eigvalsh(0.5 * (cov + cov.swapaxes(1, 2)))[:, -1], 0))
-        return pos, sigma
+        pos, cov = g.moments(state, idx)
+        return pos, np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
 
     pa, sa = spread(ga, free_a)
     pc, sc = spread(gc, free_c)

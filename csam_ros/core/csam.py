@@ -64,7 +64,7 @@ class CsamConfig:
     """Parameters of C-SAM (the ``csam:`` section of a scenario or merger parameter file)."""
 
     chi2_gate: float = CHI2_2DOF_99  # association gate on D (2 dof)
-    max_heading_sigma_deg: float = 5.0  # a base node less certain than this stays pending
+    max_heading_sigma_deg: float = 5.0  # pending if the rendezvous fix the heading worse
     mutual_time_tolerance: float = 1e-3  # s: two measurements this close are "mutual"
     stamp_tolerance: float = 1e-6  # s: matching rendezvous stamps to local-map poses
     max_iterations: int = 100  # of Algorithm 1 and of the joint solve

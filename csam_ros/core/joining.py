@@ -250,6 +250,21 @@ def heading_sigmas(
     return np.sqrt(np.maximum(var, 0.0)), np.sqrt(np.maximum(relative, 0.0))
 
 
+def _unit_lower_inverse(strict: Array, w: int, rows: IntArray, cols: IntArray) -> Array:
+    """Inverse of the unit lower triangular ``w x w`` matrix with strict part ``strict``
+    (entries at ``rows, cols``); closed form up to 3 x 3 (poses), LAPACK beyond."""
+    if w == 1:
+        return np.ones((1, 1))
+    if w == 2:
+        return np.array([[1.0, 0.0], [-strict[0], 1.0]])
+    if w == 3:
+        l10, l20, l21 = strict  # tril_indices order: (1,0), (2,0), (2,1)
+        return np.array([[1.0, 0.0, 0.0], [-l10, 1.0, 0.0], [l10 * l21 - l20, -l21, 1.0]])
+    lower = np.eye(w)
+    lower[rows, cols] = strict
+    return np.linalg.inv(lower)
+
+
 class SelectedInverse:
     """Entries of ``(A^T A)^-1`` on the sparsity pattern of its factor (Takahashi et al.).
 
@@ -305,12 +320,7 @@ class SelectedInverse:
             # positions in ``data`` of L_SJ (ms, w) and of the strict lower part of L_JJ
             col_start = indptr[c : e + 1]
             pos_jj = col_start[jj_j] + jj_off
-            if w == 1:
-                inv_l = np.ones((1, 1))
-            else:
-                l_jj = np.eye(w)
-                l_jj[jj_i, jj_j] = data[pos_jj]
-                inv_l = np.linalg.inv(l_jj)
+            inv_l = _unit_lower_inverse(data[pos_jj], w, jj_i, jj_j)
             z_jj = inv_l.T @ (inv_l / d[c : e + 1, None])
             if ms:
                 if ms not in upper:
