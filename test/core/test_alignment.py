@@ -183,3 +183,19 @@ def test_algorithm1_agrees_with_the_joint_solve(scenario: str) -> None:
         np.testing.assert_allclose(
             np.sqrt(np.diag(robot.alignment_base_node_cov)), sigma, rtol=0.05
         )
+
+
+def test_rendezvous_far_from_the_frame_origin_is_still_observable() -> None:
+    """500 m between q's first pose and the meeting: translation and heading of b_pq are
+    nearly collinear, the heading itself is well determined."""
+    p = _straight((0.0, 0.0), 0.0, 0.5, 1000)
+    q = _straight((505.0, 3.0), np.pi, 0.5, 1000)
+    meeting = [i for i in range(1000) if abs(p[i, 0] - q[i, 0]) < 2.5]
+    pairs = [(0, 1, i) for i in meeting] + [(1, 0, i) for i in meeting[::2]]
+    world = [p, q]
+    meas = _measurements(world, pairs, ["p", "q"])
+    local = {r: se2.between(w[0], w) for r, w in enumerate(world)}
+    init = initial_pair_base(meas, 0, 1, local)
+    assert init.base is not None, init.reason
+    np.testing.assert_allclose(init.base, _true_base(world, 1), atol=1e-6)
+    assert init.heading_sigma < np.deg2rad(1.0)
