@@ -225,9 +225,13 @@ def cmd_import(args: argparse.Namespace) -> int:
         )
         print(report)
     else:
-        from csam_ros.core.slam2d import read_slam2d_log
+        from csam_ros.core.slam2d import Slam2dFormatError
+        from csam_ros.core.slam2d_log import read_slam2d_log
 
-        log = read_slam2d_log(args.source)
+        try:
+            log = read_slam2d_log(args.source)
+        except Slam2dFormatError as err:
+            raise CliError(str(err)) from None
     count = write_log_bag(log, args.out)
     print(f"wrote {count} messages of {len(log.robots)} robot(s) to {args.out}")
     return 0
