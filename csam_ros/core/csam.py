@@ -28,6 +28,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,7 @@ from csam_ros.core.joining import (
 from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
+from csam_ros.core.scenario import load_document
 from csam_ros.core.solver import NormalEquations, SolverOptions
 
 Array = NDArray[np.float64]
@@ -67,6 +69,7 @@ class CsamConfig:
     max_heading_sigma_deg: float = 5.0  # pending if the rendezvous fix the heading worse
     mutual_time_tolerance: float = 1e-3  # s: two measurements this close are "mutual"
     stamp_tolerance: float = 1e-6  # s: matching rendezvous stamps to local-map poses
+    skip_missing_poses: bool = False  # True (online): leave out measurements without a pose
     max_iterations: int = 100  # of Algorithm 1 and of the joint solve
     step_tolerance: float = 1e-9  # m, rad: stop when the largest step component is below
     relative_tolerance: float = 1e-12  # stop when the relative cost decrease is below
@@ -95,6 +98,11 @@ class CsamConfig:
                 raise ValueError(f"{source}.{key}: must be a positive number, got {value!r}")
             values[key] = type(default)(value)
         return cls(**values)
+
+    @classmethod
+    def from_file(cls, name_or_path: str | Path) -> CsamConfig:
+        """The ``csam:`` section of a scenario or parameter file (defaults when absent)."""
+        return cls.from_dict(load_document(name_or_path).get("csam"), f"{name_or_path}: csam")
 
     def alignment_options(self) -> AlignmentOptions:
         return AlignmentOptions(
@@ -251,7 +259,10 @@ def join_maps(
         clock = now
 
     measurements, notes = collect(
-        rendezvous_logs, {m.name: m.stamps for m in maps}, config.stamp_tolerance
+        rendezvous_logs,
+        {m.name: m.stamps for m in maps},
+        config.stamp_tolerance,
+        config.skip_missing_poses,
     )
     systems = [factorize_at_estimate(m.problem) for m in maps]
     rdv_poses = [

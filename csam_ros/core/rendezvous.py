@@ -216,37 +216,46 @@ def required_stamps(logs: Mapping[str, RendezvousLog]) -> dict[str, Array]:
     }
 
 
-def _pose_index(stamps: Array, query: Array, tolerance: float, robot: str) -> IntArray:
-    """Index of the pose at each query stamp; raises naming the robot and the stamp."""
+def _pose_index(
+    stamps: Array, query: Array, tolerance: float, robot: str, strict: bool = True
+) -> IntArray:
+    """Index of the pose at each query stamp (-1 where none when not ``strict``); raises
+    naming the robot and the stamp when ``strict``."""
     if len(query) == 0:
         return np.zeros(0, dtype=np.int64)
     if len(stamps) == 0:
+        if not strict:
+            return np.full(len(query), -1, dtype=np.int64)
         raise ValueError(f"robot {robot!r} has no poses but rendezvous stamps need some")
     pos = np.clip(np.searchsorted(stamps, query), 1, max(len(stamps) - 1, 1))
     left = np.clip(pos - 1, 0, len(stamps) - 1)
     right = np.clip(pos, 0, len(stamps) - 1)
     nearest = np.where(np.abs(stamps[left] - query) <= np.abs(stamps[right] - query), left, right)
-    missing = np.flatnonzero(np.abs(stamps[nearest] - query) > tolerance)
-    if missing.size:
+    missing = np.abs(stamps[nearest] - query) > tolerance
+    if missing.any() and strict:
+        first = int(np.flatnonzero(missing)[0])
         raise ValueError(
-            f"robot {robot!r} has no pose at rendezvous stamp {query[missing[0]]:.9f} s "
-            f"(nearest {stamps[nearest[missing[0]]]:.9f} s): its local map must hold a pose at "
+            f"robot {robot!r} has no pose at rendezvous stamp {query[first]:.9f} s "
+            f"(nearest {stamps[nearest[first]]:.9f} s): its local map must hold a pose at "
             "every rendezvous stamp that involves it"
         )
-    return nearest.astype(np.int64)
+    return np.where(missing, -1, nearest).astype(np.int64)
 
 
 def collect(
     logs: Mapping[str, RendezvousLog],
     pose_stamps: Mapping[str, ArrayLike],
     tolerance: float = 1e-6,
+    skip_missing_poses: bool = False,
 ) -> tuple[RendezvousSet, list[str]]:
     """Gather the rendezvous measurements among the robots of ``pose_stamps``.
 
     ``logs`` holds each robot's rendezvous log; ``pose_stamps`` the stamps of each robot's
     local-map poses, in the robots' order (which :attr:`RendezvousSet.robots` keeps).
     Measurements of or by a robot without a map, and of a robot by itself, are left out and
-    described in the returned notes.
+    described in the returned notes. A measurement at a stamp where a map holds no pose is
+    an error naming robot and stamp, or, with ``skip_missing_poses`` (a map that has not yet
+    caught up, online), left out and counted in the notes.
     """
     robots = list(pose_stamps)
     index = {name: i for i, name in enumerate(robots)}
@@ -284,22 +293,30 @@ def collect(
             np.asarray(log.sigma_bearing)[keep],
         )
         obs = observed[keep]
+        strict = not skip_missing_poses
         observed_pose = np.empty(len(obs), dtype=np.int64)
         for c in np.unique(obs):
             sel = obs == c
             observed_pose[sel] = _pose_index(
-                stamps_of[robots[c]], stamps[sel], tolerance, robots[c]
+                stamps_of[robots[c]], stamps[sel], tolerance, robots[c], strict
+            )
+        observer_pose = _pose_index(stamps_of[name], stamps, tolerance, name, strict)
+        found = (observer_pose >= 0) & (observed_pose >= 0)
+        if not found.all():
+            notes.append(
+                f"{int((~found).sum())} rendezvous measurement(s) by {name!r} left out: "
+                "no pose at their stamp yet"
             )
         parts.append(
             (
-                np.full(len(obs), index[name], dtype=np.int64),
-                obs,
-                stamps,
-                _pose_index(stamps_of[name], stamps, tolerance, name),
-                observed_pose,
-                z,
-                cov,
-                np.asarray(log.bearings, dtype=float)[keep],
+                np.full(int(found.sum()), index[name], dtype=np.int64),
+                obs[found],
+                stamps[found],
+                observer_pose[found],
+                observed_pose[found],
+                z[found],
+                cov[found],
+                np.asarray(log.bearings, dtype=float)[keep][found],
             )
         )
     if not parts:

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from csam_ros.core import rendezvous, se2
+from csam_ros.core import rendezvous, se2, sensor
+from csam_ros.core.log import RendezvousLog
 
 
 def _random_poses(rng: np.random.Generator, k: int) -> np.ndarray:
@@ -86,3 +87,42 @@ def test_point_difference_and_jacobians() -> None:
             return rendezvous.point_difference(*a)[0]
 
         np.testing.assert_allclose(analytic, _numeric_jacobian(f, args[idx]), atol=1e-7)
+
+
+def _logs():
+    z = np.array
+    return {
+        "a": RendezvousLog(
+            z([1.0, 2.0, 3.0]),
+            ["b", "b", "ghost"],
+            z([1.0, 2.0, 3.0]),
+            z([0.1, 0.2, 0.3]),
+            z([0.01] * 3),
+            z([0.012] * 3),
+        ),
+        "b": RendezvousLog(z([2.0]), ["a"], z([2.0]), z([-0.1]), z([0.01]), z([0.012])),
+    }
+
+
+def test_required_stamps_cover_both_directions() -> None:
+    stamps = rendezvous.required_stamps(_logs())
+    np.testing.assert_array_equal(stamps["a"], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(stamps["b"], [1.0, 2.0])
+
+
+def test_collect_pairs_stamps_with_poses_and_explains_what_it_leaves_out() -> None:
+    poses = {"a": np.array([0.0, 1.0, 2.0, 3.0]), "b": np.array([1.0, 2.0])}
+    meas, notes = rendezvous.collect(_logs(), poses)
+    assert len(meas) == 3 and meas.robots == ["a", "b"]
+    np.testing.assert_array_equal(meas.stamps, [1.0, 2.0, 2.0])
+    np.testing.assert_array_equal(meas.observer_pose, [1, 2, 1])
+    np.testing.assert_array_equal(meas.observed_pose, [0, 1, 2])
+    assert any("ghost" in n for n in notes)
+    z, _ = sensor.polar_to_cartesian(1.0, 0.1, 0.01, 0.012)
+    np.testing.assert_allclose(meas.position[0], z[0])
+    with pytest.raises(ValueError, match=r"robot 'b' has no pose at rendezvous stamp 2\.0"):
+        rendezvous.collect(_logs(), {"a": poses["a"], "b": np.array([1.0])})
+    meas, notes = rendezvous.collect(
+        _logs(), {"a": poses["a"], "b": np.array([1.0])}, skip_missing_poses=True
+    )
+    assert len(meas) == 1 and any("no pose" in n for n in notes)
