@@ -20,7 +20,12 @@ The :class:`CsamResult` carries everything ``summary.json`` holds (ARCHITECTURE.
 ``sigma_phi_joined`` is the heading sigma after joining *relative to the robot's own first
 pose* (in ``G_r``, the like-for-like comparison of the paper's figures 5c and 6c: it can
 only shrink); ``sigma_phi_joined_reference`` is the heading sigma in the reference frame
-(which adds the base node's uncertainty).
+(which adds the base node's uncertainty). Marginals come from a selected inverse of each
+factor (:class:`~csam_ros.core.joining.SelectedInverse`), never from the dense inverse.
+
+A pending robot keeps its local estimate (``poses_local``, ``sigma_phi_local``); its
+base node and joined fields are ``None`` (``null`` / ``[]`` in the summary) and its features
+are not in ``features``, which is the joined map in the reference frame.
 """
 
 from __future__ import annotations
@@ -218,7 +223,8 @@ def _local_inputs(
     rendezvous_poses: NDArray[np.int64],
     inverse: SelectedInverse | None,
 ) -> tuple[RendezvousPart | None, MapFeatures | None]:
-    """A robot's rendezvous part and (optionally) its features' gains and covariances."""
+    """A robot's rendezvous part and, given its local selected ``inverse``, its features'
+    rendezvous gains and marginal covariances (the map's own when it carries them)."""
     if len(rendezvous_poses) == 0:
         return None, None
     problem = m.problem
