@@ -379,6 +379,7 @@ def join_maps(
         "association_candidates": associations.candidates,
         "association_gated": associations.gated,
         "association_rejected_conflicts": associations.rejected_conflicts,
+        "association_rejected_incompatible": associations.rejected_incompatible,
         "rendezvous_measurements": len(measurements),
     }
     timing["total"] = sum(timing.values())
