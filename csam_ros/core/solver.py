@@ -446,6 +446,11 @@ class NormalEquations:
             total += float(f.whitened(np.split(values[cols], splits, axis=1), False)[2].sum())
         return total
 
+    @property
+    def diagonal(self) -> Array:
+        """Diagonal of ``A^T A`` at the last linearisation."""
+        return self.hessian_data[self.diagonal_positions]
+
     def matrix(self, damping: float = 0.0) -> sp.csc_matrix:
         """Upper triangle of ``A^T A + damping * diag(A^T A)`` as CSC."""
         data = self.hessian_data
@@ -543,18 +548,24 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     history = [cost]
     initial = cost
     damping = 0.0
+    growth = 2.0
     iterations = 0
     reason = "maximum iterations reached"
     converged = False
     while iterations < options.max_iterations:
         system.factorize(damping)
         iterations += 1
-        step = system.solve(-system.gradient)
+        gradient = system.gradient
+        step = system.solve(-gradient)
         candidate = problem.values + step
         candidate[problem._angle_positions] = se2.wrap_angle(candidate[problem._angle_positions])
         new_cost = system.cost(candidate)
         step_norm = float(np.abs(step).max()) if step.size else 0.0
+        # decrease predicted by the (damped) linear model: 0.5 (lambda d^T D d - g^T d)
+        scaled = damping * float(step @ (system.diagonal * step)) if damping > 0.0 else 0.0
+        predicted = 0.5 * (scaled - float(gradient @ step))
         if new_cost <= cost:
+            gain = (cost - new_cost) / predicted if predicted > 0.0 else 1.0
             problem.values = candidate
             decrease = cost - new_cost
             cost = new_cost
@@ -565,14 +576,21 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
                 converged, reason = True, "step below tolerance"
             if converged:
                 break
-            if damping > 0.0:
-                damping = damping / 10.0 if damping > 1e-7 else 0.0
+            if damping == 0.0:
+                if gain < 0.25:
+                    damping = options.initial_damping
+            else:
+                damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+                if damping < 1e-9:
+                    damping = 0.0
+            growth = 2.0
             cost = system.linearize(problem.values)
         else:
             if step_norm <= options.step_tolerance:
                 converged, reason = True, "step below tolerance (cost at numerical minimum)"
                 break
-            damping = options.initial_damping if damping == 0.0 else damping * 10.0
+            damping = options.initial_damping if damping == 0.0 else damping * growth
+            growth *= 2.0
             if damping > options.max_damping:
                 reason = "damping exceeded its maximum without lowering the cost"
                 break
