@@ -35,12 +35,16 @@ sparse ``L D L^T`` by qdldl with its approximate-minimum-degree fill-reducing or
 symbolic analysis is kept and only the numeric factorisation is redone (``update``). The
 upper-triangular square-root information is ``R = sqrt(D) L^T`` (permuted), ``R^T R = A^T A``.
 
-Iteration: Gauss-Newton steps; when a step does not lower the cost, Levenberg-Marquardt
-damping ``lambda * diag(A^T A)`` is raised tenfold until it does, and lowered tenfold after
-each success (back to pure Gauss-Newton below ``1e-7``). Convergence: after an accepted step
-whose relative cost decrease is below ``relative_tolerance`` or whose largest component is
-below ``step_tolerance`` (metres / radians), or when no damping can lower the cost any more
-and the attempted step is below ``step_tolerance``.
+Iteration: pure Gauss-Newton steps while the cost falls by at least a quarter of what the
+linear model predicts; otherwise Levenberg-Marquardt damping ``lambda * diag(A^T A)`` is
+switched on (``initial_damping``) and adapted by the gain ratio ``rho`` (actual / predicted
+decrease; Nielsen's rule: ``lambda *= max(1/3, 1 - (2 rho - 1)^3)`` after an accepted step,
+``lambda *= nu, nu *= 2`` after a rejected one), back to pure Gauss-Newton once it falls
+below ``1e-9``. A step is accepted when it does not raise the cost. Convergence: after an
+accepted step whose cost decrease is below ``relative_tolerance`` times the previous cost or
+whose largest component is below ``step_tolerance`` (metres / radians), or when a rejected
+step is already below ``step_tolerance`` (numerical minimum). ``iterations`` counts
+factorisations (accepted and rejected steps).
 
 Gauge: a smoother fixes its frame with a :class:`~csam_ros.core.factors.PosePrior` on the
 first pose whose sigma (default ``GAUGE_SIGMA = 1e-6`` m and rad) is far below every other
