@@ -8,7 +8,7 @@ from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
 from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
 
 
-def make_log(duration=40.0, rate=67.0, seed=0, landmarks=12):
+def make_log(duration=40.0, rate=67.0, seed=0, landmarks=12, scan_rate=2.0):
     """A robot at MR.CLAM-like rates: odometry at ~67 Hz, feature scans at their own stamps."""
     rng = np.random.default_rng(seed)
     stamps = 100.0 + np.cumsum(rng.uniform(0.9, 1.1, int(duration * rate)) / rate)
@@ -23,7 +23,7 @@ def make_log(duration=40.0, rate=67.0, seed=0, landmarks=12):
     sig = np.tile([0.03, 0.01, 0.04], (n, 1))
     meas_u = true_u + rng.normal(size=(n, 3)) * sig
     lm = rng.uniform(-3, 8, (landmarks, 2))
-    scan_t = np.sort(rng.uniform(stamps[0] + 0.05, stamps[-1] - 0.05, int(duration * 2)))
+    scan_t = np.sort(rng.uniform(stamps[0] + 0.05, stamps[-1] - 0.05, int(duration * scan_rate)))
     # true pose at scan stamps: compose up to the sample before, then a partial step
     i = np.searchsorted(stamps, scan_t)
     part = motion.increment(true_u[i], scan_t - stamps[i - 1])
