@@ -143,6 +143,12 @@ class RobotResult:
     alignment_method: str = ""  # "mutual" | "registration" | "" (reference, pending)
     alignment_base_node: Array | None = None  # Algorithm 1 (rendezvous parts only)
     alignment_base_node_cov: Array | None = None
+    rendezvous_stamps: Array = field(default_factory=lambda: np.zeros(0))  # poses that met
+    feature_labels_local: NDArray[np.int64] = field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64)
+    )
+    features_local: Array = field(default_factory=lambda: np.zeros((0, 2)))  # in G_r
+    feature_covariances_local: Array = field(default_factory=lambda: np.zeros((0, 2, 2)))
 
 
 @dataclass
@@ -194,6 +200,16 @@ class CsamResult:
                 "poses_local": arr(r.poses_local),
                 "poses_joined": arr(r.poses_joined) if r.poses_joined is not None else [],
                 "sigma_phi_local": arr(r.sigma_phi_local),
+                "rendezvous_stamps": arr(r.rendezvous_stamps),
+                "features_local": [
+                    {"label": f"{name}/{int(k)}", "xy": arr(xy), "cov": arr(c)}
+                    for k, xy, c in zip(
+                        r.feature_labels_local,
+                        r.features_local,
+                        r.feature_covariances_local,
+                        strict=True,
+                    )
+                ],
                 "sigma_phi_joined": arr(r.sigma_phi_joined)
                 if r.sigma_phi_joined is not None
                 else [],
@@ -342,6 +358,12 @@ def join_maps(
             poses_local=m.poses,
             sigma_phi_local=sigma_local[r],
             alignment_method=alignment.methods.get(r, ""),
+            rendezvous_stamps=np.asarray(m.stamps, dtype=float)[rdv_poses[r]],
+            feature_labels_local=np.asarray(m.feature_labels, dtype=np.int64),
+            features_local=m.feature_positions,
+            feature_covariances_local=inverses[r].blocks(m.problem, m.feature_ids)
+            if len(m.feature_ids)
+            else np.zeros((0, 2, 2)),
         )
         if r in aligned:
             poses = joint.values_of(solution.pose_ids[r])
