@@ -59,7 +59,9 @@ class Merger(Node):
         period = declare(
             self, "solve_period", 0.5, "minimum wall-clock seconds between solves", 0.0, 3600.0
         )
-        defaults = CsamConfig()
+        # online, a rendezvous stamp may reach the merger before the observed robot's map has
+        # its pose: leave such a measurement out until the next solve instead of failing
+        defaults = CsamConfig(skip_missing_poses=True)
         config = {
             f.name: declare(self, f.name, getattr(defaults, f.name), f"C-SAM: {f.name}")
             for f in fields(CsamConfig)
