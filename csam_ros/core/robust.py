@@ -1,0 +1,253 @@
+"""Robust pre-filters of real measurements before C-SAM (for the UTIAS MR.CLAM data set).
+
+Simulation is clean; real robots are not. Two filters act on a :class:`MultiRobotLog`'s
+rendezvous measurements and return a new log plus what they dropped (nothing is dropped
+silently; feature measurements and odometry are untouched: outlying feature measurements
+are the local smoother's robust kernel's job).
+
+- :func:`thin_rendezvous`: robots that meet many times (MR.CLAM: 700-2,000 rendezvous
+  measurements per robot) would each bring a pose, and Algorithm 1 enters every local map
+  through the dense marginal information of all its rendezvous poses, whose size grows
+  quadratically. Keep at most one measurement per ordered robot pair per ``min_interval``
+  seconds and at most ``max_per_pair`` per ordered pair, spread evenly over time.
+- :func:`consistent_rendezvous`: a wrong rendezvous measurement (a misread robot barcode, a
+  reflection) joins maps wrongly. Every measurement between robots ``p`` and ``q`` (either
+  direction) gives a correspondence between a point in ``G_p`` and one in ``G_q`` (the
+  measured robot's position from the measurement and from its own trajectory); the base node
+  is the rigid motion between them. A RANSAC over pairs of correspondences keeps the
+  measurements consistent with the motion most of them agree on, within a tolerance of
+  ``gate`` measurement sigmas plus ``drift`` metres for the local maps' own errors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from csam_ros.core import se2
+from csam_ros.core.log import MultiRobotLog, RendezvousLog
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass
+class FilterReport:
+    """Rendezvous measurements kept and dropped, per observing robot and reason."""
+
+    kept: dict[str, int] = field(default_factory=dict)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)
+    pairs: dict[str, dict] = field(default_factory=dict)  # "p|q" -> details (consistency)
+
+    def add(self, robot: str, reason: str, n: int) -> None:
+        if n > 0:
+            entry = self.dropped.setdefault(robot, {})
+            entry[reason] = entry.get(reason, 0) + int(n)
+
+    def total(self, reason: str) -> int:
+        return sum(d.get(reason, 0) for d in self.dropped.values())
+
+    def to_dict(self) -> dict:
+        return {"kept": dict(self.kept), "dropped": dict(self.dropped), "pairs": dict(self.pairs)}
+
+
+def select_rendezvous(log: RendezvousLog, keep: BoolArray) -> RendezvousLog:
+    """The measurements of ``log`` where ``keep`` is true."""
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != log.stamps.shape:
+        raise ValueError(f"keep mask has shape {keep.shape}, log has {log.stamps.shape}")
+    return RendezvousLog(
+        log.stamps[keep],
+        [o for o, k in zip(log.observed, keep, strict=True) if k],
+        log.ranges[keep],
+        log.bearings[keep],
+        log.sigma_range[keep],
+        log.sigma_bearing[keep],
+    )
+
+
+def _with_rendezvous(log: MultiRobotLog, logs: Mapping[str, RendezvousLog]) -> MultiRobotLog:
+    robots = {name: replace(robot, rendezvous=logs[name]) for name, robot in log.robots.items()}
+    return MultiRobotLog(robots, log.truth)
+
+
+def thin_rendezvous(
+    log: MultiRobotLog, min_interval: float = 0.0, max_per_pair: int | None = None
+) -> tuple[MultiRobotLog, FilterReport]:
+    """Keep at most one measurement per ordered pair per ``min_interval`` s (the first of
+    each run), then at most ``max_per_pair`` per ordered pair, evenly spread in time."""
+    if min_interval < 0 or (max_per_pair is not None and max_per_pair < 1):
+        raise ValueError(
+            f"thin_rendezvous: min_interval={min_interval} must be >= 0 and "
+            f"max_per_pair={max_per_pair} >= 1"
+        )
+    report = FilterReport()
+    out: dict[str, RendezvousLog] = {}
+    for name, robot in log.robots.items():
+        rv = robot.rendezvous
+        observed = np.array(rv.observed, dtype=object)
+        keep = np.zeros(rv.stamps.size, dtype=bool)
+        for other in sorted(set(rv.observed)):
+            rows = np.flatnonzero(observed == other)
+            chosen = []
+            last = -np.inf
+            for i in rows:  # one pass per pair; a few thousand rows at most
+                if rv.stamps[i] - last >= min_interval:
+                    chosen.append(i)
+                    last = rv.stamps[i]
+            thinned = len(rows) - len(chosen)
+            report.add(name, "thinned_interval", thinned)
+            chosen_array = np.array(chosen, dtype=np.int64)
+            if max_per_pair is not None and chosen_array.size > max_per_pair:
+                pick = np.unique(np.round(np.linspace(0, chosen_array.size - 1, max_per_pair)))
+                report.add(name, "thinned_cap", chosen_array.size - pick.size)
+                chosen_array = chosen_array[pick.astype(np.int64)]
+            keep[chosen_array] = True
+        out[name] = select_rendezvous(rv, keep)
+        report.kept[name] = int(keep.sum())
+    return _with_rendezvous(log, out), report
+
+
+def _interpolate(stamps: FloatArray, poses: FloatArray, at: FloatArray) -> FloatArray:
+    """Poses at ``at`` by linear interpolation (heading unwrapped); clamped to the ends."""
+    heading = np.unwrap(poses[:, 2])
+    return np.stack(
+        [
+            np.interp(at, stamps, poses[:, 0]),
+            np.interp(at, stamps, poses[:, 1]),
+            se2.wrap_angle(np.interp(at, stamps, heading)),
+        ],
+        -1,
+    )
+
+
+def _two_point_motions(
+    a: FloatArray, b: FloatArray, first: NDArray[np.int64], second: NDArray[np.int64]
+) -> FloatArray:
+    """Rigid motions ``(x, y, phi)`` with ``a = motion (+) b`` fixed by two correspondences."""
+    da, db = a[second] - a[first], b[second] - b[first]
+    heading = np.arctan2(da[:, 1], da[:, 0]) - np.arctan2(db[:, 1], db[:, 0])
+    c, s = np.cos(heading), np.sin(heading)
+    tx = a[first, 0] - (c * b[first, 0] - s * b[first, 1])
+    ty = a[first, 1] - (s * b[first, 0] + c * b[first, 1])
+    return np.stack([tx, ty, heading], -1)
+
+
+def _fit_motion(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Least-squares rigid motion ``a ~ motion (+) b`` (Kabsch, no scale)."""
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((b - mb).T @ (a - ma))
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rotation = vt.T @ np.diag([1.0, d]) @ u.T
+    t = ma - rotation @ mb
+    return np.array([t[0], t[1], np.arctan2(rotation[1, 0], rotation[0, 0])])
+
+
+def consistent_rendezvous(
+    log: MultiRobotLog,
+    trajectories: Mapping[str, tuple[FloatArray, FloatArray]],
+    gate: float = 3.0,
+    drift: float = 0.3,
+    min_spread: float = 0.5,
+    min_support: int = 4,
+    max_hypotheses: int = 1000,
+    seed: int = 0,
+) -> tuple[MultiRobotLog, FilterReport]:
+    """Drop rendezvous measurements inconsistent with the base node most others agree on.
+
+    ``trajectories`` maps each robot to ``(stamps, poses)`` of its local map (frame ``G_r``).
+    A measurement is consistent when its correspondence misses the best rigid motion by less
+    than ``gate * sqrt(s_r^2 + r^2 s_b^2) + drift``. Pairs with fewer than ``min_support``
+    consistent measurements (or too little spread to fix a motion) are left untouched and
+    reported as unverified.
+    """
+    rng = np.random.default_rng(seed)
+    names = list(log.robots)
+    keep = {n: np.ones(log.robots[n].rendezvous.stamps.size, dtype=bool) for n in names}
+    report = FilterReport()
+    for i, p in enumerate(names):
+        for q in names[i + 1 :]:
+            points_p, points_q, tolerance, owner, row = [], [], [], [], []
+            for observer, target in ((p, q), (q, p)):
+                rv = log.robots[observer].rendezvous
+                rows = np.flatnonzero(np.array(rv.observed, dtype=object) == target)
+                if rows.size == 0 or observer not in trajectories or target not in trajectories:
+                    continue
+                t = rv.stamps[rows]
+                body = np.stack(
+                    [
+                        rv.ranges[rows] * np.cos(rv.bearings[rows]),
+                        rv.ranges[rows] * np.sin(rv.bearings[rows]),
+                    ],
+                    -1,
+                )
+                observer_pose = _interpolate(*trajectories[observer], t)
+                measured = se2.transform_point(observer_pose, body)  # target in G_observer
+                target_xy = _interpolate(*trajectories[target], t)[:, :2]  # target in G_target
+                if observer == p:
+                    points_p.append(measured)
+                    points_q.append(target_xy)
+                else:
+                    points_p.append(target_xy)
+                    points_q.append(measured)
+                sigma = np.sqrt(
+                    rv.sigma_range[rows] ** 2 + (rv.ranges[rows] * rv.sigma_bearing[rows]) ** 2
+                )
+                tolerance.append(gate * sigma + drift)
+                owner += [observer] * rows.size
+                row.append(rows)
+            if not points_p:
+                continue
+            a = np.concatenate(points_p)
+            b = np.concatenate(points_q)
+            tol = np.concatenate(tolerance)
+            rows_all = np.concatenate(row)
+            key = f"{p}|{q}"
+            first, second = np.triu_indices(a.shape[0], 1)
+            spread = np.linalg.norm(b[second] - b[first], axis=1) >= min_spread
+            first, second = first[spread], second[spread]
+            if first.size > max_hypotheses:
+                pick = rng.choice(first.size, max_hypotheses, replace=False)
+                first, second = first[pick], second[pick]
+            if first.size == 0:
+                report.pairs[key] = {
+                    "n": int(a.shape[0]),
+                    "verified": False,
+                    "reason": "measurements do not spread",
+                }
+                continue
+            motions = _two_point_motions(a, b, first, second)
+            predicted = se2.transform_point(motions[:, None, :], b[None, :, :])
+            miss = np.linalg.norm(predicted - a[None], axis=-1)
+            support = (miss < tol[None]).sum(axis=1)
+            best = int(np.argmax(support))
+            inliers = miss[best] < tol
+            if inliers.sum() >= 3:  # refine on the inliers, then decide once more
+                motion = _fit_motion(a[inliers], b[inliers])
+                inliers = np.linalg.norm(se2.transform_point(motion, b) - a, axis=1) < tol
+            else:
+                motion = motions[best]
+            verified = bool(inliers.sum() >= min_support)
+            report.pairs[key] = {
+                "n": int(a.shape[0]),
+                "inliers": int(inliers.sum()),
+                "verified": verified,
+                "base_node": [float(v) for v in motion],
+            }
+            if not verified:
+                report.pairs[key]["reason"] = f"fewer than {min_support} consistent measurements"
+                continue
+            owners = np.array(owner, dtype=object)
+            for observer in (p, q):
+                mine = owners == observer
+                bad_rows = rows_all[mine & ~inliers]
+                keep[observer][bad_rows] = False
+                report.add(observer, "inconsistent", bad_rows.size)
+    out = {}
+    for name in names:
+        out[name] = select_rendezvous(log.robots[name].rendezvous, keep[name])
+        report.kept[name] = int(keep[name].sum())
+    return _with_rendezvous(log, out), report
