@@ -1,25 +1,40 @@
 """Benchmark of single-robot square-root smoothing against GTSAM (run as a module).
 
-``python -m csam_ros.bench.smoothing [--poses 7000 --landmarks 150 --observations 3600]``
+``python -m csam_ros.bench.smoothing [--poses 7000 --landmarks 150 --observations 3600]
+[--victoria PATH | --no-victoria] [--no-identical] [--tolerance 1e-8]``
 
-Simulates a landmark SLAM problem with a fixed seed (dead-reckoning initial values), solves it
-with this project's solver and with GTSAM (imported here only), and prints side by side:
-problem size, iterations, seconds per iteration, total seconds, final cost and peak memory.
+Problems: (1) a simulated landmark SLAM problem generated with a fixed seed; (2) the public
+Victoria Park data set in the ``ODOMETRY``/``LANDMARK`` text format (the copy shipped in
+GTSAM's Python wheel under ``gtsam/Data/victoria_park.txt`` is found automatically). Both
+start from dead reckoning (landmarks from their first observation).
 
-GTSAM is run twice: with its native factors (``BetweenFactorPose2``, ``BearingRangeFactor2D``),
-the fair speed reference, whose objective is the same model to first order but not the
-same function; and, for the cost comparison, on exactly this project's objective through
-``CustomFactor`` (slower, since it calls Python per factor). The problem builders are also
-used by the tests (GTSAM as an oracle).
+Solvers, each in its own process (so that peak memory is the process's maximum resident set
+size): this project's Gauss-Newton/LM; GTSAM's batch Levenberg-Marquardt with its native
+factors (``BetweenFactorPose2``, ``BearingRangeFactor2D`` with the same covariances mapped to
+its parametrisation: the same model to first order, not the same function), the fair speed
+reference; and GTSAM's LM on exactly this project's objective through ``CustomFactor`` (slow,
+Python per factor; used to compare the optimum reached, not the speed). Both LMs stop on the
+same relative cost decrease ``--tolerance``.
+
+Printed side by side: problem size, iterations, seconds per Gauss-Newton iteration
+(linearise, factor, solve, evaluate the cost), total seconds to convergence (solver call
+only; problem construction listed separately), final cost on its own objective and on this
+project's objective, peak memory. The problem builders are also used by the tests (GTSAM as
+an oracle).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
+import subprocess
+import sys
+import tempfile
 import time
-import tracemalloc
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,6 +42,7 @@ from numpy.typing import NDArray
 
 from csam_ros.core import motion, se2, sensor
 from csam_ros.core.factors import POINT, POSE, PointObservation, PosePrior, RelativePose
+from csam_ros.core.slam2d import Slam2dData, initial_values, read_slam2d
 from csam_ros.core.solver import GAUGE_SIGMA, Problem, SolverOptions
 
 Array = NDArray[np.float64]
@@ -60,6 +76,65 @@ class LandmarkProblem:
         return sensor.polar_to_cartesian(
             self.obs_range, self.obs_bearing, self.sigma_range, self.sigma_bearing
         )[1]
+
+    def graph(self) -> GraphData:
+        n = len(self.initial_poses)
+        z, cov = sensor.polar_to_cartesian(
+            self.obs_range, self.obs_bearing, self.sigma_range, self.sigma_bearing
+        )
+        return GraphData(
+            name="simulated",
+            initial_poses=self.initial_poses,
+            initial_landmarks=self.initial_landmarks,
+            odometry_first=np.arange(n - 1),
+            odometry_second=np.arange(1, n),
+            odometry=self.odometry,
+            odometry_covariance=self.odometry_covariance,
+            obs_pose=self.obs_pose,
+            obs_landmark=self.obs_landmark,
+            obs_xy=z,
+            obs_covariance=cov,
+        )
+
+
+@dataclass
+class GraphData:
+    """A landmark SLAM problem as index arrays (poses and landmarks numbered from 0)."""
+
+    name: str
+    initial_poses: Array  # (N, 3)
+    initial_landmarks: Array  # (L, 2)
+    odometry_first: NDArray[np.int64]  # (E,)
+    odometry_second: NDArray[np.int64]  # (E,)
+    odometry: Array  # (E, 3) pose of second in the frame of first
+    odometry_covariance: Array  # (E, 3, 3)
+    obs_pose: NDArray[np.int64]  # (K,)
+    obs_landmark: NDArray[np.int64]  # (K,)
+    obs_xy: Array  # (K, 2) in the pose frame
+    obs_covariance: Array  # (K, 2, 2)
+
+
+def graph_from_slam2d(data: Slam2dData, name: str = "file") -> GraphData:
+    """Index arrays of a 2D SLAM file (ids renumbered in sorted order)."""
+    poses, landmarks = initial_values(data)
+    pose_ids, lm_ids = data.pose_ids, data.landmark_ids
+    return GraphData(
+        name=name,
+        initial_poses=np.array([poses[int(i)] for i in pose_ids]),
+        initial_landmarks=np.array([landmarks[int(i)] for i in lm_ids]).reshape(-1, 2),
+        odometry_first=np.searchsorted(pose_ids, data.odometry_first),
+        odometry_second=np.searchsorted(pose_ids, data.odometry_second),
+        odometry=data.odometry,
+        odometry_covariance=data.odometry_covariance,
+        obs_pose=np.searchsorted(pose_ids, data.observation_pose),
+        obs_landmark=np.searchsorted(lm_ids, data.observation_landmark),
+        obs_xy=data.observations,
+        obs_covariance=data.observation_covariance,
+    )
+
+
+def as_graph(problem: LandmarkProblem | GraphData) -> GraphData:
+    return problem.graph() if isinstance(problem, LandmarkProblem) else problem
 
 
 def simulate_landmark_problem(
@@ -148,26 +223,29 @@ def simulate_landmark_problem(
     )
 
 
-def build_problem(sim: LandmarkProblem) -> Problem:
+def build_problem(source: LandmarkProblem | GraphData) -> Problem:
     """This project's problem: gauge prior, odometry and Cartesian landmark observations."""
+    g = as_graph(source)
     problem = Problem()
-    n = len(sim.initial_poses)
-    pose_ids = problem.add_variables(POSE, [("x", i) for i in range(n)], sim.initial_poses)
+    n = len(g.initial_poses)
+    pose_ids = problem.add_variables(POSE, [("x", i) for i in range(n)], g.initial_poses)
     lm_ids = problem.add_variables(
-        POINT, [("l", j) for j in range(len(sim.initial_landmarks))], sim.initial_landmarks
+        POINT, [("l", j) for j in range(len(g.initial_landmarks))], g.initial_landmarks
     )
     problem.add_factor(
-        PosePrior(pose_ids[:1], sim.initial_poses[:1], np.eye(3) / GAUGE_SIGMA, name="gauge")
+        PosePrior(pose_ids[:1], g.initial_poses[:1], np.eye(3) / GAUGE_SIGMA, name="gauge")
     )
     problem.add_factor(
-        RelativePose(pose_ids[:-1], pose_ids[1:], sim.odometry, covariance=sim.odometry_covariance)
+        RelativePose(
+            pose_ids[g.odometry_first],
+            pose_ids[g.odometry_second],
+            g.odometry,
+            covariance=g.odometry_covariance,
+        )
     )
     problem.add_factor(
         PointObservation(
-            pose_ids[sim.obs_pose],
-            lm_ids[sim.obs_landmark],
-            sim.obs_xy,
-            covariance=sim.obs_covariance,
+            pose_ids[g.obs_pose], lm_ids[g.obs_landmark], g.obs_xy, covariance=g.obs_covariance
         )
     )
     return problem
@@ -180,18 +258,29 @@ def _local_to_global(phi: float) -> Array:
     return m
 
 
-def build_gtsam(sim: LandmarkProblem, identical: bool) -> tuple[Any, Any]:
+def polar_sigmas(xy: Array, covariance: Array) -> tuple[Array, Array, Array, Array]:
+    """Range, bearing and their sigmas of Cartesian observations (first-order projection)."""
+    r, b = sensor.cartesian_to_polar(xy)
+    radial = np.stack([np.cos(b), np.sin(b)], axis=1)
+    tangential = np.stack([-np.sin(b), np.cos(b)], axis=1)
+    s_r = np.sqrt(np.einsum("ki,kij,kj->k", radial, covariance, radial))
+    s_b = np.sqrt(np.einsum("ki,kij,kj->k", tangential, covariance, tangential)) / r
+    return r, b, s_r, s_b
+
+
+def build_gtsam(source: LandmarkProblem | GraphData, identical: bool) -> tuple[Any, Any]:
     """GTSAM graph and initial values.
 
     ``identical=True`` writes exactly this project's errors as ``CustomFactor`` (Jacobians
     chained to GTSAM's tangent space); ``False`` uses GTSAM's native Pose2 between and
-    bearing-range factors with the same covariances (same model to first order).
+    bearing-range factors with the covariances mapped to their errors at first order
+    (between: ``blkdiag(R(z_phi)^T, 1)``; Cartesian to polar at the measurement).
     """
     import gtsam
 
+    g = as_graph(source)
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    n = len(sim.initial_poses)
 
     def pose_key(i: int) -> int:
         return gtsam.symbol("x", i)
@@ -199,41 +288,44 @@ def build_gtsam(sim: LandmarkProblem, identical: bool) -> tuple[Any, Any]:
     def lm_key(j: int) -> int:
         return gtsam.symbol("l", j)
 
-    for i, p in enumerate(sim.initial_poses):
+    for i, p in enumerate(g.initial_poses):
         values.insert(pose_key(i), gtsam.Pose2(*p))
-    for j, p in enumerate(sim.initial_landmarks):
+    for j, p in enumerate(g.initial_landmarks):
         values.insert(lm_key(j), np.asarray(p, dtype=float))
     graph.add(
         gtsam.PriorFactorPose2(
             pose_key(0),
-            gtsam.Pose2(*sim.initial_poses[0]),
+            gtsam.Pose2(*g.initial_poses[0]),
             gtsam.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA),
         )
     )
+    edges = zip(g.odometry_first, g.odometry_second, g.odometry, g.odometry_covariance, strict=True)
     if not identical:
-        for i in range(n - 1):
+        for a, b, z, cov in edges:
+            m = np.eye(3)
+            m[:2, :2] = se2.rotation(z[2]).T
             graph.add(
                 gtsam.BetweenFactorPose2(
-                    pose_key(i),
-                    pose_key(i + 1),
-                    gtsam.Pose2(*sim.odometry[i]),
-                    gtsam.noiseModel.Gaussian.Covariance(sim.odometry_covariance[i]),
+                    pose_key(int(a)),
+                    pose_key(int(b)),
+                    gtsam.Pose2(*z),
+                    gtsam.noiseModel.Gaussian.Covariance(m @ cov @ m.T),
                 )
             )
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sim.sigma_bearing, sim.sigma_range]))
-        for k in range(len(sim.obs_pose)):
+        r, bearing, s_r, s_b = polar_sigmas(g.obs_xy, g.obs_covariance)
+        for k in range(len(g.obs_pose)):
             graph.add(
                 gtsam.BearingRangeFactor2D(
-                    pose_key(int(sim.obs_pose[k])),
-                    lm_key(int(sim.obs_landmark[k])),
-                    gtsam.Rot2(float(sim.obs_bearing[k])),
-                    float(sim.obs_range[k]),
-                    noise,
+                    pose_key(int(g.obs_pose[k])),
+                    lm_key(int(g.obs_landmark[k])),
+                    gtsam.Rot2(float(bearing[k])),
+                    float(r[k]),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([s_b[k], s_r[k]])),
                 )
             )
         return graph, values
 
-    def between_error(z: Array):
+    def between_error(z: Array) -> Any:
         def error(this: Any, v: Any, H: Any) -> Array:
             a = v.atPose2(this.keys()[0])
             b = v.atPose2(this.keys()[1])
@@ -248,7 +340,7 @@ def build_gtsam(sim: LandmarkProblem, identical: bool) -> tuple[Any, Any]:
 
         return error
 
-    def observation_error(z: Array):
+    def observation_error(z: Array) -> Any:
         def error(this: Any, v: Any, H: Any) -> Array:
             a = v.atPose2(this.keys()[0])
             xa = np.array([a.x(), a.y(), a.theta()])
@@ -262,61 +354,62 @@ def build_gtsam(sim: LandmarkProblem, identical: bool) -> tuple[Any, Any]:
 
         return error
 
-    for i in range(n - 1):
+    for a, b, z, cov in edges:
         graph.add(
             gtsam.CustomFactor(
-                gtsam.noiseModel.Gaussian.Covariance(sim.odometry_covariance[i]),
-                [pose_key(i), pose_key(i + 1)],
-                between_error(sim.odometry[i]),
+                gtsam.noiseModel.Gaussian.Covariance(cov),
+                [pose_key(int(a)), pose_key(int(b))],
+                between_error(z),
             )
         )
-    z_all, cov_all = sim.obs_xy, sim.obs_covariance
-    for k in range(len(sim.obs_pose)):
+    for k in range(len(g.obs_pose)):
         graph.add(
             gtsam.CustomFactor(
-                gtsam.noiseModel.Gaussian.Covariance(cov_all[k]),
-                [pose_key(int(sim.obs_pose[k])), lm_key(int(sim.obs_landmark[k]))],
-                observation_error(z_all[k]),
+                gtsam.noiseModel.Gaussian.Covariance(g.obs_covariance[k]),
+                [pose_key(int(g.obs_pose[k])), lm_key(int(g.obs_landmark[k]))],
+                observation_error(g.obs_xy[k]),
             )
         )
     return graph, values
 
 
-def gtsam_estimate(sim: LandmarkProblem, result: Any) -> tuple[Array, Array]:
+def gtsam_estimate(source: LandmarkProblem | GraphData, result: Any) -> tuple[Array, Array]:
     """Poses ``(N, 3)`` and landmarks ``(L, 2)`` from GTSAM values."""
     import gtsam
 
+    g = as_graph(source)
     poses = np.array(
         [
             [p.x(), p.y(), p.theta()]
-            for p in (result.atPose2(gtsam.symbol("x", i)) for i in range(len(sim.initial_poses)))
+            for p in (result.atPose2(gtsam.symbol("x", i)) for i in range(len(g.initial_poses)))
         ]
     )
     lms = np.array(
-        [result.atPoint2(gtsam.symbol("l", j)) for j in range(len(sim.initial_landmarks))]
-    )
+        [result.atPoint2(gtsam.symbol("l", j)) for j in range(len(g.initial_landmarks))]
+    ).reshape(-1, 2)
     return poses, lms
 
 
-def gtsam_marginal_covariance(sim: LandmarkProblem, graph: Any, result: Any, keys: list) -> Array:
+def gtsam_marginal_covariance(
+    source: LandmarkProblem | GraphData, graph: Any, result: Any, keys: list
+) -> Array:
     """GTSAM's joint marginal of ``keys`` (("x", i) or ("l", j)) in global parametrisation."""
     import gtsam
 
     marginals = gtsam.Marginals(graph, result)
     gkeys = [gtsam.symbol(kind, idx) for kind, idx in keys]
     joint = marginals.jointMarginalCovariance(gkeys)
-    blocks = []
     transforms = []
+    dims = []
     for (kind, _), gk in zip(keys, gkeys, strict=True):
         if kind == "x":
             transforms.append(_local_to_global(result.atPose2(gk).theta()))
         else:
             transforms.append(np.eye(2))
-        blocks.append(joint.at(gk, gk).shape[0])
-    dim = sum(blocks)
-    m = np.zeros((dim, dim))
-    edges = np.cumsum([0, *blocks])
-    full = np.zeros((dim, dim))
+        dims.append(joint.at(gk, gk).shape[0])
+    edges = np.cumsum([0, *dims])
+    m = np.zeros((edges[-1], edges[-1]))
+    full = np.zeros((edges[-1], edges[-1]))
     for a, ka in enumerate(gkeys):
         m[edges[a] : edges[a + 1], edges[a] : edges[a + 1]] = transforms[a]
         for b, kb in enumerate(gkeys):
@@ -325,135 +418,213 @@ def gtsam_marginal_covariance(sim: LandmarkProblem, graph: Any, result: Any, key
 
 
 # ---------------------------------------------------------------------------------------------
-# benchmark
+# benchmark: one solver per process
 
 
-def _peak_mb(function: Any) -> tuple[Any, float]:
-    tracemalloc.start()
-    tracemalloc.reset_peak()
-    out = function()
-    peak = tracemalloc.get_traced_memory()[1] / 1e6
-    tracemalloc.stop()
-    return out, peak
+def victoria_park_path() -> Path | None:
+    """The Victoria Park file shipped with GTSAM's wheel, if GTSAM is installed."""
+    try:
+        import gtsam
+    except ImportError:
+        return None
+    path = Path(gtsam.__file__).parent / "Data" / "victoria_park.txt"
+    return path if path.exists() else None
 
 
-def run_ours(sim: LandmarkProblem, backend: str = "qdldl") -> dict[str, Any]:
-    start = time.perf_counter()
-    problem = build_problem(sim)
-    build = time.perf_counter() - start
-    report = problem.solve(SolverOptions(backend=backend))
-    system = problem.normal_equations(backend)
-    reps = 5
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        system.linearize(problem.values)
-        system.factorize(0.0)
-        system.solve(-system.gradient)
-    per_iteration = (time.perf_counter() - t0) / reps
-    return {
-        "problem": problem,
-        "iterations": report.iterations,
-        "per_iteration": per_iteration,
-        "total": report.seconds,
-        "build": build,
-        "cost": report.final_cost,
-        "converged": report.converged,
-    }
+def load_graph(spec: str, args: argparse.Namespace) -> GraphData:
+    if spec == "simulated":
+        return simulate_landmark_problem(
+            args.poses, args.landmarks, args.observations, args.seed
+        ).graph()
+    return graph_from_slam2d(read_slam2d(spec), name=Path(spec).stem)
 
 
-def run_gtsam(sim: LandmarkProblem, identical: bool, max_iterations: int = 100) -> dict[str, Any]:
-    import gtsam
+def save_graph(g: GraphData, path: Path) -> None:
+    np.savez(path, **{k: v for k, v in vars(g).items() if k != "name"}, name=np.array(g.name))
 
-    start = time.perf_counter()
-    graph, values = build_gtsam(sim, identical)
-    build = time.perf_counter() - start
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-10)
-    params.setAbsoluteErrorTol(0.0)
-    params.setMaxIterations(max_iterations)
-    t0 = time.perf_counter()
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = optimizer.optimize()
-    total = time.perf_counter() - t0
-    iterations = optimizer.iterations()
-    # One Gauss-Newton iteration: linearise + eliminate (sequential Cholesky, COLAMD) + retract.
-    reps = 3
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        linear = graph.linearize(result)
-        delta = linear.optimize()
-        result.retract(delta)
-    per_iteration = (time.perf_counter() - t0) / reps
-    return {
-        "graph": graph,
-        "result": result,
-        "iterations": iterations,
-        "per_iteration": per_iteration,
-        "total": total,
-        "build": build,
-        "cost": graph.error(result),
-    }
+
+def read_graph(path: Path) -> GraphData:
+    with np.load(path) as data:
+        fields = {k: data[k] for k in data.files}
+    fields["name"] = str(fields["name"])
+    return GraphData(**fields)
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident set (``VmHWM``; ``ru_maxrss`` survives exec on Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _values_of(poses: Array, lms: Array) -> Array:
+    return np.concatenate([poses.reshape(-1), lms.reshape(-1)])
+
+
+def worker(solver: str, spec: str, args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """Solve one saved problem with one solver in this process; save the estimate to ``out``."""
+    graph_data = read_graph(Path(spec))
+    if solver != "ours":
+        import gtsam  # noqa: F401  (imported before the baseline is taken)
+    baseline_mb = peak_rss_mb()
+    result: dict[str, Any] = {}
+    if solver == "ours":
+        t0 = time.perf_counter()
+        problem = build_problem(graph_data)
+        result["build"] = time.perf_counter() - t0
+        report = problem.solve(
+            SolverOptions(relative_tolerance=args.tolerance, max_iterations=args.max_iterations)
+        )
+        system = problem.normal_equations()
+        reps = 5
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            system.linearize(problem.values)
+            system.factorize(0.0)
+            step = system.solve(-system.gradient)
+            system.cost(problem.values + step)
+        result.update(
+            iterations=report.iterations,
+            per_iteration=(time.perf_counter() - t0) / reps,
+            total=report.seconds,
+            cost=report.final_cost,
+            converged=report.converged,
+        )
+        np.save(out, problem.values)
+    else:
+        import gtsam
+
+        identical = solver == "gtsam-identical"
+        t0 = time.perf_counter()
+        graph, values = build_gtsam(graph_data, identical)
+        result["build"] = time.perf_counter() - t0
+        params = gtsam.LevenbergMarquardtParams()
+        params.setRelativeErrorTol(args.tolerance)
+        params.setAbsoluteErrorTol(0.0)
+        params.setMaxIterations(args.max_iterations)
+        t0 = time.perf_counter()
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        estimate = optimizer.optimize()
+        total = time.perf_counter() - t0
+        # One iteration as inside LM: linearise, eliminate with the (fixed) COLAMD ordering,
+        # retract, evaluate the error.
+        ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+        reps = 3 if not identical else 1
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            linear = graph.linearize(estimate)
+            delta = linear.optimize(ordering)
+            graph.error(estimate.retract(delta))
+        poses, lms = gtsam_estimate(graph_data, estimate)
+        result.update(
+            iterations=optimizer.iterations(),
+            per_iteration=(time.perf_counter() - t0) / reps,
+            total=total,
+            cost=graph.error(estimate),
+            converged=optimizer.iterations() < args.max_iterations,
+        )
+        np.save(out, _values_of(poses, lms))
+    result["peak_mb"] = peak_rss_mb()
+    result["baseline_mb"] = baseline_mb
+    return result
+
+
+def run_worker(solver: str, spec: str, argv: list[str], out: Path) -> dict[str, Any] | None:
+    cmd = [sys.executable, "-m", "csam_ros.bench.smoothing", *argv]
+    cmd += ["--worker", solver, "--problem", spec, "--out", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        print(f"  {solver} failed: {done.stderr.strip().splitlines()[-1:]}")
+        return None
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def compare(spec: str, args: argparse.Namespace, argv: list[str], solvers: list[str]) -> None:
+    graph_data = load_graph(spec, args)
+    n, nl = len(graph_data.initial_poses), len(graph_data.initial_landmarks)
+    k, e = len(graph_data.obs_pose), len(graph_data.odometry)
+    print(f"\n== {graph_data.name}: {n} poses, {nl} landmarks, {e} odometry factors, {k} obs.")
+    print(f"   unknowns {3 * n + 2 * nl}; start: dead reckoning; tolerance {args.tolerance:g}")
+    reference = build_problem(graph_data)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        saved = Path(tmp) / "problem.npz"
+        save_graph(graph_data, saved)
+        for solver in solvers:
+            out = Path(tmp) / f"{solver}.npy"
+            res = run_worker(solver, str(saved), argv, out)
+            if res is None:
+                continue
+            estimate = np.load(out)
+            res["our_cost"] = reference.cost(estimate)
+            rows.append((solver, res, estimate))
+    header = (
+        f"   {'solver':18s} {'iter':>5s} {'s/iter':>8s} {'total s':>8s} {'build s':>8s} "
+        f"{'own cost':>13s} {'our cost':>13s} {'peak MB':>8s} {'(imports)':>9s}"
+    )
+    print(header)
+    for solver, r, _ in rows:
+        print(
+            f"   {solver:18s} {r['iterations']:5d} {r['per_iteration']:8.4f} {r['total']:8.3f} "
+            f"{r['build']:8.3f} {r['cost']:13.4f} {r['our_cost']:13.4f} {r['peak_mb']:8.0f} "
+            f"{r['baseline_mb']:9.0f}"
+        )
+    by_name = {name: (r, est) for name, r, est in rows}
+    if "ours" in by_name and "gtsam-native" in by_name:
+        ours, native = by_name["ours"][0], by_name["gtsam-native"][0]
+        print(
+            f"   ratio ours / GTSAM native: time per iteration "
+            f"{ours['per_iteration'] / native['per_iteration']:.3f}, time to convergence "
+            f"{ours['total'] / native['total']:.3f}"
+        )
+    if "ours" in by_name and "gtsam-identical" in by_name:
+        a, b = by_name["ours"][1], by_name["gtsam-identical"][1]
+        diff = np.abs(a - b)
+        diff[2 : 3 * n : 3] = np.abs(se2.wrap_angle(a[2 : 3 * n : 3] - b[2 : 3 * n : 3]))
+        print(f"   identical objective: max |ours - GTSAM| over all unknowns {diff.max():.2e}")
 
 
 def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=7000)
     parser.add_argument("--landmarks", type=int, default=150)
     parser.add_argument("--observations", type=int, default=3600)
     parser.add_argument("--seed", type=int, default=7)
-    parser.add_argument("--no-identical", action="store_true", help="skip GTSAM CustomFactor run")
+    parser.add_argument("--tolerance", type=float, default=1e-8)
+    parser.add_argument("--max-iterations", type=int, default=200)
+    parser.add_argument("--victoria", default=None, help="path of victoria_park.txt")
+    parser.add_argument("--no-victoria", action="store_true")
+    parser.add_argument("--no-identical", action="store_true", help="skip GTSAM CustomFactor")
+    parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--problem", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--out", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    sim = simulate_landmark_problem(args.poses, args.landmarks, args.observations, args.seed)
-    n, l_count, k = len(sim.initial_poses), len(sim.initial_landmarks), len(sim.obs_pose)
-    print(f"simulated problem: {n} poses, {l_count} landmarks, {k} observations, seed {args.seed}")
-    print(f"unknowns: {3 * n + 2 * l_count}; factors: {1 + (n - 1) + k}")
-
-    ours, ours_mem = _peak_mb(lambda: run_ours(sim))
-    rows = [("this project (qdldl)", ours, ours_mem)]
+    if args.worker:
+        print(json.dumps(worker(args.worker, args.problem, args, Path(args.out))))
+        return
     try:
         import gtsam  # noqa: F401
+
+        have_gtsam = True
     except ImportError:
-        print("GTSAM not installed: only this project's numbers")
-        gt = None
-    else:
-        gt, gt_mem = _peak_mb(lambda: run_gtsam(sim, identical=False))
-        rows.append(("GTSAM LM, native factors", gt, gt_mem))
-        if not args.no_identical:
-            gti, gti_mem = _peak_mb(lambda: run_gtsam(sim, identical=True))
-            rows.append(("GTSAM LM, identical objective", gti, gti_mem))
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print()
-    header = (
-        f"{'solver':32s} {'iter':>5s} {'s/iter':>9s} {'total s':>9s} {'final cost':>14s} "
-        f"{'peak MB':>8s}"
-    )
-    print(header)
-    for name, r, mem in rows:
-        print(
-            f"{name:32s} {r['iterations']:5d} {r['per_iteration']:9.4f} {r['total']:9.3f} "
-            f"{r['cost']:14.6f} {mem:8.1f}"
-        )
-    print(f"(peak MB: tracemalloc of Python allocations; process max RSS {rss:.0f} MB)")
-    if gt is not None:
-        print(
-            f"ratios vs GTSAM native: time per iteration {ours['per_iteration'] / gt['per_iteration']:.3f}"
-            f", time to optimum {ours['total'] / gt['total']:.3f}"
-        )
-        problem = ours["problem"]
-        poses, lms = gtsam_estimate(sim, gt["result"])
-        values = np.concatenate([poses.reshape(-1), lms.reshape(-1)])
-        print(
-            f"this project's objective at GTSAM-native optimum: {problem.cost(values):.6f} "
-            f"(ours {ours['cost']:.6f})"
-        )
-        if len(rows) == 3:
-            poses, lms = gtsam_estimate(sim, rows[2][1]["result"])
-            values = np.concatenate([poses.reshape(-1), lms.reshape(-1)])
-            dx = np.abs(values - problem.values)
-            dx[2 : 3 * n : 3] = np.abs(se2.wrap_angle(dx[2 : 3 * n : 3]))
-            print(
-                f"max |difference| of the two estimates on the identical objective: {dx.max():.2e}"
-            )
+        have_gtsam = False
+        print("GTSAM is not installed: only this project's numbers")
+    solvers = ["ours"] + (["gtsam-native"] if have_gtsam else [])
+    identical = [] if args.no_identical or not have_gtsam else ["gtsam-identical"]
+    print(f"machine: {os.cpu_count()} cores; peak MB = max resident set of the solver's process")
+    compare("simulated", args, argv, solvers + identical)
+    path = None if args.no_victoria else (args.victoria or victoria_park_path())
+    if path is None:
+        if not args.no_victoria:
+            print("\nVictoria Park data set not found (give --victoria PATH)")
+        return
+    # CustomFactor LM on Victoria Park from dead reckoning takes many minutes: skipped.
+    compare(str(path), args, argv, solvers)
 
 
 if __name__ == "__main__":
