@@ -168,6 +168,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     except BagError as err:
         raise CliError(str(err)) from None
     summary["source"] = str(bag)
+    summary.setdefault("scenario", bag.resolve().name)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     _finish(out, summary)
     return 0
