@@ -189,10 +189,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1))
     error, assoc = metrics["landmark_error"], metrics["association"]
     print(f"{run_dir}/metrics.json")
-    print(f"  landmarks: RMSE {error['rmse_m']:.3f} m, max {error['max_m']:.3f} m over "
-          f"{error['n_features']} features (after a rigid 2D alignment to the truth)")
-    print(f"  associations: precision {assoc['precision']:.3f}, recall {assoc['recall']:.3f} "
-          f"({assoc['true_positives']} of {assoc['true_pairs']} true pairs)")
+    print(
+        f"  landmarks: RMSE {error['rmse_m']:.3f} m, max {error['max_m']:.3f} m over "
+        f"{error['n_features']} features (after a rigid 2D alignment to the truth)"
+    )
+    print(
+        f"  associations: precision {assoc['precision']:.3f}, recall {assoc['recall']:.3f} "
+        f"({assoc['true_positives']} of {assoc['true_pairs']} true pairs)"
+    )
     for name, robot in metrics["robots"].items():
         print(f"  {name}: {robot['alignment']}")
     return 0
