@@ -14,28 +14,34 @@ MSG_SOURCES := $(wildcard msg_defs/msg/*.msg) msg_defs/CMakeLists.txt msg_defs/p
 RUN_ARGS ?=
 PYTEST_ARGS ?=
 
-.PHONY: run test bench lint setup clean
+.PHONY: run test bench lint setup setup-dev clean
 
 run: setup
 	$(VENV)/bin/csam demo $(RUN_ARGS)
 
-test: setup
+test: setup-dev
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-bench: setup
+bench: setup-dev
 	$(PY) -m csam_ros.bench.smoothing
 	$(PY) -m csam_ros.bench.joining
 
-lint: setup
+lint: setup-dev
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
 setup: $(VENV)/.csam-installed
+setup-dev: $(VENV)/.csam-installed $(VENV)/.dev-installed
 
-$(VENV)/.deps-installed: requirements.txt requirements-dev.txt
+$(VENV)/.deps-installed: requirements.txt
 	@test -x $(PY) || { echo "creating $(VENV)"; $(PYTHON) -m venv $(VENV); }
-	@echo "installing pinned dependencies into $(VENV) (first time: about 2 minutes)"
-	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt -r requirements-dev.txt $(QUIET_PIP)
+	@echo "installing pinned dependencies into $(VENV) (first time: about a minute)"
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt $(QUIET_PIP)
+	@touch $@
+
+# test and benchmark tools (pytest, ruff, GTSAM as an oracle): not needed to run
+$(VENV)/.dev-installed: $(VENV)/.deps-installed requirements-dev.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements-dev.txt $(QUIET_PIP)
 	@touch $@
 
 $(VENV)/.msgs-installed: $(VENV)/.deps-installed $(MSG_SOURCES) scripts/build_msgs.sh
