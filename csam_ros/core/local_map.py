@@ -29,6 +29,7 @@ from __future__ import annotations
 import time
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,7 +38,6 @@ from csam_ros.core import motion, se2, sensor
 from csam_ros.core.covariance import (
     factorize_at_estimate,
     marginal_covariance,
-    marginal_covariances,
     marginal_sqrt_information,
 )
 from csam_ros.core.factors import (
@@ -57,6 +57,9 @@ from csam_ros.core.solver import (
     SolveReport,
     SolverOptions,
 )
+
+if TYPE_CHECKING:
+    from csam_ros.core.joining import SelectedInverse
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -116,6 +119,7 @@ class LocalMap:
         self._last_solved_odometry = -np.inf
         self._problem: Problem | None = None
         self._system: NormalEquations | None = None
+        self._inverse: SelectedInverse | None = None
         self.last_report: UpdateReport | None = None
 
     # -- feeding ------------------------------------------------------------------------------
@@ -381,6 +385,7 @@ class LocalMap:
         self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
         self._problem = problem
         self._system = None
+        self._inverse = None
         return report
 
     # -- results ------------------------------------------------------------------------------
@@ -434,18 +439,29 @@ class LocalMap:
         keys += [("l", int(lab)) for lab in landmark_labels]
         return marginal_covariance(self.problem, keys, self._factorization())
 
+    def _selected_inverse(self) -> SelectedInverse:
+        """Entries of the covariance on the factor's pattern (Takahashi), cached per solve."""
+        if self._inverse is None:
+            from csam_ros.core.joining import SelectedInverse  # lazy: joining builds on this
+
+            self._inverse = SelectedInverse(self._factorization())
+        return self._inverse
+
     def pose_covariances(self, indices: ArrayLike | None = None) -> Array:
-        """Marginal covariance ``(k, 3, 3)`` of key poses (all by default; no cross terms)."""
+        """Marginal covariance ``(k, 3, 3)`` of key poses (all by default; no cross terms).
+
+        From a selected inverse on the factor's pattern: linear in the size of the factor.
+        """
         idx = np.arange(len(self._keys)) if indices is None else np.asarray(indices)
-        keys = [("x", int(i)) for i in idx]
-        return np.array(marginal_covariances(self.problem, keys, self._factorization()))
+        ids = self.problem.indices([("x", int(i)) for i in idx])
+        return self._selected_inverse().blocks(self.problem, ids)
 
     def landmark_covariances(self) -> Array:
         """Marginal covariance ``(L, 2, 2)`` of every landmark (no cross terms)."""
-        keys = [("l", lab) for lab in self._landmark_labels]
-        if not keys:
+        if not self._landmark_labels:
             return np.zeros((0, 2, 2))
-        return np.array(marginal_covariances(self.problem, keys, self._factorization()))
+        ids = self.problem.indices([("l", lab) for lab in self._landmark_labels])
+        return self._selected_inverse().blocks(self.problem, ids)
 
     def sqrt_information(self, pose_stamps: ArrayLike) -> tuple[Array, Array, Array]:
         """Marginal square-root information of the poses at ``pose_stamps``.
