@@ -57,6 +57,7 @@ Parametrisation of covariances: global, additive ``(x, y, phi)`` per pose, ``(x,
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -312,7 +313,7 @@ class NormalEquations:
             raise ValueError(f"unknown backend {backend!r}: use 'qdldl' or 'splu'")
         if not problem.factors:
             raise SingularProblemError("the problem has no factors")
-        self.problem = problem
+        self._problem_ref = weakref.ref(problem)  # no cycle with Problem._system
         self.backend = backend
         self.n = n = problem.dim
         num_vars = problem.num_variables
@@ -418,6 +419,13 @@ class NormalEquations:
         self._checked = False
         self.hessian_data: Array = np.zeros(self.nnz)
         self.gradient: Array = np.zeros(n)
+
+    @property
+    def problem(self) -> Problem:
+        problem = self._problem_ref()
+        if problem is None:
+            raise RuntimeError("the problem of these normal equations no longer exists")
+        return problem
 
     def linearize(self, values: Array) -> float:
         """Fill :attr:`hessian_data` and :attr:`gradient` at ``values``; return the cost."""
