@@ -36,14 +36,15 @@ symbolic analysis is kept and only the numeric factorisation is redone (``update
 upper-triangular square-root information is ``R = sqrt(D) L^T`` (permuted), ``R^T R = A^T A``.
 
 Iteration: pure Gauss-Newton steps while the cost falls by at least a quarter of what the
-linear model predicts; otherwise Levenberg-Marquardt damping ``lambda * diag(A^T A)`` is
-switched on (``initial_damping``) and adapted by the gain ratio ``rho`` (actual / predicted
-decrease; Nielsen's rule: ``lambda *= max(1/3, 1 - (2 rho - 1)^3)`` after an accepted step,
-``lambda *= nu, nu *= 2`` after a rejected one), back to pure Gauss-Newton once it falls
-below ``1e-9``. A step is accepted when it does not raise the cost. Convergence: after an
-accepted step whose cost decrease is below ``relative_tolerance`` times the previous cost or
-whose largest component is below ``step_tolerance`` (metres / radians), or when a rejected
-step is already below ``step_tolerance`` (numerical minimum). ``iterations`` counts
+linear model predicts (gain ratio ``rho`` = actual / predicted decrease); otherwise
+Levenberg-Marquardt damping ``lambda * diag(A^T A)`` is switched on (``initial_damping``),
+divided by 10 after a step with ``rho > 0.75``, doubled after one with ``rho < 0.25``,
+multiplied by 10 after a rejected step, and dropped (pure Gauss-Newton again) below
+``1e-9``. A step is accepted when it does not raise the cost. (On Victoria Park from dead
+reckoning this simple rule reached lower local minima than Nielsen's rule.) Convergence:
+after an accepted step whose cost decrease is below ``relative_tolerance`` times the previous
+cost or whose largest component is below ``step_tolerance`` (metres / radians), or when a
+rejected step is already below ``step_tolerance`` (numerical minimum). ``iterations`` counts
 factorisations (accepted and rejected steps).
 
 Gauge: a smoother fixes its frame with a :class:`~csam_ros.core.factors.PosePrior` on the
@@ -560,7 +561,6 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     history = [cost]
     initial = cost
     damping = 0.0
-    growth = 2.0
     iterations = 0
     reason = "maximum iterations reached"
     converged = False
@@ -591,18 +591,16 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
             if damping == 0.0:
                 if gain < 0.25:
                     damping = options.initial_damping
-            else:
-                damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
-                if damping < 1e-9:
-                    damping = 0.0
-            growth = 2.0
+            elif gain > 0.75:
+                damping = damping / 10.0 if damping > 1e-9 else 0.0
+            elif gain < 0.25:
+                damping *= 2.0
             cost = system.linearize(problem.values)
         else:
             if step_norm <= options.step_tolerance:
                 converged, reason = True, "step below tolerance (cost at numerical minimum)"
                 break
-            damping = options.initial_damping if damping == 0.0 else damping * growth
-            growth *= 2.0
+            damping = options.initial_damping if damping == 0.0 else damping * 10.0
             if damping > options.max_damping:
                 reason = "damping exceeded its maximum without lowering the cost"
                 break
