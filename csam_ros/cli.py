@@ -159,6 +159,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     str(args.rate),
                     "--topics",
                     *topics,
+                    "--delay",  # let discovery settle both ways: odometry is best effort
+                    "2.0",
                     "--wait-for-subscribers",
                     *sensor_topics(robots),
                 ],

@@ -159,14 +159,30 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> dic
                 f"{run.source_name} exited with {code}:\n{group.log_tail(run.source_name)}"
             )
         progress("  source done; flushing the smoothers")
-        final: dict[str, int] = {}
-        for robot, client in clients.items():
-            future = client.call_async(Trigger.Request())
-            executor.spin_until_future_complete(future, timeout_sec=120)
-            reply = future.result()
-            if reply is None or not reply.success:
-                raise LiveRunError(f"smoother of {robot} did not flush: {reply}")
-            final[robot] = int(reply.message)
+
+        def flush_all() -> dict[str, int]:
+            stamps: dict[str, int] = {}
+            for robot, client in clients.items():
+                future = client.call_async(Trigger.Request())
+                executor.spin_until_future_complete(future, timeout_sec=120)
+                reply = future.result()
+                if reply is None:
+                    raise LiveRunError(f"the smoother of {robot} did not answer ~/flush")
+                stamps[robot] = int(reply.message)
+            return stamps
+
+        # Messages may still wait in a smoother's queue when the source exits (best-effort
+        # odometry is not acknowledged), and a service call can be served before them: flush
+        # until every smoother's latest stamp stays the same over half a second.
+        final, previous = flush_all(), None
+        deadline = time.monotonic() + 60
+        while final != previous or min(final.values()) < 0:
+            if time.monotonic() > deadline:
+                raise LiveRunError(f"the smoothers did not settle within 60 s: {final}")
+            settle = time.monotonic() + 0.5
+            while time.monotonic() < settle:
+                executor.spin_once(timeout_sec=0.1)
+            previous, final = final, flush_all()
         progress("  waiting for the merger's final joined map")
         deadline = time.monotonic() + 300
 

@@ -124,3 +124,19 @@ def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
     assert (occupied / "keep.txt").read_text() == "mine"
     exists = csam("import", "mrclam", tmp_path, "--out", occupied)
     assert exists.returncode == 2 and "never overwrites" in exists.stderr
+
+
+def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
+    bag = REPO / "bags" / "map_joining"
+    live = csam("replay", bag, "--rate", "0", "--out", tmp_path / "live")
+    assert live.returncode == 0, live.stdout + live.stderr
+    offline = csam("replay", bag, "--offline", "--out", tmp_path / "offline")
+    assert offline.returncode == 0, offline.stderr
+    a = json.loads((tmp_path / "live" / "summary.json").read_text())
+    b = json.loads((tmp_path / "offline" / "summary.json").read_text())
+    for name, robot in b["robots"].items():
+        assert a["robots"][name]["alignment"] == robot["alignment"]
+        np.testing.assert_allclose(
+            a["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-6
+        )
+    assert len(a["associations"]) == len(b["associations"])
