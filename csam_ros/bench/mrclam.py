@@ -29,7 +29,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -994,6 +994,119 @@ def _print_noise(estimate: NoiseEstimate) -> None:
     print(f"({estimate.seconds:.1f} s)")
 
 
+# ---------------------------------------------------------------------------------------------
+# C-SAM on the data set
+
+
+@dataclass
+class RunOptions:
+    """How :func:`run_mrclam` prepares the data for C-SAM."""
+
+    robots: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5])
+    start: float = 0.0
+    duration: float | None = None
+    robust: bool = True  # Cauchy kernel on the local maps' feature observations
+    thin_interval: float = 5.0  # s between kept rendezvous measurements of one ordered pair
+    max_per_pair: int | None = 20  # rendezvous measurements kept per ordered pair
+    consistency: bool = True  # RANSAC check of rendezvous measurements against local maps
+    associate: bool = True
+
+
+def run_mrclam(
+    dataset: str | Path = DEFAULT_DATASET,
+    options: RunOptions | None = None,
+    config_path: str | Path = CONFIG,
+) -> dict:
+    """Import, pre-filter, local maps, C-SAM and evaluation; returns a JSON-ready record."""
+    from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
+    from csam_ros.core.evaluation import evaluate
+    from csam_ros.core.factors import Cauchy
+    from csam_ros.core.local_map import LocalMapOptions, build_local_map
+    from csam_ros.core.rendezvous import required_stamps
+    from csam_ros.core.robust import consistent_rendezvous, thin_rendezvous
+
+    options = options or RunOptions()
+    config = load_config(config_path)
+    timing: dict[str, float] = {}
+    clock = time.perf_counter()
+    log, report = import_mrclam(
+        dataset,
+        robots=options.robots,
+        start=options.start,
+        duration=options.duration,
+        noise=config["noise"],
+        label_seed=int(config.get("label_seed", 0)),
+        landmark_swaps=config.get("landmark_swaps") or [],
+    )
+    timing["import"] = time.perf_counter() - clock
+    measured = {n: int(r.rendezvous.stamps.size) for n, r in log.robots.items()}
+    log, thin_report = thin_rendezvous(log, options.thin_interval, options.max_per_pair)
+    clock = time.perf_counter()
+    local_options = LocalMapOptions(robust=Cauchy() if options.robust else None)
+    stamps = required_stamps({n: r.rendezvous for n, r in log.robots.items()})
+    local_maps = {
+        name: build_local_map(robot, stamps[name], local_options)
+        for name, robot in log.robots.items()
+    }
+    timing["local_maps"] = time.perf_counter() - clock
+    consistency = None
+    if options.consistency:
+        clock = time.perf_counter()
+        trajectories = {n: (m.stamps, m.poses) for n, m in local_maps.items()}
+        log, consistency = consistent_rendezvous(log, trajectories)
+        timing["consistency"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    maps = [robot_map_from_local_map(local_maps[name]) for name in log.robots]
+    result = join_maps(
+        maps,
+        {n: r.rendezvous for n, r in log.robots.items()},
+        CsamConfig(associate=options.associate),
+    )
+    timing["csam"] = time.perf_counter() - clock
+    summary = result.to_dict()
+    assert log.truth is not None
+    metrics = evaluate(summary, log.truth)
+    return {
+        "options": asdict(options),
+        "import": report.to_dict(),
+        "rendezvous_measured": measured,
+        "thinning": thin_report.to_dict(),
+        "consistency": consistency.to_dict() if consistency else None,
+        "metrics": metrics,
+        "summary": summary,
+        "timing_s": timing,
+    }
+
+
+def _run_line(label: str, record: dict) -> str:
+    m = record["metrics"]
+    landmark, association = m["landmark_error"], m["association"]
+    status = " ".join(
+        f"{name[5:]}:{'ref' if v['alignment'] == 'reference' else 'ok' if v['joined'] else 'pend'}"
+        for name, v in m["robots"].items()
+    )
+
+    def number(value: float | None, digits: int = 3) -> str:
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    dropped = record["consistency"]["dropped"] if record["consistency"] else {}
+    inconsistent = sum(d.get("inconsistent", 0) for d in dropped.values())
+    kept = sum(record["thinning"]["kept"].values())
+    seconds = sum(record["timing_s"].values())
+    return (
+        f"{label:<14} {landmark['n_features']:>4} {number(landmark['rmse_m']):>7} "
+        f"{number(landmark['max_m']):>7} {number(association['precision'], 2):>5} "
+        f"{number(association['recall'], 2):>5} {number(association['recall_aligned'], 2):>6} "
+        f"{kept:>5} {inconsistent:>5} {seconds:>7.1f}  {status}"
+    )
+
+
+RUN_HEADER = (
+    f"{'robots':<14} {'feat':>4} {'rmse_m':>7} {'max_m':>7} {'prec':>5} {'rec':>5} "
+    f"{'rec_al':>6} {'rdv':>5} {'incon':>5} {'sec':>7}  alignment"
+)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m csam_ros.bench.mrclam",
@@ -1009,7 +1122,70 @@ def main(argv: list[str] | None = None) -> int:
     )
     noise.add_argument("--no-swaps", action="store_true", help="ignore the config's swaps")
     noise.add_argument("--rounds", type=int, default=12, help="most EM rounds (0: snapshots only)")
+    run = sub.add_parser("run", help="C-SAM on (part of) the data set, scored against truth")
+    run.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+    run.add_argument("--robots", default="1,2,3,4,5", help="comma-separated robot numbers")
+    run.add_argument("--start", type=float, default=0.0)
+    run.add_argument("--duration", type=float, default=None)
+    run.add_argument("--thin", type=float, default=5.0, help="s between rendezvous kept per pair")
+    run.add_argument("--max-per-pair", type=int, default=20, help="0: no cap")
+    run.add_argument("--no-robust", action="store_true", help="no Cauchy kernel in local maps")
+    run.add_argument("--no-consistency", action="store_true", help="skip the RANSAC check")
+    run.add_argument("--no-associate", action="store_true")
+    run.add_argument("--out", type=Path, default=None, help="write summary.json, metrics.json")
+    table = sub.add_parser("table", help="each robot alone, all pairs, all five")
+    table.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+    table.add_argument("--start", type=float, default=0.0)
+    table.add_argument("--duration", type=float, default=None)
+    table.add_argument("--thin", type=float, default=5.0)
+    table.add_argument("--max-per-pair", type=int, default=20)
+    table.add_argument("--json", type=Path, default=None, help="write every record here")
     args = parser.parse_args(argv)
+    if args.command in ("run", "table"):
+        base = RunOptions(
+            start=args.start,
+            duration=args.duration,
+            thin_interval=args.thin,
+            max_per_pair=args.max_per_pair or None,
+        )
+        if args.command == "run":
+            base.robots = [int(r) for r in args.robots.split(",")]
+            base.robust = not args.no_robust
+            base.consistency = not args.no_consistency
+            base.associate = not args.no_associate
+            jobs = [(args.robots, base)]
+        else:
+            import itertools
+
+            singles = [[r] for r in range(1, 6)]
+            pairs = [list(p) for p in itertools.combinations(range(1, 6), 2)]
+            jobs = [
+                (",".join(map(str, r)), replace(base, robots=r))
+                for r in [*singles, *pairs, [1, 2, 3, 4, 5]]
+            ]
+        window = f"[{args.start}, {'end' if args.duration is None else args.start + args.duration}]"
+        print(
+            f"MR.CLAM Dataset 1, window {window} s; landmark error after a rigid 2D alignment "
+            "(Kabsch, no scale) of the joined map onto the truth"
+        )
+        print(RUN_HEADER, flush=True)
+        records = []
+        for label, job in jobs:
+            record = run_mrclam(args.dataset, job)
+            records.append(record)
+            print(_run_line(label, record), flush=True)
+        if args.command == "run" and args.out is not None:
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / "summary.json").write_text(json.dumps(records[0]["summary"], indent=1))
+            metrics = {k: v for k, v in records[0].items() if k != "summary"}
+            (args.out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+        if args.command == "table" and args.json is not None:
+            args.json.write_text(
+                json.dumps(
+                    [{k: v for k, v in r.items() if k != "summary"} for r in records], indent=1
+                )
+            )
+        return 0
     if args.command == "noise":
         swaps = [] if args.no_swaps else load_config(args.config).get("landmark_swaps") or []
         estimate = estimate_noise(args.dataset, swaps, rounds=args.rounds, verbose=not args.json)

@@ -251,3 +251,71 @@ def consistent_rendezvous(
         out[name] = select_rendezvous(log.robots[name].rendezvous, keep[name])
         report.kept[name] = int(keep[name].sum())
     return _with_rendezvous(log, out), report
+
+
+@dataclass
+class OdometryScale:
+    """Multiplicative corrections of one robot's odometry: true = scale * reported."""
+
+    forward: float = 1.0
+    turn: float = 1.0
+    intervals: int = 0
+
+
+def odometry_scales(
+    log: MultiRobotLog,
+    trajectories: Mapping[str, tuple[FloatArray, FloatArray]],
+    min_forward: float = 0.005,
+    min_turn: float = 0.005,
+) -> dict[str, OdometryScale]:
+    """Scale factors of the forward and turn odometry that best explain smoothed trajectories.
+
+    Between consecutive trajectory stamps the odometry is composed (first order: forward
+    distance and turn angle) and regressed through the origin on the trajectory's own relative
+    motion. A smoothed map pulls its poses towards the odometry, so one estimate is biased
+    towards 1: re-estimate on the map rebuilt from corrected odometry until it settles
+    (:func:`scale_odometry` composes corrections).
+    """
+    from csam_ros.core.motion import odometry_between
+
+    out = {}
+    for name, robot in log.robots.items():
+        if name not in trajectories:
+            continue
+        stamps, poses = trajectories[name]
+        odometry = robot.odometry
+        inside = (stamps >= odometry.stamps[0]) & (stamps <= odometry.stamps[-1])
+        stamps, poses = stamps[inside], poses[inside]
+        composed = odometry_between(
+            odometry.stamps, odometry.inputs, odometry.sigmas, stamps
+        ).relative_poses
+        relative = se2.between(poses[:-1], poses[1:])
+        forward = np.abs(composed[:, 0]) > min_forward
+        turn = np.abs(composed[:, 2]) > min_turn
+        scale = OdometryScale(intervals=int(len(composed)))
+        if forward.any():
+            scale.forward = float(
+                np.sum(relative[forward, 0] * composed[forward, 0])
+                / np.sum(composed[forward, 0] ** 2)
+            )
+        if turn.any():
+            scale.turn = float(
+                np.sum(relative[turn, 2] * composed[turn, 2]) / np.sum(composed[turn, 2] ** 2)
+            )
+        out[name] = scale
+    return out
+
+
+def scale_odometry(log: MultiRobotLog, scales: Mapping[str, OdometryScale]) -> MultiRobotLog:
+    """A log whose odometry inputs ``v`` and ``omega`` are multiplied by the robots' scales."""
+    robots = {}
+    for name, robot in log.robots.items():
+        scale = scales.get(name)
+        if scale is None:
+            robots[name] = robot
+            continue
+        if not (scale.forward > 0 and scale.turn > 0):
+            raise ValueError(f"{name}: odometry scales must be positive, got {scale}")
+        inputs = robot.odometry.inputs * np.array([scale.forward, 1.0, scale.turn])
+        robots[name] = replace(robot, odometry=replace(robot.odometry, inputs=inputs))
+    return MultiRobotLog(robots, log.truth)

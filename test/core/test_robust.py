@@ -113,3 +113,24 @@ def test_consistent_rendezvous_leaves_unverifiable_pairs_alone() -> None:
     filtered, report = consistent_rendezvous(log, {"p": (stamps, poses), "q": (stamps, poses)})
     assert filtered.robots["p"].rendezvous.stamps.size == 1
     assert report.pairs["p|q"]["verified"] is False
+
+
+def test_odometry_scales_recover_a_known_scale() -> None:
+    from csam_ros.bench.mrclam import dead_reckoning
+    from csam_ros.core.robust import OdometryScale, odometry_scales, scale_odometry
+
+    n = 2001
+    stamps = np.linspace(0.0, 100.0, n)
+    inputs = np.column_stack(
+        [0.1 + 0.05 * np.sin(stamps / 7), np.zeros(n), 0.3 * np.sin(stamps / 5)]
+    )
+    true_log = OdometryLog(stamps, inputs, np.full((n, 3), 0.01))
+    true_poses = dead_reckoning(true_log)
+    reported = OdometryLog(stamps, inputs / np.array([1.05, 1.0, 1.2]), true_log.sigmas)
+    log = MultiRobotLog({"r": RobotLog("r", reported, empty_features(), empty_rendezvous())})
+    keys = np.arange(0, n, 20)
+    scales = odometry_scales(log, {"r": (stamps[keys], true_poses[keys])})
+    assert scales["r"].forward == pytest.approx(1.05, rel=5e-3)  # first order in the arcs
+    assert scales["r"].turn == pytest.approx(1.2, rel=2e-3)
+    corrected = scale_odometry(log, {"r": OdometryScale(1.05, 1.2)})
+    np.testing.assert_allclose(corrected.robots["r"].odometry.inputs, inputs)
