@@ -840,7 +840,69 @@ def em_noise(
             change = max(abs(v / previous[k] - 1) for k, v in history[-1]["noise"].items())
             if change < tolerance:
                 break
-    return noise, {"rounds": history, "tolerance": tolerance}
+    return noise, {"rounds": history, "tolerance": tolerance, "localisations": locs}
+
+
+def rendezvous_noise(log: MultiRobotLog, locs: dict[str, Localisation], noise: MrclamNoise) -> dict:
+    """Rendezvous residuals against the two robots' localisations with known landmarks.
+
+    Each measurement's residual is normalised by the model sigma combined with both robots'
+    pose covariances (at the nearest key, odometry-composed to the stamp); the robust spread
+    of the normalised residuals is the factor by which rendezvous sigmas exceed the landmark
+    model ``noise``.
+    """
+    positions = {}
+
+    def pose_at(name: str, t: FloatArray) -> tuple[FloatArray, FloatArray]:
+        loc, odometry = locs[name], log.robots[name].odometry
+        if name not in positions:
+            positions[name] = dead_reckoning(odometry)
+        reckoned = positions[name]
+        k = np.clip(np.searchsorted(loc.stamps, t, side="right") - 1, 0, loc.stamps.size - 1)
+        moved = se2.between(
+            poses_at(odometry, reckoned, loc.stamps[k]), poses_at(odometry, reckoned, t)
+        )
+        return se2.compose(loc.poses[k], moved), loc.pose_covariances[k]
+
+    normalised_r, normalised_b = [], []
+    for name, robot in log.robots.items():
+        rv = robot.rendezvous
+        if rv.stamps.size == 0 or name not in locs:
+            continue
+        inside = (rv.stamps >= locs[name].stamps[0]) & (rv.stamps <= locs[name].stamps[-1])
+        observed = np.array(rv.observed, dtype=object)
+        for other in sorted(set(rv.observed)):
+            m = inside & (observed == other)
+            if other not in locs or not m.any():
+                continue
+            p, cp = pose_at(name, rv.stamps[m])
+            q, cq = pose_at(other, rv.stamps[m])
+            d = q[:, :2] - p[:, :2]
+            r = np.linalg.norm(d, axis=1)
+            e_r = rv.ranges[m] - r
+            e_b = se2.wrap_angle(rv.bearings[m] - (np.arctan2(d[:, 1], d[:, 0]) - p[:, 2]))
+            zero = np.zeros_like(r)
+            jr_p = np.stack([-d[:, 0] / r, -d[:, 1] / r, zero], 1)
+            jb_p = np.stack([d[:, 1] / r**2, -d[:, 0] / r**2, -np.ones_like(r)], 1)
+            jb_q = np.stack([-d[:, 1] / r**2, d[:, 0] / r**2, zero], 1)
+            v_r = np.einsum("ki,kij,kj->k", jr_p, cp, jr_p) + np.einsum(
+                "ki,kij,kj->k", jr_p, cq, jr_p
+            )
+            v_b = np.einsum("ki,kij,kj->k", jb_p, cp, jb_p) + np.einsum(
+                "ki,kij,kj->k", jb_q, cq, jb_q
+            )
+            s_r = noise.sigma_range + noise.sigma_range_per_m * rv.ranges[m]
+            normalised_r.append(e_r / np.sqrt(s_r**2 + v_r))
+            normalised_b.append(e_b / np.sqrt(noise.sigma_bearing**2 + v_b))
+    e_r, e_b = np.concatenate(normalised_r), np.concatenate(normalised_b)
+    k_r, k_b = robust_sigma(e_r), robust_sigma(e_b)
+    return {
+        "n": int(e_r.size),
+        "range_factor": k_r,
+        "bearing_factor": k_b,
+        "range_beyond_5": float(np.mean(np.abs(e_r) > 5 * k_r)),
+        "bearing_beyond_5": float(np.mean(np.abs(e_b) > 5 * k_b)),
+    }
 
 
 def landmark_consistency(
@@ -910,6 +972,14 @@ def estimate_noise(
         if rounds
         else (noise, {"rounds": []})
     )
+    if rounds:
+        rendezvous = rendezvous_noise(log, history.pop("localisations"), final)
+        final = replace(
+            final,
+            rendezvous_range_factor=max(1.0, rendezvous["range_factor"]),
+            rendezvous_bearing_factor=max(1.0, rendezvous["bearing_factor"]),
+        )
+        history["rendezvous"] = rendezvous
     return NoiseEstimate(
         final, noise, history, sensor, odometry, landmarks, swaps, time.perf_counter() - began
     )
@@ -984,6 +1054,14 @@ def _print_noise(estimate: NoiseEstimate) -> None:
                 "  relative change in the last round: "
                 + " ".join(f"{k} {100 * v:+.1f}%" for k, v in change.items())
             )
+    if "rendezvous" in estimate.em:
+        rv = estimate.em["rendezvous"]
+        print(
+            f"3. rendezvous: {rv['n']} measurements against both robots' localisations (with "
+            f"their pose covariances): spread {rv['range_factor']:.2f} x the range model, "
+            f"{rv['bearing_factor']:.2f} x the bearing model; beyond 5 such sigmas: range "
+            f"{100 * rv['range_beyond_5']:.2f}%, bearing {100 * rv['bearing_beyond_5']:.2f}%"
+        )
     print("noise model (config/mrclam.yaml, key mrclam.noise):")
     print(f"  sigma_range: {n.sigma_range:.4f}        # m")
     print(f"  sigma_range_per_m: {n.sigma_range_per_m:.4f}  # m per m of range")
@@ -991,6 +1069,8 @@ def _print_noise(estimate: NoiseEstimate) -> None:
     print(f"  q_v: {n.q_v:.4f}                # m/sqrt(s)")
     print(f"  q_vlat: {n.q_vlat:.4f}             # m/sqrt(s)")
     print(f"  q_omega: {n.q_omega:.4f}            # rad/sqrt(s)")
+    print(f"  rendezvous_range_factor: {n.rendezvous_range_factor:.2f}")
+    print(f"  rendezvous_bearing_factor: {n.rendezvous_bearing_factor:.2f}")
     print(f"({estimate.seconds:.1f} s)")
 
 

@@ -79,7 +79,8 @@ class MrclamNoise:
     """Sensor and odometry noise of the MR.CLAM robots (defaults = ``config/mrclam.yaml``).
 
     ``sigma_range(r) = sigma_range + sigma_range_per_m * r``; odometry densities are per
-    sqrt-second (see the module docstring for the per-sample sigmas).
+    sqrt-second (see the module docstring for the per-sample sigmas). Measurements of other
+    robots get the landmark sigmas times ``rendezvous_*_factor``.
     """
 
     sigma_range: float = 0.001
@@ -88,9 +89,19 @@ class MrclamNoise:
     q_v: float = 0.0241
     q_vlat: float = 0.0073
     q_omega: float = 0.0559
+    rendezvous_range_factor: float = 1.34  # rendezvous sigmas = landmark sigmas times these
+    rendezvous_bearing_factor: float = 1.93
 
     def __post_init__(self) -> None:
-        for name in ("sigma_range", "sigma_bearing", "q_v", "q_vlat", "q_omega"):
+        for name in (
+            "sigma_range",
+            "sigma_bearing",
+            "q_v",
+            "q_vlat",
+            "q_omega",
+            "rendezvous_range_factor",
+            "rendezvous_bearing_factor",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"MrclamNoise.{name} must be finite and > 0, got {value!r}")
@@ -593,8 +604,8 @@ def _measurement_logs(
         [f"robot{s}" for s in subject[g]],
         ranges[g],
         bearings[g],
-        sigma_range[g],
-        np.full(int(g.sum()), noise.sigma_bearing),
+        sigma_range[g] * noise.rendezvous_range_factor,
+        np.full(int(g.sum()), noise.sigma_bearing * noise.rendezvous_bearing_factor),
     )
     counter.add(name, "feature_measurements", int(f.sum()))
     counter.add(name, "rendezvous_measurements", int(g.sum()))
