@@ -74,7 +74,10 @@ class LocalMapOptions:
     gauge_sigma: float = GAUGE_SIGMA
     robust: RobustKernel | None = None  # kernel on feature observations (real data)
     update_period: float = 1.0  # maybe_update(): seconds of new odometry between solves
-    solver: SolverOptions = field(default_factory=SolverOptions)
+    solver: SolverOptions = field(default_factory=SolverOptions)  # converged solves
+    online_solver: SolverOptions = field(  # every other update: warm-started, capped
+        default_factory=lambda: SolverOptions(relative_tolerance=1e-6, max_iterations=10)
+    )
 
 
 @dataclass
@@ -215,8 +218,13 @@ class LocalMap:
             return None
         return self.update()
 
-    def update(self) -> UpdateReport:
-        """Integrate all data covered by odometry and solve (warm-started Gauss-Newton)."""
+    def update(self, converge: bool = False) -> UpdateReport:
+        """Integrate all data covered by odometry and solve (warm-started Gauss-Newton).
+
+        With ``converge`` the solve runs to ``options.solver``'s tolerance (the batch
+        optimum); otherwise with ``options.online_solver`` (looser, capped iterations: the
+        next update continues from where this one stopped).
+        """
         start = time.perf_counter()
         self._consolidate()
         tol = self.options.stamp_tolerance
@@ -248,7 +256,7 @@ class LocalMap:
         new_keys = self._new_key_stamps(cand, tol)
         inserted = self._insert_keys(new_keys)
         new_landmarks, new_obs = self._integrate_features(covered)
-        solve = self._solve()
+        solve = self._solve(self.options.solver if converge else self.options.online_solver)
         self._last_solved_odometry = t_end
         self.last_report = UpdateReport(
             new_poses=len(new_keys),
@@ -377,9 +385,9 @@ class LocalMap:
                 )
         return problem
 
-    def _solve(self) -> SolveReport:
+    def _solve(self, options: SolverOptions) -> SolveReport:
         problem = self._build_problem()
-        report = problem.solve(self.options.solver)
+        report = problem.solve(options)
         n = len(self._keys)
         self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
         self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
@@ -480,9 +488,50 @@ def build_local_map(
     log: RobotLog,
     extra_pose_stamps: ArrayLike = (),
     options: LocalMapOptions | None = None,
+    window: float | None = 60.0,
 ) -> LocalMap:
-    """Offline: the local map of a whole robot log in one batch solve."""
+    """Offline: the local map of a whole robot log, solved to convergence.
+
+    The problem is the same as online. Its initial values come from the online policy run
+    on windows of ``window`` seconds of odometry (each window added and solved warm-started,
+    as :meth:`LocalMap.update` does), which keeps long, drifting real runs (and robust
+    kernels) out of the poor local minima that one batch solve from dead reckoning can end
+    in; ``window=None`` starts the one batch solve from dead reckoning instead.
+    """
     local = LocalMap(log.name, options)
-    local.add_log(log, extra_pose_stamps)
-    local.update()
+    if window is None or len(log.odometry.stamps) == 0:
+        local.add_log(log, extra_pose_stamps)
+        local.update(converge=True)
+        return local
+    odo, f = log.odometry, log.features
+    local.request_poses(log.rendezvous.stamps)
+    local.request_poses(extra_pose_stamps)
+    if not window > 0:
+        raise ValueError(f"window must be positive or None, got {window}")
+    edges = odo.stamps[0] + window * np.arange(
+        1, int((odo.stamps[-1] - odo.stamps[0]) // window) + 1
+    )
+    o_cut = np.searchsorted(odo.stamps, edges, side="right")
+    f_order = np.argsort(f.stamps, kind="stable")
+    f_sorted = f.stamps[f_order]
+    f_cut = np.searchsorted(f_sorted, edges, side="right")
+    o_start = f_start = 0
+    for oc, fc in zip(
+        [*o_cut.tolist(), len(odo.stamps)], [*f_cut.tolist(), len(f_sorted)], strict=True
+    ):
+        local.add_odometry(odo.stamps[o_start:oc], odo.inputs[o_start:oc], odo.sigmas[o_start:oc])
+        sel = f_order[f_start:fc]
+        local.add_features(
+            f.stamps[sel],
+            f.labels[sel],
+            f.ranges[sel],
+            f.bearings[sel],
+            f.sigma_range[sel],
+            f.sigma_bearing[sel],
+        )
+        o_start, f_start = oc, fc
+        last = oc == len(odo.stamps) and fc == len(f_sorted)
+        if not last:
+            local.update()
+    local.update(converge=True)
     return local

@@ -80,7 +80,7 @@ def feed_online(log, late_stamps=(), chunk=1.0, options=None):
         odo.inputs[odo.stamps >= edges[-1]],
         odo.sigmas[odo.stamps >= edges[-1]],
     )
-    local.update()
+    local.update(converge=True)
     return local
 
 
@@ -101,6 +101,39 @@ def test_online_equals_offline_batch_with_late_pose_insertion():
     for s in late:
         assert np.min(np.abs(online.stamps - s)) == 0.0
     assert online.inserted == 2
+
+
+def test_offline_windows_and_one_batch_give_the_same_map():
+    log, _, _, _ = make_log(seed=5)
+    batch = build_local_map(log, window=None)
+    windowed = build_local_map(log, window=7.0)
+    np.testing.assert_array_equal(batch.stamps, windowed.stamps)
+    np.testing.assert_allclose(batch.poses[:, :2], windowed.poses[:, :2], atol=1e-7)
+    np.testing.assert_allclose(batch.landmarks, windowed.landmarks, atol=1e-7)
+
+
+def test_online_updates_stay_near_the_optimum_of_the_data_so_far():
+    log, _, stamps, _ = make_log(seed=6)
+    local = LocalMap("r")
+    odo, f = log.odometry, log.features
+    worst = 0.0
+    for end in stamps[0] + np.arange(2.0, 40.0, 2.0):
+        o = (odo.stamps > end - 2.0) & (odo.stamps <= end)
+        local.add_odometry(odo.stamps[o], odo.inputs[o], odo.sigmas[o])
+        m = (f.stamps > end - 2.0) & (f.stamps <= end)
+        local.add_features(
+            f.stamps[m],
+            f.labels[m],
+            f.ranges[m],
+            f.bearings[m],
+            f.sigma_range[m],
+            f.sigma_bearing[m],
+        )
+        local.update()
+        converged = local._build_problem()
+        converged.solve()
+        worst = max(worst, float(np.abs(converged.values - local.problem.values).max()))
+    assert worst < 1e-4
 
 
 def test_local_map_is_in_robot_frame_and_close_to_truth():
