@@ -16,12 +16,21 @@ observation.
 Update policy (online). Data are buffered as they arrive. :meth:`LocalMap.update` integrates
 everything covered by odometry: new keys (appended or inserted in the past) get initial values
 by composing odometry from their preceding key's current estimate, new landmarks from their
-first observation; then Gauss-Newton runs warm-started from the previous estimate until the
-same convergence rule as a batch solve. Every iteration relinearises the whole map (full
-batch relinearisation; the sparsity pattern and ordering are rebuilt only when keys or
-factors were added), so each update ends at the batch optimum of the data so far, and the
-final update equals :func:`build_local_map` on the whole log. :meth:`LocalMap.maybe_update`
-runs an update only once ``update_period`` seconds of new odometry have arrived.
+first observation; then Gauss-Newton runs warm-started from the previous estimate over the
+whole map (full relinearisation every iteration; the sparsity pattern and ordering are rebuilt
+only because keys or factors were added). An ordinary update stops at ``online_solver``'s
+looser tolerance (relative cost decrease 1e-6, at most 10 iterations): the next update
+continues from there, so the estimate stays within a small tolerance of the optimum of the
+data so far (tested: < 1e-4 m). ``update(converge=True)`` runs to ``solver``'s tolerance, the
+batch optimum. :meth:`LocalMap.maybe_update` updates once ``update_period`` seconds of new
+odometry have arrived. Measured on MR.CLAM robot 1 (1,490 s, 97,890 odometry samples,
+4,771 feature observations, Cauchy kernel, one update per second of data): about 40x real
+time on a shared 2-core machine, equal to the offline map within 1e-5 m.
+
+Offline, :func:`build_local_map` builds the same problem from a whole log and solves it to
+convergence, starting from the online policy run on windows of 60 s (one batch solve from
+dead reckoning can end in a poor local minimum on long real runs: on MR.CLAM robot 1 with a
+Cauchy kernel it reached a cost of 24,701 against 3,634).
 """
 
 from __future__ import annotations
