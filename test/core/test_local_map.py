@@ -3,49 +3,13 @@
 import numpy as np
 import pytest
 
-from csam_ros.core import motion, se2, sensor
+from csam_ros.bench.smoothing import simulate_robot_log
+from csam_ros.core import se2
 from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
-from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
 
 
 def make_log(duration=40.0, rate=67.0, seed=0, landmarks=12, scan_rate=2.0):
-    """A robot at MR.CLAM-like rates: odometry at ~67 Hz, feature scans at their own stamps."""
-    rng = np.random.default_rng(seed)
-    stamps = 100.0 + np.cumsum(rng.uniform(0.9, 1.1, int(duration * rate)) / rate)
-    n = len(stamps)
-    true_u = np.column_stack(
-        [0.3 + 0.1 * np.sin(stamps / 5), np.zeros(n), 0.25 * np.sin(stamps / 3)]
-    )
-    true_u[n // 3 : n // 3 + 80, 2] = 0.0  # a straight stretch (omega = 0 exactly)
-    dt = np.diff(stamps)
-    steps = motion.increment(true_u[1:], dt)
-    truth = motion.dead_reckoning(steps)
-    sig = np.tile([0.03, 0.01, 0.04], (n, 1))
-    meas_u = true_u + rng.normal(size=(n, 3)) * sig
-    lm = rng.uniform(-3, 8, (landmarks, 2))
-    scan_t = np.sort(rng.uniform(stamps[0] + 0.05, stamps[-1] - 0.05, int(duration * scan_rate)))
-    # true pose at scan stamps: compose up to the sample before, then a partial step
-    i = np.searchsorted(stamps, scan_t)
-    part = motion.increment(true_u[i], scan_t - stamps[i - 1])
-    at_scan = se2.compose(truth[i - 1], part)
-    local = se2.inverse_transform_point(at_scan[:, None], lm[None])
-    r, b = sensor.cartesian_to_polar(local)
-    seen_scan, seen_lm = np.nonzero(r < 6.0)
-    k = len(seen_scan)
-    features = FeatureLog(
-        stamps=scan_t[seen_scan],
-        labels=(seen_lm + 10).astype(np.int64),
-        ranges=r[seen_scan, seen_lm] + rng.normal(0, 0.02, k),
-        bearings=b[seen_scan, seen_lm] + rng.normal(0, 0.01, k),
-        sigma_range=np.full(k, 0.02),
-        sigma_bearing=np.full(k, 0.01),
-    )
-    rdv_t = np.array([stamps[0] + 7.31, stamps[0] + 21.005])
-    rendezvous = RendezvousLog(
-        rdv_t, ["other", "other"], np.ones(2), np.zeros(2), np.full(2, 0.1), np.full(2, 0.1)
-    )
-    log = RobotLog("robot1", OdometryLog(stamps, meas_u, sig), features, rendezvous)
-    return log, truth, stamps, lm
+    return simulate_robot_log(duration, rate, seed, landmarks, scan_rate)
 
 
 def feed_online(log, late_stamps=(), chunk=1.0, options=None):
