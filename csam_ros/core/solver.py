@@ -59,7 +59,7 @@ from __future__ import annotations
 
 import time
 import weakref
-from collections.abc import Hashable, Iterable, Sequence
+from collections.abc import Hashable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -618,8 +618,3 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
 def gauge_prior_sqrt_information(sigma: float = GAUGE_SIGMA) -> Array:
     """``(3, 3)`` square-root information of the gauge prior on a robot's first pose."""
     return np.eye(3) / sigma
-
-
-def stack_keys(prefix: str, labels: Sequence[int]) -> list[tuple[str, int]]:
-    """Keys ``(prefix, label)`` for a sequence of integer labels."""
-    return [(prefix, int(i)) for i in labels]
