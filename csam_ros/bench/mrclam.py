@@ -1090,20 +1090,54 @@ class RunOptions:
     max_per_pair: int | None = 20  # rendezvous measurements kept per ordered pair
     consistency: bool = True  # RANSAC check of rendezvous measurements against local maps
     associate: bool = True
+    chi2_gate: float = 9.21  # association gate on the Mahalanobis distance (2 dof)
+    consistency_drift: float = 0.3  # m allowed for local-map errors in the consistency check
+    incremental: float | None = 10.0  # s of data per local-map update; None: one batch solve
 
 
-def run_mrclam(
+def build_local_map_incremental(robot: RobotLog, extra_stamps: FloatArray, options, chunk: float):
+    """A robot's local map fed ``chunk`` seconds at a time, solved after each chunk.
+
+    On long real runs one batch solve started from dead reckoning can settle in a wrong
+    minimum (with a redescending kernel, whole stretches of the path end up flipped and their
+    observations ignored as outliers); solving as the data arrive tracks the path instead.
+    """
+    from csam_ros.core.local_map import LocalMap
+
+    local = LocalMap(robot.name, options)
+    odometry, features = robot.odometry, robot.features
+    local.request_poses(robot.rendezvous.stamps)
+    local.request_poses(extra_stamps)
+    edges = np.arange(odometry.stamps[0], odometry.stamps[-1] + chunk, chunk)
+    edges[0] = -np.inf
+    edges[-1] = np.inf
+    for low, high in zip(edges[:-1], edges[1:], strict=True):
+        o = (odometry.stamps > low) & (odometry.stamps <= high)
+        f = (features.stamps > low) & (features.stamps <= high)
+        local.add_odometry(odometry.stamps[o], odometry.inputs[o], odometry.sigmas[o])
+        local.add_features(
+            features.stamps[f],
+            features.labels[f],
+            features.ranges[f],
+            features.bearings[f],
+            features.sigma_range[f],
+            features.sigma_bearing[f],
+        )
+        local.update()
+    return local
+
+
+def prepare_mrclam(
     dataset: str | Path = DEFAULT_DATASET,
     options: RunOptions | None = None,
     config_path: str | Path = CONFIG,
 ) -> dict:
-    """Import, pre-filter, local maps, C-SAM and evaluation; returns a JSON-ready record."""
-    from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
-    from csam_ros.core.evaluation import evaluate
+    """Import, thin the rendezvous measurements and build every robot's local map (with a
+    pose at every kept rendezvous stamp of any robot pair), for one or many C-SAM runs."""
     from csam_ros.core.factors import Cauchy
     from csam_ros.core.local_map import LocalMapOptions, build_local_map
     from csam_ros.core.rendezvous import required_stamps
-    from csam_ros.core.robust import consistent_rendezvous, thin_rendezvous
+    from csam_ros.core.robust import thin_rendezvous
 
     options = options or RunOptions()
     config = load_config(config_path)
@@ -1124,23 +1158,68 @@ def run_mrclam(
     clock = time.perf_counter()
     local_options = LocalMapOptions(robust=Cauchy() if options.robust else None)
     stamps = required_stamps({n: r.rendezvous for n, r in log.robots.items()})
-    local_maps = {
-        name: build_local_map(robot, stamps[name], local_options)
-        for name, robot in log.robots.items()
-    }
+    local_maps = {}
+    for name, robot in log.robots.items():
+        if options.incremental:
+            local_maps[name] = build_local_map_incremental(
+                robot, stamps[name], local_options, options.incremental
+            )
+        else:
+            local_maps[name] = build_local_map(robot, stamps[name], local_options)
     timing["local_maps"] = time.perf_counter() - clock
+    return {
+        "log": log,
+        "import": report.to_dict(),
+        "rendezvous_measured": measured,
+        "thinning": thin_report.to_dict(),
+        "local_maps": local_maps,
+        "timing_s": timing,
+    }
+
+
+def run_mrclam(
+    dataset: str | Path = DEFAULT_DATASET,
+    options: RunOptions | None = None,
+    config_path: str | Path = CONFIG,
+    prepared: dict | None = None,
+) -> dict:
+    """Pre-filters, C-SAM and evaluation on ``options.robots``; returns a JSON-ready record.
+
+    ``prepared`` (from :func:`prepare_mrclam` on a superset of the robots, same window and
+    thinning) lets several runs share the local maps.
+    """
+    from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
+    from csam_ros.core.evaluation import evaluate
+    from csam_ros.core.log import MultiRobotLog
+    from csam_ros.core.robust import consistent_rendezvous, select_rendezvous
+
+    options = options or RunOptions()
+    prepared = prepared or prepare_mrclam(dataset, options, config_path)
+    names = [f"robot{r}" for r in options.robots]
+    full: MultiRobotLog = prepared["log"]
+    missing = [n for n in names if n not in full.robots]
+    if missing:
+        raise ValueError(f"robots {missing} were not prepared")
+    robots = {}
+    for name in names:
+        robot = full.robots[name]
+        keep = np.isin(np.array(robot.rendezvous.observed, dtype=object), names)
+        robots[name] = replace(robot, rendezvous=select_rendezvous(robot.rendezvous, keep))
+    log = MultiRobotLog(robots, full.truth)
+    local_maps = prepared["local_maps"]
+    timing = dict(prepared["timing_s"])
     consistency = None
     if options.consistency:
         clock = time.perf_counter()
-        trajectories = {n: (m.stamps, m.poses) for n, m in local_maps.items()}
-        log, consistency = consistent_rendezvous(log, trajectories)
+        trajectories = {n: (local_maps[n].stamps, local_maps[n].poses) for n in names}
+        log, consistency = consistent_rendezvous(log, trajectories, drift=options.consistency_drift)
         timing["consistency"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    maps = [robot_map_from_local_map(local_maps[name]) for name in log.robots]
+    maps = [robot_map_from_local_map(local_maps[name]) for name in names]
     result = join_maps(
         maps,
         {n: r.rendezvous for n, r in log.robots.items()},
-        CsamConfig(associate=options.associate),
+        CsamConfig(associate=options.associate, chi2_gate=options.chi2_gate),
     )
     timing["csam"] = time.perf_counter() - clock
     summary = result.to_dict()
@@ -1148,9 +1227,12 @@ def run_mrclam(
     metrics = evaluate(summary, log.truth)
     return {
         "options": asdict(options),
-        "import": report.to_dict(),
-        "rendezvous_measured": measured,
-        "thinning": thin_report.to_dict(),
+        "import": prepared["import"],
+        "rendezvous_measured": {n: prepared["rendezvous_measured"][n] for n in names},
+        "thinning": {
+            "kept": {n: int(log.robots[n].rendezvous.stamps.size) for n in names},
+            "dropped": {n: prepared["thinning"]["dropped"].get(n, {}) for n in names},
+        },
         "consistency": consistency.to_dict() if consistency else None,
         "metrics": metrics,
         "summary": summary,
@@ -1208,6 +1290,11 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--start", type=float, default=0.0)
     run.add_argument("--duration", type=float, default=None)
     run.add_argument("--thin", type=float, default=5.0, help="s between rendezvous kept per pair")
+    run.add_argument("--gate", type=float, default=9.21, help="chi-square gate (2 dof)")
+    run.add_argument(
+        "--incremental", type=float, default=10.0, help="s per local-map update; 0: one batch"
+    )
+    run.add_argument("--drift", type=float, default=0.3, help="m, consistency tolerance")
     run.add_argument("--max-per-pair", type=int, default=20, help="0: no cap")
     run.add_argument("--no-robust", action="store_true", help="no Cauchy kernel in local maps")
     run.add_argument("--no-consistency", action="store_true", help="skip the RANSAC check")
@@ -1218,6 +1305,11 @@ def main(argv: list[str] | None = None) -> int:
     table.add_argument("--start", type=float, default=0.0)
     table.add_argument("--duration", type=float, default=None)
     table.add_argument("--thin", type=float, default=5.0)
+    table.add_argument("--gate", type=float, default=9.21, help="chi-square gate (2 dof)")
+    table.add_argument(
+        "--incremental", type=float, default=10.0, help="s per local-map update; 0: one batch"
+    )
+    table.add_argument("--drift", type=float, default=0.3, help="m, consistency tolerance")
     table.add_argument("--max-per-pair", type=int, default=20)
     table.add_argument("--json", type=Path, default=None, help="write every record here")
     args = parser.parse_args(argv)
@@ -1227,6 +1319,9 @@ def main(argv: list[str] | None = None) -> int:
             duration=args.duration,
             thin_interval=args.thin,
             max_per_pair=args.max_per_pair or None,
+            chi2_gate=args.gate,
+            consistency_drift=args.drift,
+            incremental=args.incremental or None,
         )
         if args.command == "run":
             base.robots = [int(r) for r in args.robots.split(",")]
@@ -1250,8 +1345,13 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(RUN_HEADER, flush=True)
         records = []
+        prepared = (
+            None
+            if args.command == "run"
+            else prepare_mrclam(args.dataset, replace(base, robots=[1, 2, 3, 4, 5]))
+        )
         for label, job in jobs:
-            record = run_mrclam(args.dataset, job)
+            record = run_mrclam(args.dataset, job, prepared=prepared)
             records.append(record)
             print(_run_line(label, record), flush=True)
         if args.command == "run" and args.out is not None:
