@@ -34,6 +34,9 @@ structure; each iteration only refills values with one ``np.bincount``. The fact
 sparse ``L D L^T`` by qdldl with its approximate-minimum-degree fill-reducing ordering; the
 symbolic analysis is kept and only the numeric factorisation is redone (``update``). The
 upper-triangular square-root information is ``R = sqrt(D) L^T`` (permuted), ``R^T R = A^T A``.
+Chosen by benchmark (``python -m csam_ros.bench.smoothing``, 7,000 poses, 150 landmarks):
+one Gauss-Newton iteration takes 11 ms with qdldl against 195 ms with scipy's SuperLU
+(``backend="splu"``, COLAMD; kept as a fallback) and 102 ms for GTSAM's batch iteration.
 
 Iteration: pure Gauss-Newton steps while the cost falls by at least a quarter of what the
 linear model predicts (gain ratio ``rho`` = actual / predicted decrease); otherwise
