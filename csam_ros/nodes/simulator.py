@@ -53,6 +53,24 @@ class Simulator(Node):
             1,
             100,
         )
+        self.start_delay = declare(
+            self,
+            "start_delay",
+            1.0,
+            "seconds between seeing the subscribers and the start: a best-effort subscriber "
+            "may see the publisher later than the publisher sees it",
+            0.0,
+            60.0,
+        )
+        self.ready_since: float | None = None
+        self.required_nodes = list(
+            declare(
+                self,
+                "required_subscriber_nodes",
+                [""],
+                "node names that must subscribe to every topic before the start (a recorder)",
+            )
+        )
         self.exit_when_done = declare(
             self, "exit_when_done", False, "shut down once everything is published"
         )
@@ -79,15 +97,22 @@ class Simulator(Node):
         self.timer = self.create_timer(0.01, self._tick, clock=steady_clock())
 
     def _subscribers_ready(self) -> bool:
+        sensors = [f"/{r}/{s}" for r in self.robots for s in ("odom", "features", "rendezvous")]
+        if any(self.count_subscribers(t) < self.min_subscribers for t in sensors):
+            return False
+        required = {n for n in self.required_nodes if n}
         return all(
-            self.count_subscribers(f"/{r}/{s}") >= self.min_subscribers
-            for r in self.robots
-            for s in ("odom", "features", "rendezvous")
+            required <= {i.node_name for i in self.get_subscriptions_info_by_topic(t)}
+            for t in self.topic_publishers
         )
 
     def _tick(self) -> None:
         if self.wall_start is None:
             if self.wait_for_subscribers and not self._subscribers_ready():
+                return
+            if self.ready_since is None:
+                self.ready_since = time.monotonic()
+            if time.monotonic() - self.ready_since < self.start_delay:
                 return
             self.wall_start = time.monotonic()
         if self.rate > 0:

@@ -176,26 +176,27 @@ class Smoother(Node):
             self.solve_and_publish()
 
     def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        self.solve_and_publish()
+        self.solve_and_publish(converge=True)
         response.success = self.published_ns >= 0
         response.message = str(self.published_ns)
         return response
 
-    def solve_and_publish(self) -> None:
-        """Update the local map and publish it; a failure is logged and counted, never fatal
+    def solve_and_publish(self, converge: bool = False) -> None:
+        """Update the local map and publish it (``converge``: iterate to the batch optimum,
+        else the online policy's capped update); a failure is logged and counted, never fatal
         (the last published map stays valid)."""
         start = time.perf_counter()
         try:
             if self.last_odometry_ns >= 0:
-                self._solve_and_publish()
+                self._solve_and_publish(converge)
         except Exception as err:  # noqa: BLE001 (a node never dies of its input)
             self.errors += 1
             self.get_logger().error(f"local map update failed: {type(err).__name__}: {err}")
         self.solve_seconds = time.perf_counter() - start
         self.publish_status()
 
-    def _solve_and_publish(self) -> None:
-        report = self.map.update()
+    def _solve_and_publish(self, converge: bool) -> None:
+        report = self.map.update(converge=converge)
         self.dirty = False
         if len(self.map.stamps) < 2:  # only the start pose: nothing to publish yet
             return

@@ -66,7 +66,7 @@ def _run_to_the_end(executor, spin, simulator, smoothers, merger) -> dict:
     # let reliable messages in flight arrive, then flush every smoother like `csam demo` does
     spin(executor, lambda: False, 1.0)
     for s in smoothers.values():
-        s.solve_and_publish()
+        s.solve_and_publish(converge=True)
     final = {r: s.published_ns for r, s in smoothers.items()}
 
     def merged_final() -> bool:
