@@ -151,7 +151,7 @@ def rendezvous_from_message(msg: RendezvousObservations) -> tuple[float, dict[st
     """(stamp [s], observed names and arrays ranges, bearings, sigma_range, sigma_bearing)."""
     obs = msg.observations
     arrays: dict[str, object] = {
-        "observed": [o.observed_robot for o in obs],
+        "observed": np.array([o.observed_robot for o in obs], dtype=object),
         "ranges": np.array([o.range for o in obs], dtype=float),
         "bearings": np.array([o.bearing for o in obs], dtype=float),
         "sigma_range": np.array([o.sigma_range for o in obs], dtype=float),
@@ -332,10 +332,7 @@ class LogBuilder:
             )
             if keep is not None:
                 self._robot(robot)
-                kept = {
-                    k: (np.asarray(v, dtype=object if k == "observed" else float)[keep])
-                    for k, v in a.items()
-                }
+                kept = {k: v[keep] for k, v in a.items()}
                 self._rendezvous.setdefault(robot, []).append((stamp, kept))
 
     def build(self) -> MultiRobotLog:
@@ -351,7 +348,7 @@ class LogBuilder:
                 name,
                 odometry,
                 _feature_log(self._features.get(name, [])),
-                _rendezvous_log(self._rendezvous.get(name, [])),
+                rendezvous_log_from_chunks(self._rendezvous.get(name, [])),
             )
         return MultiRobotLog(robots, self.truth)
 
@@ -378,7 +375,8 @@ def _feature_log(chunks: list[tuple[float, dict[str, np.ndarray]]]) -> FeatureLo
     )
 
 
-def _rendezvous_log(chunks: list[tuple[float, dict[str, object]]]) -> RendezvousLog:
+def rendezvous_log_from_chunks(chunks: list[tuple[float, dict[str, object]]]) -> RendezvousLog:
+    """Rendezvous observations accepted message by message, as one log."""
     stamps = (
         np.concatenate([np.full(len(c[1]["ranges"]), c[0]) for c in chunks])
         if chunks

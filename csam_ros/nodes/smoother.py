@@ -28,6 +28,7 @@ from csam_ros.conversions import (
     ns_to_time,
     odometry_from_message,
     rendezvous_from_message,
+    rendezvous_log_from_chunks,
     stamp_to_ns,
     time_to_ns,
 )
@@ -35,7 +36,6 @@ from csam_ros.core.csam import robot_map_from_local_map
 from csam_ros.core.factors import Cauchy, Huber
 from csam_ros.core.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.local_map import LocalMapOptions
-from csam_ros.core.log import RendezvousLog
 from csam_ros.core.validation import MeasurementFilter
 from csam_ros.map_messages import rendezvous_poses_message, robot_map_to_message
 from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA_BUFFERED, declare, run_node
@@ -149,11 +149,7 @@ class Smoother(Node):
             a["sigma_bearing"],
         )
         if keep is not None:
-            kept = {
-                k: np.asarray(v, dtype=object if k == "observed" else float)[keep]
-                for k, v in a.items()
-            }
-            self.own_rendezvous.append((stamp, kept))
+            self.own_rendezvous.append((stamp, {k: v[keep] for k, v in a.items()}))
             self.request_pose(stamp)
 
     def on_peer_rendezvous(self, peer: str, msg: RendezvousObservations) -> None:
@@ -222,17 +218,7 @@ class Smoother(Node):
             indices = np.unique(self.map.pose_index(stamps))
         else:
             root, indices = np.zeros((0, 0)), np.zeros(0, dtype=np.int64)
-        chunks = self.own_rendezvous
-        measurements = RendezvousLog(
-            np.concatenate([np.full(len(c[1]["ranges"]), c[0]) for c in chunks])
-            if chunks
-            else np.zeros(0),
-            [str(o) for c in chunks for o in c[1]["observed"]],
-            *(
-                np.concatenate([c[1][k] for c in chunks]).astype(float) if chunks else np.zeros(0)
-                for k in ("ranges", "bearings", "sigma_range", "sigma_bearing")
-            ),
-        )
+        measurements = rendezvous_log_from_chunks(self.own_rendezvous)
         return rendezvous_poses_message(robot_map, stamp_ns, indices, root, measurements)
 
     def path(self, stamp_ns: int) -> Path:
