@@ -64,11 +64,11 @@ from scipy.stats import chi2
 
 from csam_ros.core import se2
 from csam_ros.core.log import GroundTruth, MultiRobotLog, OdometryLog, RobotLog
-from csam_ros.core.mrclam import MrclamNoise, import_mrclam, load_config
+from csam_ros.core.mrclam import MrclamNoise, default_dataset_dir, import_mrclam, load_config
 
 FloatArray = NDArray[np.float64]
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "mrclam.yaml"
-DEFAULT_DATASET = Path("/work/shared/data/mrclam/MRCLAM_Dataset1")
+DEFAULT_DATASET = default_dataset_dir()
 CAUCHY_SCALE = 2.3849  # 95% efficiency at the normal distribution
 MAD_TO_SIGMA = 1.4826
 # Where the estimation starts (deliberately not the config's values, so that re-running it

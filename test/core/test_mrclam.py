@@ -11,11 +11,12 @@ import pytest
 from csam_ros.core.mrclam import (
     MrclamFormatError,
     MrclamNoise,
+    default_dataset_dir,
     import_mrclam,
     load_config,
 )
 
-DATASET = Path("/work/shared/data/mrclam/MRCLAM_Dataset1")
+DATASET = default_dataset_dir()
 ROOT = Path(__file__).resolve().parents[2]
 HEADER = "# a comment line\n# another one\n"
 # subjects 1-3 robots, 6-9 landmarks
