@@ -226,13 +226,23 @@ def cmd_import(args: argparse.Namespace) -> int:
     if args.out.exists():
         raise CliError(f"{args.out} exists: an import never overwrites a bag")
     if args.format == "mrclam":
-        from csam_ros.core.mrclam import load_mrclam
+        from csam_ros.core.mrclam import MrclamFormatError, import_mrclam, load_config
+        from csam_ros.core.scenario import CONFIG_DIR
 
+        config = load_config(CONFIG_DIR / "mrclam.yaml")
         robots = [int(r) for r in args.robots.split(",")] if args.robots else None
-        log, report = load_mrclam(
-            args.source, robots=robots, start=args.start, duration=args.duration
-        )
-        print(report)
+        try:
+            log, report = import_mrclam(
+                args.source,
+                robots=robots,
+                start=args.start,
+                duration=args.duration,
+                noise=config["noise"],
+                landmark_swaps=[tuple(p) for p in config.get("landmark_swaps") or ()],
+            )
+        except (MrclamFormatError, ValueError) as err:
+            raise CliError(str(err)) from None
+        print(report.summary())
     else:
         from csam_ros.core.slam2d import Slam2dFormatError
         from csam_ros.core.slam2d_log import read_slam2d_log
