@@ -215,6 +215,8 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
         first = simulator.messages[[m.topic for m in simulator.messages].index("/robot1/features")]
         features.publish(first.message)
         features.publish(first.message)
+        last = [m for m in simulator.messages if m.topic == "/robot1/features"][-1]
+        features.publish(last.message)  # the same stamp again: a duplicate
         spin(executor, lambda: False, 0.5)
         smoothers["robot1"].publish_status()
         assert spin(
@@ -227,6 +229,7 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
         assert counts["dropped/empty"] == "1"
         assert counts["dropped/unknown_robot"] == "1"
         assert int(counts["dropped/stamp_backwards"]) == 2  # the repeated scan twice
+        assert counts["dropped/duplicate"] == "1"
         for name, expected in core_result["robots"].items():
             np.testing.assert_allclose(
                 summary["robots"][name]["poses_joined"], expected["poses_joined"], atol=1e-6
