@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -36,6 +38,15 @@ LATCHED = QoSProfile(
 )
 
 
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM, in place of rclpy's handlers (which would shut the
+    context down under a running callback): the node's loop ends, then it finishes cleanly."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
+
+
 def steady_clock() -> Clock:
     """A monotonic wall clock for timers that must not follow /clock (sim time)."""
     return Clock(clock_type=ClockType.STEADY_TIME)
@@ -52,9 +63,7 @@ def declare(
     """Declare a parameter with a description (and a range for numbers); return its value."""
     descriptor = ParameterDescriptor(description=description)
     if minimum is not None or maximum is not None:
-        if isinstance(default, bool):
-            pass
-        elif isinstance(default, int):
+        if isinstance(default, int) and not isinstance(default, bool):
             descriptor.integer_range = [
                 IntegerRange(from_value=int(minimum), to_value=int(maximum), step=0)
             ]

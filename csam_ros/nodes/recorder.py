@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import argparse
 import re
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
@@ -43,6 +41,7 @@ from rclpy.utilities import remove_ros_args
 
 from csam_ros.bag import BagError, BagWriter, message_class, subscription_qos
 from csam_ros.bag.types import UnknownMessageTypeError
+from csam_ros.nodes.common import stop_on_signals
 
 MAX_HELD_BACK = 100_000  # messages kept while waiting for the first /clock under sim time
 
@@ -153,15 +152,6 @@ class RecorderNode(Node):
             "dropped waiting for /clock"
         )
         self.get_logger().info(summary)
-
-
-def stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM (instead of rclpy's handlers, which would shut the
-    context down under a running callback): the spin loop ends, then the bag is finished."""
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    return stop
 
 
 def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
