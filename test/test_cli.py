@@ -128,7 +128,7 @@ def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
 
 def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
     bag = REPO / "bags" / "map_joining"
-    live = csam("replay", bag, "--rate", "0", "--out", tmp_path / "live")
+    live = csam("replay", bag, "--rate", "4", "--out", tmp_path / "live")
     assert live.returncode == 0, live.stdout + live.stderr
     offline = csam("replay", bag, "--offline", "--out", tmp_path / "offline")
     assert offline.returncode == 0, offline.stderr

@@ -16,7 +16,6 @@ complete chunk (with a warning); a bag without metadata.yaml plays from its .mca
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 import time
@@ -35,6 +34,7 @@ from rosgraph_msgs.msg import Clock
 
 from csam_ros.bag import BagError, BagInfo, BagMessage, inspect_bag, publisher_qos, read_bag
 from csam_ros.bag.types import UnknownMessageTypeError, message_class
+from csam_ros.nodes.common import stop_on_signals
 
 CLOCK_TOPIC = "/clock"
 
@@ -154,15 +154,6 @@ class PlayerNode(Node):
         )
 
 
-def stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM (instead of rclpy's handlers, which would shut the
-    context down under a running publish): playback stops, then the node shuts down."""
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    return stop
-
-
 def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="player",
@@ -182,7 +173,11 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
         "--clock-period", type=float, default=0.05, metavar="S", help="/clock period in gaps"
     )
     parser.add_argument(
-        "--delay", type=float, default=0.5, metavar="S", help="wait S s for discovery first"
+        "--delay",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="wait S s (after any --wait-for-subscribers) for discovery to settle",
     )
     parser.add_argument(
         "--wait-for-subscribers",
@@ -247,12 +242,14 @@ def main(args: Sequence[str] | None = None) -> int:
         if not node.topics:
             node.get_logger().error("no topic of the bag can be played")
             return 1
-        stop.wait(options.delay)
         if options.wait_for_subscribers is not None:
             wanted = options.wait_for_subscribers or node.topics
             unmatched = node.wait_for_subscribers(wanted, options.wait_timeout)
             if unmatched:
                 node.get_logger().warning(f"no subscriber on {', '.join(unmatched)}; playing")
+        # after the publisher sees a subscriber, the subscriber may not see the publisher yet;
+        # a best-effort sample sent in that gap is lost, so let discovery settle both ways
+        stop.wait(options.delay)
         while True:
             node.play(read_bag(bag.path, node.topics), options.rate, options.clock_period)
             if not options.loop or stop.is_set():
