@@ -1,7 +1,7 @@
 """Benchmark of single-robot square-root smoothing against GTSAM (run as a module).
 
 ``python -m csam_ros.bench.smoothing [--poses 7000 --landmarks 150 --observations 3600]
-[--victoria PATH | --no-victoria] [--no-identical] [--tolerance 1e-8]``
+[--victoria PATH | --no-victoria] [--no-identical] [--tolerance 1e-8] [--chunk 1000]``
 
 Problems: (1) a simulated landmark SLAM problem generated with a fixed seed; (2) the public
 Victoria Park data set in the ``ODOMETRY``/``LANDMARK`` text format (the copy shipped in
@@ -15,6 +15,13 @@ its parametrisation: the same model to first order, not the same function), the 
 reference; and GTSAM's LM on exactly this project's objective through ``CustomFactor`` (slow,
 Python per factor; used to compare the optimum reached, not the speed). Both LMs stop on the
 same relative cost decrease ``--tolerance``.
+
+On Victoria Park the batch solvers from dead reckoning end in poor local minima; the
+incremental policy (``ours-incremental``: ``--chunk`` poses at a time, warm-started, inner
+solves to ``--chunk-tolerance``, the last to ``--tolerance``) reaches a far lower cost and its
+time is compared with GTSAM's batch LM. Chunk size measured (same optimum, cost 3,092, every
+time; seconds on one loaded run): 200 poses 2.2 s, 500 1.0 s, 700 1.0 s, 1000 0.9 s, 1200
+1.5 s; the default 1000 is that measurement, not a property of the method.
 
 Printed side by side: problem size, iterations, seconds per Gauss-Newton iteration
 (linearise, factor, solve, evaluate the cost), total seconds to convergence (solver call
@@ -470,11 +477,16 @@ def gtsam_marginal_covariance(
 
 
 def solve_incremental(
-    g: GraphData, chunk: int, tolerance: float, max_iterations: int
+    g: GraphData,
+    chunk: int,
+    tolerance: float,
+    max_iterations: int,
+    chunk_tolerance: float = 1e-6,
 ) -> tuple[Problem, int, float]:
     """The local map's policy on a whole problem: add ``chunk`` poses at a time (in index
     order) with the observations they make, initialise them by composing odometry from the
-    current estimate, and solve warm-started; the last solve to ``tolerance``.
+    current estimate, and solve warm-started to ``chunk_tolerance`` (or ``tolerance`` if
+    tighter); the last solve to ``tolerance``.
 
     Returns the final problem, the total number of iterations and seconds.
     """
@@ -512,7 +524,7 @@ def solve_incremental(
         last = k == n
         report = problem.solve(
             SolverOptions(
-                relative_tolerance=tolerance if last else max(tolerance, 1e-6),
+                relative_tolerance=tolerance if last else max(tolerance, chunk_tolerance),
                 max_iterations=max_iterations,
             )
         )
@@ -576,7 +588,7 @@ def worker(solver: str, spec: str, args: argparse.Namespace, out: Path) -> dict[
     result: dict[str, Any] = {}
     if solver == "ours-incremental":
         problem, iterations, seconds = solve_incremental(
-            graph_data, args.chunk, args.tolerance, args.max_iterations
+            graph_data, args.chunk, args.tolerance, args.max_iterations, args.chunk_tolerance
         )
         result.update(
             build=0.0,
@@ -701,6 +713,13 @@ def compare(spec: str, args: argparse.Namespace, argv: list[str], solvers: list[
             f"{ours['per_iteration'] / native['per_iteration']:.3f}, time to convergence "
             f"{ours['total'] / native['total']:.3f}"
         )
+    if "ours-incremental" in by_name and "gtsam-native" in by_name:
+        inc, native = by_name["ours-incremental"][0], by_name["gtsam-native"][0]
+        print(
+            f"   ratio ours-incremental / GTSAM native: time to convergence "
+            f"{inc['total'] / native['total']:.3f} (our cost {inc['our_cost']:.1f} vs "
+            f"{native['our_cost']:.1f})"
+        )
     if "ours" in by_name and "gtsam-identical" in by_name:
         a, b = by_name["ours"][1], by_name["gtsam-identical"][1]
         diff = np.abs(a - b)
@@ -781,7 +800,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--tolerance", type=float, default=1e-8)
     parser.add_argument("--max-iterations", type=int, default=200)
-    parser.add_argument("--chunk", type=int, default=200, help="poses per incremental step")
+    parser.add_argument("--chunk", type=int, default=1000, help="poses per incremental step")
+    parser.add_argument(
+        "--chunk-tolerance", type=float, default=1e-6, help="relative tolerance of inner solves"
+    )
     parser.add_argument("--victoria", default=None, help="path of victoria_park.txt")
     parser.add_argument("--no-victoria", action="store_true")
     parser.add_argument("--no-identical", action="store_true", help="skip GTSAM CustomFactor")

@@ -94,6 +94,24 @@ def test_normal_equations_equal_dense_product_of_whitened_jacobian():
     assert cost == pytest.approx(p.cost())
 
 
+def test_evaluate_then_assemble_leaves_the_system_alone_until_assembled():
+    p = mixed_problem()
+    system = p.normal_equations()
+    system.linearize(p.values)
+    hessian, gradient = system.hessian_data.copy(), system.gradient.copy()
+    elsewhere = p.values + 0.1
+    trial = system.evaluate(elsewhere)  # a trial step: nothing assembled yet
+    np.testing.assert_array_equal(system.hessian_data, hessian)
+    np.testing.assert_array_equal(system.gradient, gradient)
+    assert trial.cost == pytest.approx(p.cost(elsewhere))
+    system.assemble(trial)
+    assembled, assembled_gradient = system.hessian_data.copy(), system.gradient.copy()
+    assert not np.allclose(assembled_gradient, gradient)
+    assert system.linearize(elsewhere) == trial.cost
+    np.testing.assert_array_equal(system.hessian_data, assembled)
+    np.testing.assert_array_equal(system.gradient, assembled_gradient)
+
+
 def test_gauss_newton_converges_and_backends_agree():
     p = mixed_problem()
     q = mixed_problem()
