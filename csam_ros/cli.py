@@ -39,10 +39,32 @@ def _fresh_dir(path: Path | None, name: str) -> Path:
 
 
 def _csam_params(document: dict) -> dict:
+    """The merger's parameters: the ``csam:`` section (validated before any node starts)."""
     from csam_ros.core.csam import CsamConfig
 
-    CsamConfig.from_dict(document.get("csam"), "csam")  # validate before any node starts
+    try:
+        CsamConfig.from_dict(document.get("csam"), "csam")
+    except ValueError as err:
+        raise CliError(str(err)) from None
     return dict(document.get("csam") or {})
+
+
+THINNING_KEYS = ("rendezvous_min_interval", "rendezvous_max_per_pair")
+
+
+def _smoother_params(document: dict) -> dict:
+    """The smoothers' parameters: the ``local_map:`` section (but the offline-only
+    ``batch_window``) and the rendezvous thinning of the ``csam:`` section."""
+    from csam_ros.core.local_map import LocalMapConfig
+
+    try:
+        LocalMapConfig.from_dict(document.get("local_map"), "local_map")
+    except ValueError as err:
+        raise CliError(str(err)) from None
+    params = {k: v for k, v in (document.get("local_map") or {}).items() if k != "batch_window"}
+    csam = document.get("csam") or {}
+    params.update({k: csam[k] for k in THINNING_KEYS if k in csam})
+    return params
 
 
 def _finish(out: Path, summary: dict, truth=None) -> None:
@@ -90,7 +112,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             "-p",
             'required_subscriber_nodes:=["recorder"]',
         ],
-        smoother_params={"field_of_view_deg": float(fov)},
+        smoother_params={"field_of_view_deg": float(fov), **_smoother_params(document)},
         merger_params=_csam_params(document),
     )
     summary = run_live(run)
@@ -117,14 +139,20 @@ def offline_summary(bag: Path, config_document: dict | None = None) -> tuple[dic
     from csam_ros.bag import read_bag_messages
     from csam_ros.conversions import FEATURES_TRUTH_TOPIC, LogBuilder, sensor_topics
     from csam_ros.core.csam import CsamConfig, run_csam
+    from csam_ros.core.local_map import LocalMapConfig
 
+    document = config_document or {}
+    try:
+        config = CsamConfig.from_dict(document.get("csam"), "csam")
+        local_map = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
+    except ValueError as err:
+        raise CliError(str(err)) from None
     robots = _bag_robots(bag)
     builder = LogBuilder(robots)
     for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]):
         builder.add(m.topic, m.message)
     log = builder.build()
-    config = CsamConfig.from_dict((config_document or {}).get("csam"), "csam")
-    summary = run_csam(log, config).to_dict()
+    summary = run_csam(log, config, local_map).to_dict()
     summary["dropped"] = {r: c.as_dict() for r, c in builder.filter.drops.items()}
     return summary, log.truth
 
@@ -137,9 +165,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise CliError(f"{bag}: no such bag")
     document = {}
     if args.config is not None:
-        import yaml
+        from csam_ros.core.scenario import ScenarioError, load_document
 
-        document = yaml.safe_load(args.config.read_text()) or {}
+        try:
+            document = load_document(args.config)
+        except (ScenarioError, OSError) as err:
+            raise CliError(f"--config: {err}") from None
+    merger_params, smoother_params = _csam_params(document), _smoother_params(document)
     out = _fresh_dir(args.out, f"replay-{bag.name}")
     try:
         if args.offline:
@@ -166,7 +198,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     "--wait-for-subscribers",
                     *sensor_topics(robots),
                 ],
-                merger_params=_csam_params(document),
+                smoother_params=smoother_params,
+                merger_params=merger_params,
             )
             summary = run_live(run)
     except BagError as err:
@@ -193,10 +226,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1))
     error, assoc = metrics["landmark_error"], metrics["association"]
     print(f"{run_dir}/metrics.json")
-    print(
-        f"  landmarks: RMSE {error['rmse_m']:.3f} m, max {error['max_m']:.3f} m over "
-        f"{error['n_features']} features (after a rigid 2D alignment to the truth)"
-    )
+    if error["rmse_m"] is None:
+        print("  landmarks: no feature of the joined map could be scored")
+    else:
+        print(
+            f"  landmarks: RMSE {error['rmse_m']:.3f} m, max {error['max_m']:.3f} m over "
+            f"{error['n_features']} features (after a rigid 2D alignment to the truth)"
+        )
     print(
         f"  associations: precision {assoc['precision']:.3f}, recall {assoc['recall']:.3f} "
         f"({assoc['true_positives']} of {assoc['true_pairs']} true pairs)"
@@ -285,7 +321,11 @@ def parser() -> argparse.ArgumentParser:
         action="store_true",
         help="feed the bag through the core in stamp order, no DDS",
     )
-    replay.add_argument("--config", type=Path, help="YAML with a csam: section")
+    replay.add_argument(
+        "--config",
+        type=Path,
+        help="YAML with csam: and local_map: sections (e.g. config/mrclam.yaml)",
+    )
     replay.set_defaults(func=cmd_replay)
 
     imp = sub.add_parser("import", help="convert a data set into a bag of sensor topics")

@@ -53,7 +53,7 @@ def _kernel_to_message(kernel: RobustKernel | None) -> tuple[str, float]:
     name = {Huber: "huber", Cauchy: "cauchy"}.get(type(kernel))
     if name is None:
         raise LocalMapError(f"robust kernel {type(kernel).__name__} has no message form")
-    return name, float(kernel.threshold)
+    return name, float(kernel.threshold if isinstance(kernel, Huber) else kernel.scale)
 
 
 def _kernel_from_message(name: str, parameter: float) -> RobustKernel | None:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from csam_ros.core.csam import join_maps, robot_map_from_local_map
-from csam_ros.core.local_map import build_local_map
+from csam_ros.core.factors import Cauchy, Huber
+from csam_ros.core.local_map import LocalMapOptions, build_local_map
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
@@ -38,6 +39,16 @@ def test_local_map_round_trip_gives_the_same_problem(maps_and_logs) -> None:
         np.testing.assert_array_equal(back.feature_labels, m.feature_labels)
         np.testing.assert_array_equal(back.feature_positions, m.feature_positions)
         assert back.problem.cost() == pytest.approx(m.problem.cost(), rel=1e-12)
+
+
+@pytest.mark.parametrize("kernel", [Huber(2.0), Cauchy(), Cauchy(1.5)])
+def test_robust_kernels_survive_the_message(kernel) -> None:
+    log = simulate(load_scenario("map_joining"), seed=2).robots["robot1"]
+    m = robot_map_from_local_map(build_local_map(log, options=LocalMapOptions(robust=kernel)))
+    back = robot_map_from_message(robot_map_to_message(m, 1))
+    kernels = [f.robust for f in back.problem.factors if f.robust is not None]
+    assert kernels and all(k == kernel for k in kernels)
+    assert back.problem.cost() == pytest.approx(m.problem.cost(), rel=1e-12)
 
 
 def test_join_from_messages_equals_join_in_process(maps_and_logs) -> None:

@@ -63,8 +63,14 @@ from scipy.optimize import minimize
 from scipy.stats import chi2
 
 from csam_ros.core import se2
+from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
+from csam_ros.core.evaluation import evaluate
+from csam_ros.core.local_map import LocalMapConfig, build_local_map
 from csam_ros.core.log import GroundTruth, MultiRobotLog, OdometryLog, RobotLog
 from csam_ros.core.mrclam import MrclamNoise, default_dataset_dir, import_mrclam, load_config
+from csam_ros.core.rendezvous import required_stamps
+from csam_ros.core.robust import select_rendezvous, thin_rendezvous
+from csam_ros.core.scenario import load_document
 
 FloatArray = NDArray[np.float64]
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "mrclam.yaml"
@@ -1104,60 +1110,23 @@ def _print_noise(estimate: NoiseEstimate) -> None:
 
 @dataclass
 class RunOptions:
-    """How :func:`run_mrclam` prepares the data for C-SAM."""
+    """Which robots and window :func:`run_mrclam` runs, and C-SAM's settings (the ``csam:``
+    and ``local_map:`` sections of ``config/mrclam.yaml``, as ``csam replay`` reads them)."""
 
     robots: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5])
     start: float = 0.0
     duration: float | None = None
-    robust: bool = True  # Cauchy kernel on the local maps' feature observations
-    thin_interval: float = 5.0  # s between kept rendezvous measurements of one ordered pair
-    max_per_pair: int | None = 20  # rendezvous measurements kept per ordered pair
-    consistency: bool = True  # RANSAC check of rendezvous measurements against local maps
-    associate: bool = True
-    chi2_gate: float = 30.0  # association gate on the Mahalanobis distance (2 dof)
-    consistency_drift: float = 0.3  # m allowed for local-map errors in the consistency check
-    incremental: float | None = 10.0  # s of data per local-map update; None: one batch solve
+    csam: CsamConfig = field(default_factory=CsamConfig)
+    local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
 
     @classmethod
-    def from_config(cls, values: dict) -> RunOptions:
-        """From the ``run`` section of ``config/mrclam.yaml`` (unknown keys are an error)."""
-        known = set(cls.__dataclass_fields__)
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown MR.CLAM run keys {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**values)
-
-
-def build_local_map_incremental(robot: RobotLog, extra_stamps: FloatArray, options, chunk: float):
-    """A robot's local map fed ``chunk`` seconds at a time, solved after each chunk.
-
-    On long real runs one batch solve started from dead reckoning can settle in a wrong
-    minimum (with a redescending kernel, whole stretches of the path end up flipped and their
-    observations ignored as outliers); solving as the data arrive tracks the path instead.
-    """
-    from csam_ros.core.local_map import LocalMap
-
-    local = LocalMap(robot.name, options)
-    odometry, features = robot.odometry, robot.features
-    local.request_poses(robot.rendezvous.stamps)
-    local.request_poses(extra_stamps)
-    edges = np.arange(odometry.stamps[0], odometry.stamps[-1] + chunk, chunk)
-    edges[0] = -np.inf
-    edges[-1] = np.inf
-    for low, high in zip(edges[:-1], edges[1:], strict=True):
-        o = (odometry.stamps > low) & (odometry.stamps <= high)
-        f = (features.stamps > low) & (features.stamps <= high)
-        local.add_odometry(odometry.stamps[o], odometry.inputs[o], odometry.sigmas[o])
-        local.add_features(
-            features.stamps[f],
-            features.labels[f],
-            features.ranges[f],
-            features.bearings[f],
-            features.sigma_range[f],
-            features.sigma_bearing[f],
+    def from_config(cls, path: str | Path = CONFIG) -> RunOptions:
+        """The settings of a parameter file with ``csam:`` and ``local_map:`` sections."""
+        document = load_document(path)
+        return cls(
+            csam=CsamConfig.from_dict(document.get("csam"), f"{path}: csam"),
+            local_map=LocalMapConfig.from_dict(document.get("local_map"), f"{path}: local_map"),
         )
-        local.update()
-    return local
 
 
 def prepare_mrclam(
@@ -1167,12 +1136,7 @@ def prepare_mrclam(
 ) -> dict:
     """Import, thin the rendezvous measurements and build every robot's local map (with a
     pose at every kept rendezvous stamp of any robot pair), for one or many C-SAM runs."""
-    from csam_ros.core.factors import Cauchy
-    from csam_ros.core.local_map import LocalMapOptions, build_local_map
-    from csam_ros.core.rendezvous import required_stamps
-    from csam_ros.core.robust import thin_rendezvous
-
-    options = options or RunOptions()
+    options = options or RunOptions.from_config(config_path)
     config = load_config(config_path)
     timing: dict[str, float] = {}
     clock = time.perf_counter()
@@ -1187,18 +1151,22 @@ def prepare_mrclam(
     )
     timing["import"] = time.perf_counter() - clock
     measured = {n: int(r.rendezvous.stamps.size) for n, r in log.robots.items()}
-    log, thin_report = thin_rendezvous(log, options.thin_interval, options.max_per_pair)
+    logs, thin_report = thin_rendezvous(
+        {n: r.rendezvous for n, r in log.robots.items()},
+        options.csam.rendezvous_min_interval,
+        options.csam.rendezvous_max_per_pair or None,
+    )
+    log = MultiRobotLog(
+        {n: replace(r, rendezvous=logs[n]) for n, r in log.robots.items()}, log.truth
+    )
     clock = time.perf_counter()
-    local_options = LocalMapOptions(robust=Cauchy() if options.robust else None)
-    stamps = required_stamps({n: r.rendezvous for n, r in log.robots.items()})
-    local_maps = {}
-    for name, robot in log.robots.items():
-        if options.incremental:
-            local_maps[name] = build_local_map_incremental(
-                robot, stamps[name], local_options, options.incremental
-            )
-        else:
-            local_maps[name] = build_local_map(robot, stamps[name], local_options)
+    stamps = required_stamps(logs)
+    local_maps = {
+        name: build_local_map(
+            robot, stamps[name], options.local_map.options(), window=options.local_map.window
+        )
+        for name, robot in log.robots.items()
+    }
     timing["local_maps"] = time.perf_counter() - clock
     return {
         "log": log,
@@ -1216,57 +1184,47 @@ def run_mrclam(
     config_path: str | Path = CONFIG,
     prepared: dict | None = None,
 ) -> dict:
-    """Pre-filters, C-SAM and evaluation on ``options.robots``; returns a JSON-ready record.
+    """C-SAM (with its rendezvous filters) and evaluation on ``options.robots``; returns a
+    JSON-ready record.
 
     ``prepared`` (from :func:`prepare_mrclam` on a superset of the robots, same window and
-    thinning) lets several runs share the local maps.
+    settings) lets several runs share the local maps.
     """
-    from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
-    from csam_ros.core.evaluation import evaluate
-    from csam_ros.core.log import MultiRobotLog
-    from csam_ros.core.robust import consistent_rendezvous, select_rendezvous
-
-    options = options or RunOptions()
+    options = options or RunOptions.from_config(config_path)
     prepared = prepared or prepare_mrclam(dataset, options, config_path)
     names = [f"robot{r}" for r in options.robots]
     full: MultiRobotLog = prepared["log"]
     missing = [n for n in names if n not in full.robots]
     if missing:
         raise ValueError(f"robots {missing} were not prepared")
-    robots = {}
+    logs = {}
     for name in names:
-        robot = full.robots[name]
-        keep = np.isin(np.array(robot.rendezvous.observed, dtype=object), names)
-        robots[name] = replace(robot, rendezvous=select_rendezvous(robot.rendezvous, keep))
-    log = MultiRobotLog(robots, full.truth)
+        rv = full.robots[name].rendezvous
+        logs[name] = select_rendezvous(rv, np.isin(np.array(rv.observed, dtype=object), names))
     local_maps = prepared["local_maps"]
     timing = dict(prepared["timing_s"])
-    consistency = None
-    if options.consistency:
-        clock = time.perf_counter()
-        trajectories = {n: (local_maps[n].stamps, local_maps[n].poses) for n in names}
-        log, consistency = consistent_rendezvous(log, trajectories, drift=options.consistency_drift)
-        timing["consistency"] = time.perf_counter() - clock
     clock = time.perf_counter()
     maps = [robot_map_from_local_map(local_maps[name]) for name in names]
-    result = join_maps(
-        maps,
-        {n: r.rendezvous for n, r in log.robots.items()},
-        CsamConfig(associate=options.associate, chi2_gate=options.chi2_gate),
-    )
+    result = join_maps(maps, logs, options.csam)
     timing["csam"] = time.perf_counter() - clock
     summary = result.to_dict()
-    assert log.truth is not None
-    metrics = evaluate(summary, log.truth)
+    assert full.truth is not None
+    metrics = evaluate(summary, full.truth)
     return {
-        "options": asdict(options),
+        "options": {
+            "robots": options.robots,
+            "start": options.start,
+            "duration": options.duration,
+            "csam": asdict(options.csam),
+            "local_map": asdict(options.local_map),
+        },
         "import": prepared["import"],
         "rendezvous_measured": {n: prepared["rendezvous_measured"][n] for n in names},
         "thinning": {
-            "kept": {n: int(log.robots[n].rendezvous.stamps.size) for n in names},
+            "kept": {n: int(logs[n].stamps.size) for n in names},
             "dropped": {n: prepared["thinning"]["dropped"].get(n, {}) for n in names},
         },
-        "consistency": consistency.to_dict() if consistency else None,
+        "consistency": summary["rendezvous_filter"].get("consistency"),
         "metrics": metrics,
         "summary": summary,
         "timing_s": timing,
@@ -1302,6 +1260,25 @@ RUN_HEADER = (
 )
 
 
+def _with_overrides(options: RunOptions, overrides: list[str]) -> RunOptions:
+    """``SECTION.KEY=VALUE`` overrides (YAML values) of the ``csam`` / ``local_map`` settings."""
+    import yaml
+
+    sections = {"csam": asdict(options.csam), "local_map": asdict(options.local_map)}
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        section, _, name = key.partition(".")
+        if not sep or section not in sections or not name:
+            raise SystemExit(f"--set {item!r}: expected csam.KEY=VALUE or local_map.KEY=VALUE")
+        parsed = yaml.safe_load(value)
+        sections[section][name] = "" if parsed is None else parsed
+    return replace(
+        options,
+        csam=CsamConfig.from_dict(sections["csam"], "--set csam"),
+        local_map=LocalMapConfig.from_dict(sections["local_map"], "--set local_map"),
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m csam_ros.bench.mrclam",
@@ -1318,55 +1295,31 @@ def main(argv: list[str] | None = None) -> int:
     noise.add_argument("--no-swaps", action="store_true", help="ignore the config's swaps")
     noise.add_argument("--rounds", type=int, default=12, help="most EM rounds (0: snapshots only)")
     run = sub.add_parser("run", help="C-SAM on (part of) the data set, scored against truth")
-    run.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     run.add_argument("--robots", default="1,2,3,4,5", help="comma-separated robot numbers")
-    run.add_argument("--start", type=float, default=0.0)
-    run.add_argument("--duration", type=float, default=None)
-    run.add_argument("--thin", type=float, default=None, help="s between rendezvous kept per pair")
-    run.add_argument("--gate", type=float, default=None, help="chi-square gate (2 dof)")
-    run.add_argument(
-        "--incremental", type=float, default=None, help="s per local-map update; 0: one batch"
-    )
-    run.add_argument("--drift", type=float, default=None, help="m, consistency tolerance")
-    run.add_argument("--max-per-pair", type=int, default=None, help="0: no cap")
-    run.add_argument("--no-robust", action="store_true", help="no Cauchy kernel in local maps")
-    run.add_argument("--no-consistency", action="store_true", help="skip the RANSAC check")
-    run.add_argument("--no-associate", action="store_true")
     run.add_argument("--out", type=Path, default=None, help="write summary.json, metrics.json")
     table = sub.add_parser("table", help="each robot alone, all pairs, all five")
-    table.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
-    table.add_argument("--start", type=float, default=0.0)
-    table.add_argument("--duration", type=float, default=None)
-    table.add_argument("--thin", type=float, default=None)
-    table.add_argument("--gate", type=float, default=None, help="chi-square gate (2 dof)")
-    table.add_argument(
-        "--incremental", type=float, default=None, help="s per local-map update; 0: one batch"
-    )
-    table.add_argument("--drift", type=float, default=None, help="m, consistency tolerance")
-    table.add_argument("--max-per-pair", type=int, default=None)
     table.add_argument("--json", type=Path, default=None, help="write every record here")
+    for command in (run, table):
+        command.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+        command.add_argument("--config", type=Path, default=CONFIG, help="csam:, local_map:")
+        command.add_argument("--start", type=float, default=0.0)
+        command.add_argument("--duration", type=float, default=None)
+        command.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="SECTION.KEY=VALUE",
+            help="override a setting, e.g. csam.chi2_gate=9.21 or local_map.robust_kernel=",
+        )
     args = parser.parse_args(argv)
     if args.command in ("run", "table"):
-        defaults = RunOptions.from_config(load_config(CONFIG).get("run") or {})
         base = replace(
-            defaults,
+            _with_overrides(RunOptions.from_config(args.config), args.set),
             start=args.start,
             duration=args.duration,
-            thin_interval=defaults.thin_interval if args.thin is None else args.thin,
-            max_per_pair=(
-                defaults.max_per_pair if args.max_per_pair is None else args.max_per_pair or None
-            ),
-            chi2_gate=defaults.chi2_gate if args.gate is None else args.gate,
-            consistency_drift=defaults.consistency_drift if args.drift is None else args.drift,
-            incremental=(
-                defaults.incremental if args.incremental is None else args.incremental or None
-            ),
         )
         if args.command == "run":
             base.robots = [int(r) for r in args.robots.split(",")]
-            base.robust = not args.no_robust
-            base.consistency = not args.no_consistency
-            base.associate = not args.no_associate
             jobs = [(args.robots, base)]
         else:
             import itertools
@@ -1387,10 +1340,10 @@ def main(argv: list[str] | None = None) -> int:
         prepared = (
             None
             if args.command == "run"
-            else prepare_mrclam(args.dataset, replace(base, robots=[1, 2, 3, 4, 5]))
+            else prepare_mrclam(args.dataset, replace(base, robots=[1, 2, 3, 4, 5]), args.config)
         )
         for label, job in jobs:
-            record = run_mrclam(args.dataset, job, prepared=prepared)
+            record = run_mrclam(args.dataset, job, args.config, prepared=prepared)
             records.append(record)
             print(_run_line(label, record), flush=True)
         if args.command == "run" and args.out is not None:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,13 +57,17 @@ from csam_ros.core.joining import (
     heading_sigmas,
     joint_solve,
 )
-from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
+from csam_ros.core.local_map import LocalMap, LocalMapConfig, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
+from csam_ros.core.robust import RendezvousThinning, consistent_rendezvous, thin_rendezvous
 from csam_ros.core.scenario import load_document
 from csam_ros.core.solver import NormalEquations, SolverOptions
 
 Array = NDArray[np.float64]
+
+
+_ZERO_ALLOWED = {"rendezvous_min_interval", "rendezvous_max_per_pair"}
 
 
 @dataclass
@@ -79,6 +83,11 @@ class CsamConfig:
     step_tolerance: float = 1e-9  # m, rad: stop when the largest step component is below
     relative_tolerance: float = 1e-12  # stop when the relative cost decrease is below
     associate: bool = True  # False: join through rendezvous rows only
+    # rendezvous pre-filters for real data (csam_ros.core.robust); the defaults keep everything
+    rendezvous_min_interval: float = 0.0  # s between kept measurements of one ordered pair
+    rendezvous_max_per_pair: int = 0  # kept per ordered pair, spread over time; 0: no cap
+    rendezvous_consistency: bool = False  # RANSAC check of rendezvous against the local maps
+    consistency_drift: float = 0.3  # m allowed for local-map errors in that check
 
     @classmethod
     def from_dict(cls, node: Mapping[str, Any] | None, source: str = "csam") -> CsamConfig:
@@ -99,6 +108,8 @@ class CsamConfig:
                     raise ValueError(f"{source}.{key}: expected true/false, got {value!r}")
             elif isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f"{source}.{key}: expected a number, got {value!r}")
+            elif key in _ZERO_ALLOWED and value == 0:
+                pass
             elif not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{source}.{key}: must be a positive number, got {value!r}")
             values[key] = type(default)(value)
@@ -108,6 +119,12 @@ class CsamConfig:
     def from_file(cls, name_or_path: str | Path) -> CsamConfig:
         """The ``csam:`` section of a scenario or parameter file (defaults when absent)."""
         return cls.from_dict(load_document(name_or_path).get("csam"), f"{name_or_path}: csam")
+
+    def thinning(self) -> RendezvousThinning:
+        """The streaming rendezvous thinning these settings describe."""
+        return RendezvousThinning(
+            self.rendezvous_min_interval, self.rendezvous_max_per_pair or None
+        )
 
     def alignment_options(self) -> AlignmentOptions:
         return AlignmentOptions(
@@ -180,6 +197,7 @@ class CsamResult:
     timing_s: dict[str, float]
     notes: list[str] = field(default_factory=list)
     statistics: dict[str, float] = field(default_factory=dict)
+    rendezvous_filter: dict[str, Any] = field(default_factory=dict)  # what the filters dropped
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON-ready summary (lists and floats only)."""
@@ -230,6 +248,7 @@ class CsamResult:
             "timing_s": {k: float(v) for k, v in self.timing_s.items()},
             "statistics": {k: float(v) for k, v in self.statistics.items()},
             "notes": list(self.notes),
+            "rendezvous_filter": self.rendezvous_filter,
         }
 
 
@@ -259,6 +278,27 @@ def _local_inputs(
     return part, MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
 
 
+def filter_rendezvous(
+    maps: Sequence[RobotMap], logs: Mapping[str, RendezvousLog], config: CsamConfig
+) -> tuple[Mapping[str, RendezvousLog], dict[str, Any]]:
+    """The rendezvous pre-filters of ``config`` (:mod:`csam_ros.core.robust`): thinning
+    (idempotent: logs the smoothers already thinned pass unchanged), then the consistency
+    check against the local maps' trajectories. Returns the kept logs and what was dropped."""
+    report: dict[str, Any] = {}
+    if config.rendezvous_min_interval > 0 or config.rendezvous_max_per_pair > 0:
+        logs, thinned = thin_rendezvous(
+            logs, config.rendezvous_min_interval, config.rendezvous_max_per_pair or None
+        )
+        report["thinning"] = thinned.to_dict()
+    if config.rendezvous_consistency:
+        trajectories = {m.name: (np.asarray(m.stamps, dtype=float), m.poses) for m in maps}
+        present = {n: log for n, log in logs.items() if n in trajectories}
+        kept, checked = consistent_rendezvous(present, trajectories, drift=config.consistency_drift)
+        logs = {**logs, **kept}
+        report["consistency"] = checked.to_dict()
+    return logs, report
+
+
 def join_maps(
     maps: Sequence[RobotMap],
     rendezvous_logs: Mapping[str, RendezvousLog],
@@ -280,6 +320,7 @@ def join_maps(
         timing[key] = timing.get(key, 0.0) + now - clock
         clock = now
 
+    rendezvous_logs, rendezvous_filter = filter_rendezvous(maps, rendezvous_logs, config)
     measurements, notes = collect(
         rendezvous_logs,
         {m.name: m.stamps for m in maps},
@@ -413,6 +454,7 @@ def join_maps(
         timing_s=timing,
         notes=notes,
         statistics=statistics,
+        rendezvous_filter=rendezvous_filter,
     )
 
 
@@ -442,18 +484,33 @@ def robot_map_from_local_map(local: LocalMap, with_covariances: bool = False) ->
 def run_csam(
     log: MultiRobotLog,
     config: CsamConfig | None = None,
-    local_map_options: LocalMapOptions | None = None,
+    local_map: LocalMapConfig | None = None,
 ) -> CsamResult:
-    """Build every robot's local map from its log (with a pose at every rendezvous stamp that
-    involves it) and run :func:`join_maps`; ``timing_s["local_maps"]`` is the building time."""
+    """Build every robot's local map from its log (with a pose at the stamp of every kept
+    rendezvous measurement that involves it; thinning as the smoothers do) and run
+    :func:`join_maps`; ``timing_s["local_maps"]`` is the building time."""
+    config = config or CsamConfig()
+    local_map = local_map or LocalMapConfig()
     start = time.perf_counter()
-    stamps = required_stamps({n: r.rendezvous for n, r in log.robots.items()})
+    logs, _ = thin_rendezvous(
+        {n: r.rendezvous for n, r in log.robots.items()},
+        config.rendezvous_min_interval,
+        config.rendezvous_max_per_pair or None,
+    )
+    stamps = required_stamps(logs)
     maps = [
-        robot_map_from_local_map(build_local_map(robot, stamps[name], local_map_options))
+        robot_map_from_local_map(
+            build_local_map(
+                replace(robot, rendezvous=logs[name]),
+                stamps[name],
+                local_map.options(),
+                window=local_map.window,
+            )
+        )
         for name, robot in log.robots.items()
     ]
     built = time.perf_counter() - start
-    result = join_maps(maps, {n: r.rendezvous for n, r in log.robots.items()}, config)
+    result = join_maps(maps, logs, config)
     result.timing_s["local_maps"] = built
     result.timing_s["total"] += built
     return result

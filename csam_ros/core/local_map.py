@@ -39,9 +39,9 @@ paths can settle in different local minima (MR.CLAM robots 2-5: 0.1-0.2 m apart)
 from __future__ import annotations
 
 import time
-from collections.abc import Hashable, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from collections.abc import Hashable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -55,6 +55,8 @@ from csam_ros.core.covariance import (
 from csam_ros.core.factors import (
     POINT,
     POSE,
+    Cauchy,
+    Huber,
     PointObservation,
     PosePrior,
     RelativePose,
@@ -90,6 +92,57 @@ class LocalMapOptions:
     online_solver: SolverOptions = field(  # every other update: warm-started, capped
         default_factory=lambda: SolverOptions(relative_tolerance=1e-6, max_iterations=10)
     )
+
+
+ROBUST_KERNELS: dict[str, type[RobustKernel]] = {"huber": Huber, "cauchy": Cauchy}
+
+
+@dataclass
+class LocalMapConfig:
+    """The ``local_map:`` section of a parameter file; the smoother node's parameters of the
+    same names (``batch_window`` is for offline builds only)."""
+
+    key_interval: float = 1.0  # s between regular key poses; 0: off
+    robust_kernel: str = ""  # on feature observations: "" (none), "huber" or "cauchy"
+    robust_threshold: float = 0.0  # the kernel's threshold or scale (whitened); 0: its default
+    batch_window: float = 60.0  # offline: s of odometry per warm-started solve; 0: one batch
+
+    @classmethod
+    def from_dict(cls, node: Mapping[str, Any] | None, source: str = "local_map") -> LocalMapConfig:
+        """Build from a mapping; unknown keys and bad values are errors naming them."""
+        if node is None:
+            return cls()
+        if not isinstance(node, Mapping):
+            raise ValueError(f"{source}: expected a mapping, got {type(node).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(node) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown key(s) {unknown}; allowed: {sorted(known)}")
+        config = cls(**{k: v for k, v in node.items()})
+        if config.robust_kernel not in ("", *ROBUST_KERNELS):
+            raise ValueError(
+                f"{source}.robust_kernel: {config.robust_kernel!r} is not one of "
+                f"'', {', '.join(repr(k) for k in ROBUST_KERNELS)}"
+            )
+        for key in ("key_interval", "robust_threshold", "batch_window"):
+            value = getattr(config, key)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"{source}.{key}: expected a number, got {value!r}")
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{source}.{key}: must be >= 0, got {value!r}")
+        return config
+
+    def options(self) -> LocalMapOptions:
+        kernel = ROBUST_KERNELS.get(self.robust_kernel)
+        robust = None
+        if kernel is not None:
+            robust = kernel(self.robust_threshold) if self.robust_threshold > 0 else kernel()
+        return LocalMapOptions(key_interval=self.key_interval or None, robust=robust)
+
+    @property
+    def window(self) -> float | None:
+        """``build_local_map``'s window."""
+        return self.batch_window or None
 
 
 @dataclass

@@ -1,15 +1,17 @@
 """Robust pre-filters of real measurements before C-SAM (for the UTIAS MR.CLAM data set).
 
-Simulation is clean; real robots are not. Two filters act on a :class:`MultiRobotLog`'s
-rendezvous measurements and return a new log plus what they dropped (nothing is dropped
-silently; feature measurements and odometry are untouched: outlying feature measurements
-are the local smoother's robust kernel's job).
+Simulation is clean; real robots are not. Two filters act on the robots' rendezvous logs
+and return new logs plus what they dropped (nothing is dropped silently; feature
+measurements and odometry are untouched: outlying feature measurements are the local
+smoother's robust kernel's job). Both are settings of C-SAM (:class:`csam_ros.core.csam.
+CsamConfig`), so the nodes and an offline replay apply them alike.
 
 - :func:`thin_rendezvous`: robots that meet many times (MR.CLAM: 700-2,000 rendezvous
   measurements per robot) would each bring a pose, and Algorithm 1 enters every local map
   through the dense marginal information of all its rendezvous poses, whose size grows
   quadratically. Keep at most one measurement per ordered robot pair per ``min_interval``
-  seconds and at most ``max_per_pair`` per ordered pair, spread evenly over time.
+  seconds and at most ``max_per_pair`` per ordered pair, spread over time
+  (:class:`RendezvousThinning`, a streaming rule the smoothers apply as data arrive).
 - :func:`consistent_rendezvous`: a wrong rendezvous measurement (a misread robot barcode, a
   reflection) joins maps wrongly. Every measurement between robots ``p`` and ``q`` (either
   direction) gives a correspondence between a point in ``G_p`` and one in ``G_q`` (the
@@ -69,46 +71,71 @@ def select_rendezvous(log: RendezvousLog, keep: BoolArray) -> RendezvousLog:
     )
 
 
-def _with_rendezvous(log: MultiRobotLog, logs: Mapping[str, RendezvousLog]) -> MultiRobotLog:
-    robots = {name: replace(robot, rendezvous=logs[name]) for name, robot in log.robots.items()}
-    return MultiRobotLog(robots, log.truth)
+class RendezvousThinning:
+    """Streaming thinning of rendezvous measurements, per ordered robot pair.
+
+    A measurement of ``observed`` by ``observer`` is kept when it comes at least the pair's
+    interval (initially ``min_interval`` s) after the pair's last kept one. When a pair holds
+    more than ``max_per_pair``, every other kept measurement is dropped (the newest stays) and
+    the interval becomes the smallest gap left, so that the kept set stays spread over the
+    whole run. Decisions depend only on the pair's measurements in arrival order: the
+    observer's and the observed robot's smoothers, and the offline :func:`thin_rendezvous`,
+    all reach the same kept set.
+    """
+
+    def __init__(self, min_interval: float = 0.0, max_per_pair: int | None = None) -> None:
+        if not min_interval >= 0 or (max_per_pair is not None and max_per_pair < 1):
+            raise ValueError(
+                f"rendezvous thinning: min_interval={min_interval} must be >= 0 and "
+                f"max_per_pair={max_per_pair} >= 1 (or None)"
+            )
+        self.min_interval = float(min_interval)
+        self.max_per_pair = max_per_pair
+        self._kept: dict[tuple[str, str], list[float]] = {}
+        self._interval: dict[tuple[str, str], float] = {}
+
+    def offer(self, observer: str, observed: str, stamp: float) -> bool:
+        """Whether the measurement is kept now (it may be decimated by a later one)."""
+        pair = (observer, observed)
+        kept = self._kept.setdefault(pair, [])
+        if kept and stamp - kept[-1] < self._interval.get(pair, self.min_interval):
+            return False
+        kept.append(float(stamp))
+        if self.max_per_pair is not None and len(kept) > self.max_per_pair:
+            kept[:] = kept[len(kept) % 2 == 0 :: 2]  # keeps the newest
+            gaps = np.diff(kept)
+            self._interval[pair] = float(gaps.min()) if gaps.size else self.min_interval
+        return True
+
+    def is_kept(self, observer: str, observed: str, stamp: float) -> bool:
+        return float(stamp) in self._kept.get((observer, observed), ())
+
+    def kept_stamps(self, observer: str, observed: str) -> list[float]:
+        return list(self._kept.get((observer, observed), ()))
 
 
 def thin_rendezvous(
-    log: MultiRobotLog, min_interval: float = 0.0, max_per_pair: int | None = None
-) -> tuple[MultiRobotLog, FilterReport]:
-    """Keep at most one measurement per ordered pair per ``min_interval`` s (the first of
-    each run), then at most ``max_per_pair`` per ordered pair, evenly spread in time."""
-    if min_interval < 0 or (max_per_pair is not None and max_per_pair < 1):
-        raise ValueError(
-            f"thin_rendezvous: min_interval={min_interval} must be >= 0 and "
-            f"max_per_pair={max_per_pair} >= 1"
-        )
+    logs: Mapping[str, RendezvousLog], min_interval: float = 0.0, max_per_pair: int | None = None
+) -> tuple[dict[str, RendezvousLog], FilterReport]:
+    """Each robot's measurements thinned by :class:`RendezvousThinning` in stamp order."""
+    thinning = RendezvousThinning(min_interval, max_per_pair)
     report = FilterReport()
     out: dict[str, RendezvousLog] = {}
-    for name, robot in log.robots.items():
-        rv = robot.rendezvous
-        observed = np.array(rv.observed, dtype=object)
-        keep = np.zeros(rv.stamps.size, dtype=bool)
-        for other in sorted(set(rv.observed)):
-            rows = np.flatnonzero(observed == other)
-            chosen = []
-            last = -np.inf
-            for i in rows:  # one pass per pair; a few thousand rows at most
-                if rv.stamps[i] - last >= min_interval:
-                    chosen.append(i)
-                    last = rv.stamps[i]
-            thinned = len(rows) - len(chosen)
-            report.add(name, "thinned_interval", thinned)
-            chosen_array = np.array(chosen, dtype=np.int64)
-            if max_per_pair is not None and chosen_array.size > max_per_pair:
-                pick = np.unique(np.round(np.linspace(0, chosen_array.size - 1, max_per_pair)))
-                report.add(name, "thinned_cap", chosen_array.size - pick.size)
-                chosen_array = chosen_array[pick.astype(np.int64)]
-            keep[chosen_array] = True
+    for name, rv in logs.items():
+        order = np.argsort(rv.stamps, kind="stable")
+        offered = np.zeros(rv.stamps.size, dtype=bool)
+        for i in order:
+            offered[i] = thinning.offer(name, rv.observed[i], rv.stamps[i])
+        keep = np.array(
+            [thinning.is_kept(name, o, t) for o, t in zip(rv.observed, rv.stamps, strict=True)],
+            dtype=bool,
+        )
+        keep &= offered  # a second measurement of one pair at one stamp stays dropped
+        report.add(name, "thinned_interval", int((~offered).sum()))
+        report.add(name, "thinned_cap", int((offered & ~keep).sum()))
         out[name] = select_rendezvous(rv, keep)
         report.kept[name] = int(keep.sum())
-    return _with_rendezvous(log, out), report
+    return out, report
 
 
 def _interpolate(stamps: FloatArray, poses: FloatArray, at: FloatArray) -> FloatArray:
@@ -147,7 +174,7 @@ def _fit_motion(a: FloatArray, b: FloatArray) -> FloatArray:
 
 
 def consistent_rendezvous(
-    log: MultiRobotLog,
+    logs: Mapping[str, RendezvousLog],
     trajectories: Mapping[str, tuple[FloatArray, FloatArray]],
     gate: float = 3.0,
     drift: float = 0.3,
@@ -155,7 +182,7 @@ def consistent_rendezvous(
     min_support: int = 4,
     max_hypotheses: int = 1000,
     seed: int = 0,
-) -> tuple[MultiRobotLog, FilterReport]:
+) -> tuple[dict[str, RendezvousLog], FilterReport]:
     """Drop rendezvous measurements inconsistent with the base node most others agree on.
 
     ``trajectories`` maps each robot to ``(stamps, poses)`` of its local map (frame ``G_r``).
@@ -165,14 +192,14 @@ def consistent_rendezvous(
     reported as unverified.
     """
     rng = np.random.default_rng(seed)
-    names = list(log.robots)
-    keep = {n: np.ones(log.robots[n].rendezvous.stamps.size, dtype=bool) for n in names}
+    names = list(logs)
+    keep = {n: np.ones(logs[n].stamps.size, dtype=bool) for n in names}
     report = FilterReport()
     for i, p in enumerate(names):
         for q in names[i + 1 :]:
             points_p, points_q, tolerance, owner, row = [], [], [], [], []
             for observer, target in ((p, q), (q, p)):
-                rv = log.robots[observer].rendezvous
+                rv = logs[observer]
                 rows = np.flatnonzero(np.array(rv.observed, dtype=object) == target)
                 if rows.size == 0 or observer not in trajectories or target not in trajectories:
                     continue
@@ -248,9 +275,9 @@ def consistent_rendezvous(
                 report.add(observer, "inconsistent", bad_rows.size)
     out = {}
     for name in names:
-        out[name] = select_rendezvous(log.robots[name].rendezvous, keep[name])
+        out[name] = select_rendezvous(logs[name], keep[name])
         report.kept[name] = int(keep[name].sum())
-    return _with_rendezvous(log, out), report
+    return out, report
 
 
 @dataclass

@@ -33,9 +33,10 @@ from csam_ros.conversions import (
     time_to_ns,
 )
 from csam_ros.core.csam import robot_map_from_local_map
-from csam_ros.core.factors import Cauchy, Huber
 from csam_ros.core.local_map import LocalMap as CoreLocalMap
-from csam_ros.core.local_map import LocalMapOptions
+from csam_ros.core.local_map import LocalMapConfig
+from csam_ros.core.log import RendezvousLog
+from csam_ros.core.robust import RendezvousThinning, select_rendezvous
 from csam_ros.core.validation import MeasurementFilter
 from csam_ros.map_messages import rendezvous_poses_message, robot_map_to_message
 from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA_BUFFERED, declare, run_node
@@ -69,21 +70,45 @@ class Smoother(Node):
             0.01,
             3600.0,
         )
-        key_interval = declare(
-            self, "key_interval", 1.0, "seconds between regular key poses (0: off)", 0.0, 3600.0
+        local_map = LocalMapConfig.from_dict(
+            {
+                "key_interval": declare(
+                    self, "key_interval", 1.0, "s between regular key poses (0: off)", 0.0, 3600.0
+                ),
+                "robust_kernel": declare(
+                    self, "robust_kernel", "", "'' (none), 'huber' or 'cauchy' on features"
+                ),
+                "robust_threshold": declare(
+                    self, "robust_threshold", 0.0, "kernel threshold (0: its default)", 0.0, 100.0
+                ),
+            },
+            "smoother parameters",
         )
-        kernel = declare(self, "robust_kernel", "", "'' (none), 'huber' or 'cauchy' on features")
-        threshold = declare(self, "robust_threshold", 3.0, "robust kernel threshold", 0.01, 100.0)
-        robust = {"": None, "huber": Huber, "cauchy": Cauchy}[kernel]
-        self.map = CoreLocalMap(
-            self.robot,
-            LocalMapOptions(
-                key_interval=key_interval or None,
-                robust=None if robust is None else robust(threshold),
+        self.map = CoreLocalMap(self.robot, local_map.options())
+        self.thinning = RendezvousThinning(
+            declare(
+                self,
+                "rendezvous_min_interval",
+                0.0,
+                "seconds between kept rendezvous of one ordered robot pair",
+                0.0,
+                3600.0,
             ),
+            declare(
+                self,
+                "rendezvous_max_per_pair",
+                0,
+                "rendezvous kept per ordered robot pair, spread over time (0: no cap)",
+                0,
+                100000,
+            )
+            or None,
         )
         self.robots = list(dict.fromkeys([self.robot, *peers]))
         self.filter = MeasurementFilter(self.robots, np.deg2rad(fov))
+        # the peers' own checks, repeated on their rendezvous streams so that this node keeps
+        # poses at the same measurements as their smoothers (drops counted there, not here)
+        self.peer_filter = MeasurementFilter(self.robots, np.deg2rad(fov))
         self.own_rendezvous: list[tuple[float, dict]] = []
         self.rendezvous_stamps: set[float] = set()
         self.last_odometry_ns = -1
@@ -148,16 +173,32 @@ class Smoother(Node):
             a["sigma_range"],
             a["sigma_bearing"],
         )
-        if keep is not None:
+        if keep is None:
+            return
+        for i in np.flatnonzero(keep):
+            if not self.thinning.offer(self.robot, a["observed"][i], stamp):
+                keep[i] = False
+        if keep.any():
             self.own_rendezvous.append((stamp, {k: v[keep] for k, v in a.items()}))
             self.request_pose(stamp)
 
     def on_peer_rendezvous(self, peer: str, msg: RendezvousObservations) -> None:
-        """A peer's measurements: only the stamps of those of this robot matter here."""
+        """A peer's measurements: only the stamps of kept ones of this robot matter here."""
         stamp, a = rendezvous_from_message(msg)
-        names = list(a["observed"])
-        if self.robot in names and np.isfinite(stamp):
-            self.request_pose(stamp)
+        keep = self.peer_filter.rendezvous(
+            peer,
+            stamp,
+            a["observed"],
+            a["ranges"],
+            a["bearings"],
+            a["sigma_range"],
+            a["sigma_bearing"],
+        )
+        if keep is None:
+            return
+        for i in np.flatnonzero(keep):
+            if a["observed"][i] == self.robot and self.thinning.offer(peer, self.robot, stamp):
+                self.request_pose(stamp)
 
     def request_pose(self, stamp: float) -> None:
         if stamp not in self.rendezvous_stamps:
@@ -211,15 +252,27 @@ class Smoother(Node):
         self.published_ns = stamp_ns
 
     def rendezvous_poses(self, robot_map, stamp_ns: int) -> RendezvousPoses:
-        stamps = np.array(sorted(self.rendezvous_stamps))
-        stamps = stamps[stamps <= self.map.stamps[-1]] if len(stamps) else stamps
+        measurements, stamps = self.kept_rendezvous()
+        stamps = stamps[stamps <= self.map.stamps[-1]]
         if len(stamps):
             root, _, _ = self.map.sqrt_information(stamps)
             indices = np.unique(self.map.pose_index(stamps))
         else:
             root, indices = np.zeros((0, 0)), np.zeros(0, dtype=np.int64)
-        measurements = rendezvous_log_from_chunks(self.own_rendezvous)
         return rendezvous_poses_message(robot_map, stamp_ns, indices, root, measurements)
+
+    def kept_rendezvous(self) -> tuple[RendezvousLog, np.ndarray]:
+        """This robot's kept measurements, and the stamps of every kept measurement that
+        involves it (its own and its peers' of it)."""
+        own = rendezvous_log_from_chunks(self.own_rendezvous)
+        keep = [
+            self.thinning.is_kept(self.robot, o, t)
+            for o, t in zip(own.observed, own.stamps, strict=True)
+        ]
+        own = select_rendezvous(own, np.array(keep, dtype=bool))
+        peers = [p for p in self.robots if p != self.robot]
+        observed_by_peers = [t for p in peers for t in self.thinning.kept_stamps(p, self.robot)]
+        return own, np.unique(np.concatenate([own.stamps, observed_by_peers]))
 
     def path(self, stamp_ns: int) -> Path:
         msg = Path()

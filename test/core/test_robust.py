@@ -14,7 +14,7 @@ from csam_ros.core.log import (
     empty_features,
     empty_rendezvous,
 )
-from csam_ros.core.robust import consistent_rendezvous, thin_rendezvous
+from csam_ros.core.robust import RendezvousThinning, consistent_rendezvous, thin_rendezvous
 
 
 def robot(name: str, rendezvous: RendezvousLog) -> RobotLog:
@@ -42,26 +42,45 @@ def test_thin_rendezvous_interval_and_cap() -> None:
         np.ones(2 * n),
         np.zeros(2 * n),
     )
-    log = MultiRobotLog(
-        {"robot1": robot("robot1", rv), "robot2": robot("robot2", empty_rendezvous())}
-    )
-    thinned, report = thin_rendezvous(log, min_interval=1.0)
-    kept = thinned.robots["robot1"].rendezvous
+    logs = {"robot1": rv, "robot2": empty_rendezvous()}
+    thinned, report = thin_rendezvous(logs, min_interval=1.0)
+    kept = thinned["robot1"]
     assert kept.stamps.size == 40  # 20 per pair
     for other in ("robot2", "robot3"):
         t = kept.stamps[np.array(kept.observed) == other]
         assert np.all(np.diff(t) >= 1.0 - 1e-12)
     assert report.dropped["robot1"]["thinned_interval"] == 120
     assert report.kept == {"robot1": 40, "robot2": 0}
-    capped, report = thin_rendezvous(log, min_interval=1.0, max_per_pair=5)
-    kept = capped.robots["robot1"].rendezvous
-    t2 = kept.stamps[np.array(kept.observed) == "robot2"]
-    assert t2.size == 5 and t2[0] == 0.0 and t2[-1] == 19.0  # spread over the whole run
-    assert report.dropped["robot1"]["thinned_cap"] == 30
-    assert thinned.robots["robot2"] is not log.robots["robot2"]  # a new log, input untouched
-    assert log.robots["robot1"].rendezvous.stamps.size == 160
+    capped, report = thin_rendezvous(logs, min_interval=1.0, max_per_pair=5)
+    t2 = capped["robot1"].stamps[np.array(capped["robot1"].observed) == "robot2"]
+    # 0..5 offered, halved to 1, 3, 5 (the newest stays; interval 2); 7, 9, 11 offered, halved
+    # to 3, 7, 11 (interval 4); 15, 19 offered: 11 offered in all, 5 kept
+    np.testing.assert_array_equal(t2, [3.0, 7.0, 11.0, 15.0, 19.0])  # spread over the run
+    assert report.dropped["robot1"]["thinned_cap"] == 2 * (11 - 5)
+    assert report.dropped["robot1"]["thinned_interval"] == 2 * (80 - 11)
+    assert logs["robot1"].stamps.size == 160  # input untouched
     with pytest.raises(ValueError, match="max_per_pair"):
-        thin_rendezvous(log, max_per_pair=0)
+        thin_rendezvous(logs, max_per_pair=0)
+
+
+def test_thinning_streams_as_the_offline_filter() -> None:
+    """The smoothers' streaming decisions reach the offline filter's kept set, and the filter
+    is idempotent (the merger applies it again to already thinned logs)."""
+    rng = np.random.default_rng(3)
+    stamps = np.sort(rng.uniform(0.0, 500.0, 400))
+    observed = list(rng.choice(["b", "c"], 400))
+    rv = rendezvous(stamps, observed, np.ones(400), np.zeros(400))
+    thinned, _ = thin_rendezvous({"a": rv}, min_interval=2.0, max_per_pair=7)
+    streaming = RendezvousThinning(2.0, 7)
+    for t, o in zip(stamps, observed, strict=True):
+        streaming.offer("a", o, t)
+    for other in ("b", "c"):
+        kept = thinned["a"].stamps[np.array(thinned["a"].observed) == other]
+        assert 4 <= kept.size <= 7
+        np.testing.assert_array_equal(kept, streaming.kept_stamps("a", other))
+    again, report = thin_rendezvous(thinned, min_interval=2.0, max_per_pair=7)
+    np.testing.assert_array_equal(again["a"].stamps, thinned["a"].stamps)
+    assert report.dropped == {}
 
 
 def test_consistent_rendezvous_drops_wrong_measurements() -> None:
@@ -87,19 +106,17 @@ def test_consistent_rendezvous_drops_wrong_measurements() -> None:
     r_qp, b_qp = measure(at(world_q, t_meas[:10]), at(world_p, t_meas[:10]))
     r_pq[[3, 17]] += 1.5  # two wrong measurements by p
     b_qp[5] += 0.8  # and one by q
-    log = MultiRobotLog(
-        {
-            "p": robot("p", rendezvous(t_meas, ["q"] * 30, r_pq, b_pq)),
-            "q": robot("q", rendezvous(t_meas[:10], ["p"] * 10, r_qp, b_qp)),
-        }
-    )
+    logs = {
+        "p": rendezvous(t_meas, ["q"] * 30, r_pq, b_pq),
+        "q": rendezvous(t_meas[:10], ["p"] * 10, r_qp, b_qp),
+    }
     trajectories = {"p": (stamps, poses_p), "q": (stamps, poses_q)}
-    filtered, report = consistent_rendezvous(log, trajectories, drift=0.1)
+    filtered, report = consistent_rendezvous(logs, trajectories, drift=0.1)
     assert report.dropped == {"p": {"inconsistent": 2}, "q": {"inconsistent": 1}}
-    kept_p = filtered.robots["p"].rendezvous
+    kept_p = filtered["p"]
     assert kept_p.stamps.size == 28
     assert t_meas[3] not in kept_p.stamps and t_meas[17] not in kept_p.stamps
-    assert filtered.robots["q"].rendezvous.stamps.size == 9
+    assert filtered["q"].stamps.size == 9
     pair = report.pairs["p|q"]
     assert pair["verified"] and pair["inliers"] == 37
     np.testing.assert_allclose(pair["base_node"], base, atol=0.05)
@@ -109,9 +126,9 @@ def test_consistent_rendezvous_leaves_unverifiable_pairs_alone() -> None:
     stamps = np.array([0.0, 1.0])
     poses = np.zeros((2, 3))
     rv = rendezvous(np.array([0.5]), ["q"], np.array([2.0]), np.array([0.1]))
-    log = MultiRobotLog({"p": robot("p", rv), "q": robot("q", empty_rendezvous())})
-    filtered, report = consistent_rendezvous(log, {"p": (stamps, poses), "q": (stamps, poses)})
-    assert filtered.robots["p"].rendezvous.stamps.size == 1
+    logs = {"p": rv, "q": empty_rendezvous()}
+    filtered, report = consistent_rendezvous(logs, {"p": (stamps, poses), "q": (stamps, poses)})
+    assert filtered["p"].stamps.size == 1
     assert report.pairs["p|q"]["verified"] is False
 
 
