@@ -239,6 +239,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     )
     for name, robot in metrics["robots"].items():
         print(f"  {name}: {robot['alignment']}")
+    if error.get("transform") is not None:
+        from csam_ros.core import se2
+        from csam_ros.figures import draw_joined_map
+
+        # the truth brought into the reference frame by the inverse of the scoring alignment
+        true_xy = se2.inverse_transform_point(
+            np.asarray(error["transform"]), truth.feature_positions
+        )
+        figure = draw_joined_map(summary, run_dir / "joined_map.png", truth=true_xy)
+        print(f"  {figure}: the joined map over the true features (grey crosses)")
     return 0
 
 

@@ -12,7 +12,9 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from csam_ros.bag import MessageTypes
+from csam_ros.core.mrclam import default_dataset_dir
 
+MRCLAM = default_dataset_dir()
 REPO = Path(__file__).resolve().parents[1]
 CSAM = [sys.executable, "-m", "csam_ros.cli"]
 
@@ -124,6 +126,15 @@ def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
     assert (occupied / "keep.txt").read_text() == "mine"
     exists = csam("import", "mrclam", tmp_path, "--out", occupied)
     assert exists.returncode == 2 and "never overwrites" in exists.stderr
+    bad_config = tmp_path / "bad.yaml"
+    bad_config.write_text("local_map:\n  robust_kernel: tukey\n")
+    bag = REPO / "bags" / "map_joining"
+    for config in (bad_config, tmp_path / "missing.yaml"):
+        for mode in (["--offline"], []):
+            bad = csam("replay", bag, *mode, "--config", config, "--out", tmp_path / "never")
+            assert bad.returncode == 2, bad.stderr
+            assert len(bad.stderr.strip().splitlines()) == 1 and "Traceback" not in bad.stderr
+            assert not (tmp_path / "never").exists()
 
 
 def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
@@ -140,3 +151,24 @@ def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
             a["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-6
         )
     assert len(a["associations"]) == len(b["associations"])
+
+
+@pytest.mark.skipif(not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
+def test_mrclam_window_imports_replays_and_evaluates(tmp_path: Path) -> None:
+    """Real data end to end with the real-data settings: five robots, the first 120 s."""
+    bag = tmp_path / "mrclam"
+    imported = csam("import", "mrclam", MRCLAM, "--duration", "120", "--out", bag)
+    assert imported.returncode == 0, imported.stderr
+    run = tmp_path / "run"
+    config = REPO / "config" / "mrclam.yaml"
+    replay = csam("replay", bag, "--offline", "--config", config, "--out", run)
+    assert replay.returncode == 0, replay.stderr
+    evaluated = csam("evaluate", run)
+    assert evaluated.returncode == 0, evaluated.stderr
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert all(robot["joined"] for robot in metrics["robots"].values())
+    assert metrics["association"]["precision"] == 1.0
+    assert metrics["landmark_error"]["rmse_m"] < 0.15
+    summary = json.loads((run / "summary.json").read_text())
+    assert "consistency" in summary["rendezvous_filter"]
+    assert (run / "joined_map.png").stat().st_size > 0

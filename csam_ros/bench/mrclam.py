@@ -50,6 +50,7 @@ Noise estimation (no robot ground truth exists in the data set, only landmark tr
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -1271,6 +1272,9 @@ def _with_overrides(options: RunOptions, overrides: list[str]) -> RunOptions:
         if not sep or section not in sections or not name:
             raise SystemExit(f"--set {item!r}: expected csam.KEY=VALUE or local_map.KEY=VALUE")
         parsed = yaml.safe_load(value)
+        if isinstance(parsed, str):  # YAML 1.1 reads 1e-8 as text
+            with contextlib.suppress(ValueError):
+                parsed = float(parsed)
         sections[section][name] = "" if parsed is None else parsed
     return replace(
         options,

@@ -13,6 +13,8 @@ from scipy.stats import chi2
 from csam_ros.core import se2
 from csam_ros.core.csam import CsamConfig, CsamResult, run_csam
 from csam_ros.core.evaluation import evaluate
+from csam_ros.core.factors import Cauchy
+from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.scenario import load_document, load_scenario, scenario_from_dict
 from csam_ros.core.simulation import simulate
@@ -166,7 +168,7 @@ def test_chain_of_four_and_a_robot_that_never_meets() -> None:
     assert max(len(f.members) for f in result.features) >= 3
 
 
-def test_repeated_meetings_add_rows_to_one_connector() -> None:
+def _repeated_meetings_log():
     document = copy.deepcopy(SMALL)
     robots = document["scenario"]["robots"]
     # robot1 drives back and forth past robot2, which waits: three separate meetings
@@ -183,7 +185,11 @@ def test_repeated_meetings_add_rows_to_one_connector() -> None:
     document["scenario"]["world"]["areas"] = [
         {"center": [0.0, 1.5], "size": [14.0, 6.0], "spacing": 2.0, "jitter": 0.2}
     ]
-    log = simulate(scenario_from_dict(document), 0)
+    return simulate(scenario_from_dict(document), 0)
+
+
+def test_repeated_meetings_add_rows_to_one_connector() -> None:
+    log = _repeated_meetings_log()
     stamps = np.sort(np.concatenate([r.rendezvous.stamps for r in log.robots.values()]))
     meetings = 1 + int(np.sum(np.diff(stamps) > 3.0))
     assert meetings == 3
@@ -224,3 +230,46 @@ def test_config_from_file_and_errors() -> None:
         CsamConfig.from_dict({"chi2_gate": -1})
     with pytest.raises(ValueError, match="associate"):
         CsamConfig.from_dict({"associate": "yes"})
+
+
+def test_rendezvous_filters_drop_a_wrong_measurement_and_thin_the_rest() -> None:
+    log = _repeated_meetings_log()
+    wrong = copy.deepcopy(log)
+    rv = wrong.robots["robot1"].rendezvous
+    rv.ranges[len(rv.ranges) // 2] += 1.5  # a misread: 1.5 m too far
+    n_measured = sum(r.rendezvous.stamps.size for r in log.robots.values())
+
+    def nees(result: CsamResult) -> float:
+        err = _base_error(log, result, "robot2")
+        return float(err @ np.linalg.solve(result.robots["robot2"].base_node_cov, err))
+
+    trusting = run_csam(wrong)
+    checked = run_csam(wrong, CsamConfig(rendezvous_consistency=True, consistency_drift=0.2))
+    report = checked.to_dict()["rendezvous_filter"]["consistency"]
+    assert report["dropped"] == {"robot1": {"inconsistent": 1}}
+    assert checked.statistics["rendezvous_measurements"] == n_measured - 1
+    assert nees(checked) < chi2.ppf(0.999, 3) < nees(trusting)
+
+    thinned = run_csam(log, CsamConfig(rendezvous_min_interval=1.0, rendezvous_max_per_pair=4))
+    kept = thinned.statistics["rendezvous_measurements"]
+    assert 2 <= kept <= 8 < n_measured  # two ordered pairs, at most 4 each
+    assert thinned.robots["robot2"].alignment == "aligned"
+    assert nees(thinned) < chi2.ppf(0.999, 3)
+
+
+def test_real_data_settings_and_errors() -> None:
+    document = load_document("mrclam")
+    config = CsamConfig.from_dict(document["csam"])
+    assert config.rendezvous_consistency and config.thinning().max_per_pair == 20
+    assert CsamConfig.from_dict({"rendezvous_max_per_pair": 0}).thinning().max_per_pair is None
+    with pytest.raises(ValueError, match="rendezvous_min_interval"):
+        CsamConfig.from_dict({"rendezvous_min_interval": -1.0})
+    local = LocalMapConfig.from_dict(document["local_map"])
+    assert isinstance(local.options().robust, Cauchy) and local.window == 10.0
+    assert LocalMapConfig.from_dict({"batch_window": 0}).window is None
+    with pytest.raises(ValueError, match="robust_kernel"):
+        LocalMapConfig.from_dict({"robust_kernel": "tukey"})
+    with pytest.raises(ValueError, match="key_intervall"):
+        LocalMapConfig.from_dict({"key_intervall": 1.0})
+    with pytest.raises(ValueError, match="batch_window"):
+        LocalMapConfig.from_dict({"batch_window": "long"})
