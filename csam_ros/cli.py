@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -38,15 +39,27 @@ def _fresh_dir(path: Path | None, name: str) -> Path:
     return out
 
 
+MERGER_KEYS = {"solve_period"}
+
+
 def _csam_params(document: dict) -> dict:
-    """The merger's parameters: the ``csam:`` section (validated before any node starts)."""
+    """The merger's parameters: the ``csam:`` section and the ``merger:`` section's
+    ``solve_period`` (validated before any node starts)."""
     from csam_ros.core.csam import CsamConfig
 
     try:
-        CsamConfig.from_dict(document.get("csam"), "csam")
+        config = CsamConfig.from_dict(document.get("csam"), "csam")
     except ValueError as err:
         raise CliError(str(err)) from None
-    return dict(document.get("csam") or {})
+    csam = {k: getattr(config, k) for k in document.get("csam") or {}}  # typed as declared
+    merger = document.get("merger") or {}
+    unknown = sorted(set(merger) - MERGER_KEYS) if isinstance(merger, dict) else ["(not a map)"]
+    if unknown:
+        raise CliError(f"merger: unknown key(s) {unknown}; allowed: {sorted(MERGER_KEYS)}")
+    period = merger.get("solve_period", 0.5)
+    if isinstance(period, bool) or not isinstance(period, int | float) or not period >= 0:
+        raise CliError(f"merger.solve_period: expected seconds >= 0, got {period!r}")
+    return {**csam, **merger, "solve_period": float(period)}
 
 
 THINNING_KEYS = ("rendezvous_min_interval", "rendezvous_max_per_pair")
@@ -58,11 +71,15 @@ def _smoother_params(document: dict) -> dict:
     from csam_ros.core.local_map import LocalMapConfig
 
     try:
-        LocalMapConfig.from_dict(document.get("local_map"), "local_map")
+        config = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
     except ValueError as err:
         raise CliError(str(err)) from None
-    params = {k: v for k, v in (document.get("local_map") or {}).items() if k != "batch_window"}
-    csam = document.get("csam") or {}
+    params: dict = {
+        k: v if isinstance(v, str) else float(v)
+        for k, v in asdict(config).items()
+        if k != "batch_window"
+    }
+    csam = _csam_params(document)
     params.update({k: csam[k] for k in THINNING_KEYS if k in csam})
     return params
 
@@ -123,6 +140,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _bag_robots(bag: Path) -> list[str]:
+    return _bag_contents(bag)[0]
+
+
+def _bag_contents(bag: Path) -> tuple[list[str], float]:
+    """The robots of a bag's sensor topics and the bag's duration [s]."""
     from csam_ros.bag import inspect_bag
 
     info = inspect_bag(bag)
@@ -131,7 +153,7 @@ def _bag_robots(bag: Path) -> list[str]:
     )
     if not robots:
         raise CliError(f"{bag}: no /<robot>/odom or /<robot>/features topics")
-    return robots
+    return robots, max(info.end_ns - info.start_ns, 0) * 1e-9
 
 
 def offline_summary(bag: Path, config_document: dict | None = None) -> tuple[dict, object]:
@@ -180,7 +202,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             from csam_ros.conversions import FEATURES_TRUTH_TOPIC, sensor_topics
             from csam_ros.live import LiveRun, run_live
 
-            robots = _bag_robots(bag)
+            robots, duration = _bag_contents(bag)
             topics = [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]
             run = LiveRun(
                 out_dir=out,
@@ -200,6 +222,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 ],
                 smoother_params=smoother_params,
                 merger_params=merger_params,
+                # the playback itself plus a margin (a replay at --rate 0 is not paced)
+                timeout_s=600.0 + (1.2 * duration / args.rate if args.rate > 0 else duration),
             )
             summary = run_live(run)
     except BagError as err:

@@ -100,12 +100,13 @@ ROBUST_KERNELS: dict[str, type[RobustKernel]] = {"huber": Huber, "cauchy": Cauch
 @dataclass
 class LocalMapConfig:
     """The ``local_map:`` section of a parameter file; the smoother node's parameters of the
-    same names (``batch_window`` is for offline builds only)."""
+    same names (``batch_window`` is for offline builds only, ``publish_period`` for nodes)."""
 
     key_interval: float = 1.0  # s between regular key poses; 0: off
     robust_kernel: str = ""  # on feature observations: "" (none), "huber" or "cauchy"
     robust_threshold: float = 0.0  # the kernel's threshold or scale (whitened); 0: its default
     batch_window: float = 60.0  # offline: s of odometry per warm-started solve; 0: one batch
+    publish_period: float = 1.0  # online: s (node clock) between the smoother's updates
 
     @classmethod
     def from_dict(cls, node: Mapping[str, Any] | None, source: str = "local_map") -> LocalMapConfig:
@@ -124,12 +125,12 @@ class LocalMapConfig:
                 f"{source}.robust_kernel: {config.robust_kernel!r} is not one of "
                 f"'', {', '.join(repr(k) for k in ROBUST_KERNELS)}"
             )
-        for key in ("key_interval", "robust_threshold", "batch_window"):
+        for key in ("key_interval", "robust_threshold", "batch_window", "publish_period"):
             value = getattr(config, key)
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f"{source}.{key}: expected a number, got {value!r}")
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{source}.{key}: must be >= 0, got {value!r}")
+            if not (np.isfinite(value) and value >= 0) or (key == "publish_period" and value == 0):
+                raise ValueError(f"{source}.{key}: must be >= 0 (period > 0), got {value!r}")
         return config
 
     def options(self) -> LocalMapOptions:
