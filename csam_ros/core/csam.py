@@ -492,7 +492,7 @@ def run_csam(
     config = config or CsamConfig()
     local_map = local_map or LocalMapConfig()
     start = time.perf_counter()
-    logs, _ = thin_rendezvous(
+    logs, thinned = thin_rendezvous(
         {n: r.rendezvous for n, r in log.robots.items()},
         config.rendezvous_min_interval,
         config.rendezvous_max_per_pair or None,
@@ -511,6 +511,8 @@ def run_csam(
     ]
     built = time.perf_counter() - start
     result = join_maps(maps, logs, config)
+    if "thinning" in result.rendezvous_filter:  # what was thinned here, not the no-op again
+        result.rendezvous_filter["thinning"] = thinned.to_dict()
     result.timing_s["local_maps"] = built
     result.timing_s["total"] += built
     return result

@@ -253,6 +253,9 @@ def test_rendezvous_filters_drop_a_wrong_measurement_and_thin_the_rest() -> None
     thinned = run_csam(log, CsamConfig(rendezvous_min_interval=1.0, rendezvous_max_per_pair=4))
     kept = thinned.statistics["rendezvous_measurements"]
     assert 2 <= kept <= 8 < n_measured  # two ordered pairs, at most 4 each
+    report = thinned.rendezvous_filter["thinning"]
+    assert sum(report["kept"].values()) == kept
+    assert kept + sum(sum(d.values()) for d in report["dropped"].values()) == n_measured
     assert thinned.robots["robot2"].alignment == "aligned"
     assert nees(thinned) < chi2.ppf(0.999, 3)
 
