@@ -3,7 +3,8 @@
 ``python -m csam_ros.bench.mrclam noise [--dataset DIR]`` re-estimates the noise model
 written in ``config/mrclam.yaml`` and prints it with its diagnostics (about 40 s).
 ``python -m csam_ros.bench.mrclam run [--robots 1,2] [--start S] [--duration D] [--out DIR]``
-runs C-SAM on the data (settings from the ``run`` section of the config) and scores it;
+runs C-SAM on the data (the ``local_map:`` and ``csam:`` sections of the config, as
+``csam replay --config`` reads them; ``--set csam.chi2_gate=9.21`` overrides one) and scores it;
 ``... table`` does so for each robot alone, every pair and all five, sharing local maps.
 
 What real data needed beyond simulation (measured on the whole of Dataset 1, 1,490 s):
