@@ -74,10 +74,11 @@ def _smoother_params(document: dict) -> dict:
         config = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
     except ValueError as err:
         raise CliError(str(err)) from None
+    given = document.get("local_map") or {}
     params: dict = {
         k: v if isinstance(v, str) else float(v)
         for k, v in asdict(config).items()
-        if k != "batch_window"
+        if k in given and k != "batch_window"
     }
     csam = _csam_params(document)
     params.update({k: csam[k] for k in THINNING_KEYS if k in csam})

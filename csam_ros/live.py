@@ -41,6 +41,8 @@ def _param(name: str, value: object) -> list[str]:
         text = "true" if value else "false"
     elif isinstance(value, list | tuple):
         text = "[" + ",".join(json.dumps(v) if isinstance(v, str) else str(v) for v in value) + "]"
+    elif value == "":
+        text = "''"  # an empty YAML string; a bare `name:=` does not parse
     else:
         text = str(value)
     return ["-p", f"{name}:={text}"]
