@@ -164,15 +164,7 @@ class Smoother(Node):
 
     def on_own_rendezvous(self, msg: RendezvousObservations) -> None:
         stamp, a = rendezvous_from_message(msg)
-        keep = self.filter.rendezvous(
-            self.robot,
-            stamp,
-            a["observed"],
-            a["ranges"],
-            a["bearings"],
-            a["sigma_range"],
-            a["sigma_bearing"],
-        )
+        keep = _checked_rendezvous(self.filter, self.robot, stamp, a)
         if keep is None:
             return
         for i in np.flatnonzero(keep):
@@ -185,15 +177,7 @@ class Smoother(Node):
     def on_peer_rendezvous(self, peer: str, msg: RendezvousObservations) -> None:
         """A peer's measurements: only the stamps of kept ones of this robot matter here."""
         stamp, a = rendezvous_from_message(msg)
-        keep = self.peer_filter.rendezvous(
-            peer,
-            stamp,
-            a["observed"],
-            a["ranges"],
-            a["bearings"],
-            a["sigma_range"],
-            a["sigma_bearing"],
-        )
+        keep = _checked_rendezvous(self.peer_filter, peer, stamp, a)
         if keep is None:
             return
         for i in np.flatnonzero(keep):
@@ -313,6 +297,14 @@ class Smoother(Node):
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.status_pub.publish(array)
+
+
+def _checked_rendezvous(
+    checks: MeasurementFilter, robot: str, stamp: float, a: dict
+) -> np.ndarray | None:
+    """``checks``' mask of the accepted observations of one rendezvous message."""
+    observations = (a[k] for k in ("ranges", "bearings", "sigma_range", "sigma_bearing"))
+    return checks.rendezvous(robot, stamp, a["observed"], *observations)
 
 
 def main(args: list[str] | None = None) -> int:
