@@ -83,7 +83,8 @@ class CsamConfig:
     step_tolerance: float = 1e-9  # m, rad: stop when the largest step component is below
     relative_tolerance: float = 1e-12  # stop when the relative cost decrease is below
     associate: bool = True  # False: join through rendezvous rows only
-    # rendezvous pre-filters for real data (csam_ros.core.robust); the defaults keep everything
+    # rendezvous filters for real data (csam_ros.core.robust; defaults keep everything): the
+    # thinning acts where poses are chosen (smoothers, run_csam), the check in join_maps
     rendezvous_min_interval: float = 0.0  # s between kept measurements of one ordered pair
     rendezvous_max_per_pair: int = 0  # kept per ordered pair, spread over time; 0: no cap
     rendezvous_consistency: bool = False  # RANSAC check of rendezvous against the local maps
@@ -281,22 +282,16 @@ def _local_inputs(
 def filter_rendezvous(
     maps: Sequence[RobotMap], logs: Mapping[str, RendezvousLog], config: CsamConfig
 ) -> tuple[Mapping[str, RendezvousLog], dict[str, Any]]:
-    """The rendezvous pre-filters of ``config`` (:mod:`csam_ros.core.robust`): thinning
-    (idempotent: logs the smoothers already thinned pass unchanged), then the consistency
-    check against the local maps' trajectories. Returns the kept logs and what was dropped."""
-    report: dict[str, Any] = {}
-    if config.rendezvous_min_interval > 0 or config.rendezvous_max_per_pair > 0:
-        logs, thinned = thin_rendezvous(
-            logs, config.rendezvous_min_interval, config.rendezvous_max_per_pair or None
-        )
-        report["thinning"] = thinned.to_dict()
-    if config.rendezvous_consistency:
-        trajectories = {m.name: (np.asarray(m.stamps, dtype=float), m.poses) for m in maps}
-        present = {n: log for n, log in logs.items() if n in trajectories}
-        kept, checked = consistent_rendezvous(present, trajectories, drift=config.consistency_drift)
-        logs = {**logs, **kept}
-        report["consistency"] = checked.to_dict()
-    return logs, report
+    """The consistency check of ``config`` (:func:`csam_ros.core.robust.consistent_rendezvous`)
+    against the local maps' trajectories. Thinning is not done here: it decides where the
+    local maps hold poses, so the smoothers (online) and :func:`run_csam` (offline) apply it.
+    Returns the kept logs and what was dropped."""
+    if not config.rendezvous_consistency:
+        return logs, {}
+    trajectories = {m.name: (np.asarray(m.stamps, dtype=float), m.poses) for m in maps}
+    present = {n: log for n, log in logs.items() if n in trajectories}
+    kept, checked = consistent_rendezvous(present, trajectories, drift=config.consistency_drift)
+    return {**logs, **kept}, {"consistency": checked.to_dict()}
 
 
 def join_maps(
@@ -492,10 +487,11 @@ def run_csam(
     config = config or CsamConfig()
     local_map = local_map or LocalMapConfig()
     start = time.perf_counter()
+    thinning = config.thinning()
     logs, thinned = thin_rendezvous(
         {n: r.rendezvous for n, r in log.robots.items()},
-        config.rendezvous_min_interval,
-        config.rendezvous_max_per_pair or None,
+        thinning.min_interval,
+        thinning.max_per_pair,
     )
     stamps = required_stamps(logs)
     maps = [
@@ -511,7 +507,7 @@ def run_csam(
     ]
     built = time.perf_counter() - start
     result = join_maps(maps, logs, config)
-    if "thinning" in result.rendezvous_filter:  # what was thinned here, not the no-op again
+    if thinning.min_interval > 0 or thinning.max_per_pair is not None:
         result.rendezvous_filter["thinning"] = thinned.to_dict()
     result.timing_s["local_maps"] = built
     result.timing_s["total"] += built

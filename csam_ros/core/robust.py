@@ -23,6 +23,7 @@ CsamConfig`), so the nodes and an offline replay apply them alike.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
@@ -108,7 +109,9 @@ class RendezvousThinning:
         return True
 
     def is_kept(self, observer: str, observed: str, stamp: float) -> bool:
-        return float(stamp) in self._kept.get((observer, observed), ())
+        kept = self._kept.get((observer, observed), [])  # in stamp order (offer keeps it so)
+        i = bisect.bisect_left(kept, float(stamp))
+        return i < len(kept) and kept[i] == float(stamp)
 
     def kept_stamps(self, observer: str, observed: str) -> list[float]:
         return list(self._kept.get((observer, observed), ()))
