@@ -84,6 +84,8 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 GAUGE_SIGMA = 1e-6
+# factors with more residual rows than this are assembled by matrix products (see assemble)
+WIDE_FACTOR_ROWS = 8
 
 
 class SingularProblemError(ValueError):
@@ -488,11 +490,17 @@ class NormalEquations:
             strict=True,
         ):
             k, d, dim = a.shape
+            h = hess[hs].reshape(len(first), k)
+            g = grad[gs].reshape(dim, k)
+            if d > WIDE_FACTOR_ROWS:
+                # many rows per factor (a dense LinearPrior): one BLAS product per factor
+                ata = np.matmul(a.transpose(0, 2, 1), a)
+                h[:] = ata[:, first, second].T
+                g[:] = np.einsum("kij,ki->jk", a, r)
+                continue
             # component-major (d, D, K): each product below is one contiguous vector operation
             at = np.ascontiguousarray(a.transpose(1, 2, 0))
             rt = np.ascontiguousarray(r.T)
-            h = hess[hs].reshape(len(first), k)
-            g = grad[gs].reshape(dim, k)
             np.multiply(at[0, first], at[0, second], out=h)
             np.multiply(at[0], rt[0], out=g)
             for i in range(1, d):
