@@ -310,6 +310,7 @@ def cmd_import(args: argparse.Namespace) -> int:
                 duration=args.duration,
                 noise=config["noise"],
                 landmark_swaps=[tuple(p) for p in config.get("landmark_swaps") or ()],
+                range_scale=config.get("range_scale"),
             )
         except (MrclamFormatError, ValueError) as err:
             raise CliError(str(err)) from None

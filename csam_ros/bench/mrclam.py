@@ -875,6 +875,26 @@ def em_noise(
     return noise, {"rounds": history, "tolerance": tolerance, "localisations": locs}
 
 
+def range_scale(loc: Localisation, gate: float = 5.0) -> tuple[float, float, float]:
+    """Ratio of measured to true range of one robot's camera: weighted least squares of the
+    measured on the predicted ranges of its localisation (weights ``1 / r^2``, the range
+    sigma being proportional to range), on measurements within ``gate`` robust sigmas of
+    their prediction. Returns the estimate on all measurements, on the first and on the
+    second half of the run (the spread says whether it is a stable property of the camera).
+    """
+    predicted = loc.ranges - loc.range_residuals
+    normalised = loc.range_residuals / predicted
+    inlier = np.abs(normalised) < gate * robust_sigma(normalised)
+    stamps = loc.stamps[loc.observation_key]
+    middle = 0.5 * (stamps[0] + stamps[-1])
+
+    def fit(use: NDArray[np.bool_]) -> float:
+        w = 1.0 / predicted[use] ** 2
+        return float(np.sum(w * loc.ranges[use] * predicted[use]) / np.sum(w * predicted[use] ** 2))
+
+    return fit(inlier), fit(inlier & (stamps < middle)), fit(inlier & (stamps >= middle))
+
+
 def rendezvous_noise(log: MultiRobotLog, locs: dict[str, Localisation], noise: MrclamNoise) -> dict:
     """Rendezvous residuals against the two robots' localisations with known landmarks.
 
@@ -976,6 +996,7 @@ class NoiseEstimate:
     landmarks: dict[int, dict]
     landmark_swaps: list[tuple[int, int]]
     seconds: float
+    range_scale: dict[int, tuple[float, float, float]] = field(default_factory=dict)
 
 
 def estimate_noise(
@@ -1004,8 +1025,11 @@ def estimate_noise(
         if rounds
         else (noise, {"rounds": []})
     )
+    scales = {}
     if rounds:
-        rendezvous = rendezvous_noise(log, history.pop("localisations"), final)
+        locs = history.pop("localisations")
+        scales = {int(name[5:]): range_scale(loc) for name, loc in locs.items()}
+        rendezvous = rendezvous_noise(log, locs, final)
         final = replace(
             final,
             rendezvous_range_factor=max(1.0, rendezvous["range_factor"]),
@@ -1013,7 +1037,15 @@ def estimate_noise(
         )
         history["rendezvous"] = rendezvous
     return NoiseEstimate(
-        final, noise, history, sensor, odometry, landmarks, swaps, time.perf_counter() - began
+        final,
+        noise,
+        history,
+        sensor,
+        odometry,
+        landmarks,
+        swaps,
+        time.perf_counter() - began,
+        scales,
     )
 
 
@@ -1094,6 +1126,15 @@ def _print_noise(estimate: NoiseEstimate) -> None:
             f"{rv['bearing_factor']:.2f} x the bearing model; beyond 5 such sigmas: range "
             f"{100 * rv['range_beyond_5']:.2f}%, bearing {100 * rv['bearing_beyond_5']:.2f}%"
         )
+    if estimate.range_scale:
+        print(
+            "4. range calibration: measured / predicted range per robot (weighted least squares "
+            "on the final localisations; whole run, first half, second half):"
+        )
+        for number, (whole, first, second) in estimate.range_scale.items():
+            print(f"  robot{number}: {whole:.4f}  ({first:.4f}, {second:.4f})")
+        print("range scale (config/mrclam.yaml, key mrclam.range_scale):")
+        print("  " + ", ".join(f"{k}: {v[0]:.4f}" for k, v in estimate.range_scale.items()))
     print("noise model (config/mrclam.yaml, key mrclam.noise):")
     print(f"  sigma_range: {n.sigma_range:.4f}        # m")
     print(f"  sigma_range_per_m: {n.sigma_range_per_m:.4f}  # m per m of range")
@@ -1150,6 +1191,7 @@ def prepare_mrclam(
         noise=config["noise"],
         label_seed=int(config.get("label_seed", 0)),
         landmark_swaps=config.get("landmark_swaps") or [],
+        range_scale=config.get("range_scale"),
     )
     timing["import"] = time.perf_counter() - clock
     measured = {n: int(r.rendezvous.stamps.size) for n, r in log.robots.items()}

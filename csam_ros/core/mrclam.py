@@ -38,6 +38,11 @@ offending lines quoted in ``ImportReport.notes``; no row ever raises):
   measurement of either is ~4-5 m off the listed position while the other 13 landmarks agree
   to centimetres; ``python -m csam_ros.bench.mrclam noise`` shows it). Applied swaps are
   listed in ``ImportReport.truth_corrections``; nothing is swapped unless asked.
+- Range calibration: ``range_scale`` maps robot numbers to the ratio of measured to true
+  range of that robot's camera (a per-camera scale error, estimated against the landmark
+  ground truth by ``python -m csam_ros.bench.mrclam noise``, listed in ``config/mrclam.yaml``).
+  Every range the robot measured, of landmarks and of robots, is divided by it before its
+  sigma is computed; ``ImportReport.range_scale`` lists what was applied.
 - Labels are local: robot ``k`` numbers the landmarks ``k + permutation_k(index)`` with a
   permutation seeded by ``(label_seed, k)``, so label ranges overlap across robots and equal
   labels mean nothing across robots. :class:`GroundTruth` keeps each robot's label -> subject.
@@ -46,7 +51,7 @@ offending lines quoted in ``ImportReport.notes``; no row ever raises):
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -160,6 +165,7 @@ class ImportReport:
     counts: dict[str, dict[str, int]] = field(default_factory=dict)  # robot -> reason -> n
     notes: list[str] = field(default_factory=list)  # first offending lines, "file:line: why"
     truth_corrections: list[str] = field(default_factory=list)
+    range_scale: dict[str, float] = field(default_factory=dict)  # robot -> measured / true
 
     def total(self, reason: str) -> int:
         """Sum of one count over all robots."""
@@ -176,6 +182,7 @@ class ImportReport:
             "counts": {r: dict(c) for r, c in self.counts.items()},
             "notes": list(self.notes),
             "truth_corrections": list(self.truth_corrections),
+            "range_scale": dict(self.range_scale),
         }
 
     def summary(self) -> str:
@@ -416,6 +423,7 @@ def import_mrclam(
     noise: MrclamNoise | None = None,
     label_seed: int = 0,
     landmark_swaps: Sequence[tuple[int, int]] = (),
+    range_scale: Mapping[int, float] | None = None,
 ) -> tuple[MultiRobotLog, ImportReport]:
     """Read an MR.CLAM data set directory into a :class:`MultiRobotLog`.
 
@@ -423,7 +431,8 @@ def import_mrclam(
     ``duration`` [s] cut a window relative to the data set's first stamp. Returns the log
     (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
     label -> subject map) and the :class:`ImportReport`. ``landmark_swaps`` lists pairs of
-    landmark subjects whose true positions are exchanged (module docstring).
+    landmark subjects whose true positions are exchanged, ``range_scale`` each robot's ratio of
+    measured to true range (module docstring).
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -443,6 +452,7 @@ def import_mrclam(
     if not np.isfinite(start) or (duration is not None and not duration > 0):
         raise ValueError(f"bad window: start={start!r}, duration={duration!r} (need > 0)")
     noise = noise or MrclamNoise()
+    scales = _range_scales(range_scale or {}, available)
     names = [f"robot{r}" for r in selected]
     counter = _Counter(names)
 
@@ -500,6 +510,7 @@ def import_mrclam(
             robot_subjects,
             labels[name],
             noise,
+            scales.get(number, 1.0),
             counter,
         )
         logs[name] = RobotLog(name, odometry[name], features, rendezvous)
@@ -520,8 +531,23 @@ def import_mrclam(
         counts=counter.counts,
         notes=counter.notes,
         truth_corrections=corrections,
+        range_scale={f"robot{r}": scales[r] for r in selected if r in scales},
     )
     return MultiRobotLog(logs, truth), report
+
+
+def _range_scales(range_scale: Mapping[int, float], available: list[int]) -> dict[int, float]:
+    """Validated ``range_scale``: robot numbers of the data set, finite values > 0."""
+    scales: dict[int, float] = {}
+    for key, value in range_scale.items():
+        number = int(key) if str(key).isdigit() else -1
+        if number not in available:
+            raise ValueError(f"range_scale: robot {key!r} is not in the data set ({available})")
+        scale = float(value)
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"range_scale of robot {number} must be finite and > 0, got {value!r}")
+        scales[number] = scale
+    return scales
 
 
 def _measurement_logs(
@@ -533,9 +559,11 @@ def _measurement_logs(
     robot_subjects: set[int],
     labels: dict[int, int],
     noise: MrclamNoise,
+    range_scale: float,
     counter: _Counter,
 ) -> tuple[FeatureLog, RendezvousLog]:
-    """Split one robot's measurement rows into feature and rendezvous logs (module docstring)."""
+    """Split one robot's measurement rows into feature and rendezvous logs, ranges divided by
+    ``range_scale`` (module docstring)."""
     name = f"robot{number}"
     file_name = f"Robot{number}_Measurement.dat"
     values, lines = table.values, table.lines
@@ -595,7 +623,7 @@ def _measurement_logs(
     )
     is_rendezvous &= ~observed_outside
 
-    ranges, bearings = values[:, 2], values[:, 3]
+    ranges, bearings = values[:, 2] / range_scale, values[:, 3]
     sigma_range = noise.sigma_range + noise.sigma_range_per_m * ranges
     label_keys = np.array(sorted(labels), dtype=np.int64)
     label_values = np.array([labels[s] for s in label_keys], dtype=np.int64)

@@ -6,9 +6,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from csam_ros.bench.mrclam import (
+    Localisation,
     arc_increments,
     chain_covariances,
     dead_reckoning,
+    range_scale,
     robust_sigma,
     snapshot_localisation,
 )
@@ -92,3 +94,33 @@ def test_snapshot_localisation_recovers_poses_despite_an_outlier() -> None:
     np.testing.assert_allclose(snapshots.poses[:, 2], poses[:, 2], atol=0.01)
     outlier = (snapshots.snapshot == 1) & (snapshots.labels == 13)
     assert abs(snapshots.range_residuals[outlier][0] - 2.5) < 0.1
+
+
+def test_range_scale_recovers_a_camera_scale_despite_outliers() -> None:
+    rng = np.random.default_rng(3)
+    n = 4000
+    predicted = rng.uniform(0.5, 6.0, size=n)
+    measured = 0.985 * predicted * (1 + rng.normal(scale=0.03, size=n))
+    measured[:100] *= 0.5  # 2.5% gross short outliers, ignored by the gate
+    key = np.arange(n)
+    zeros = np.zeros(n)
+    loc = Localisation(
+        robot="robot1",
+        stamps=np.linspace(0.0, 100.0, n),
+        poses=np.zeros((n, 3)),
+        pose_covariances=np.zeros((n, 3, 3)),
+        pair_covariances=np.zeros((n - 1, 6, 6)),
+        odometry_z=np.zeros((n - 1, 3)),
+        odometry_unit=np.zeros((n - 1, 3, 3, 3)),
+        observation_key=key,
+        ranges=measured,
+        range_residuals=measured - predicted,
+        bearing_residuals=zeros,
+        range_variance=zeros,
+        bearing_variance=zeros,
+        iterations=0,
+        seconds=0.0,
+    )
+    whole, first, second = range_scale(loc)
+    assert abs(whole - 0.985) < 0.003
+    assert abs(first - 0.985) < 0.004 and abs(second - 0.985) < 0.004

@@ -269,6 +269,7 @@ def test_real_data_settings_and_errors() -> None:
         CsamConfig.from_dict({"rendezvous_min_interval": -1.0})
     local = LocalMapConfig.from_dict(document["local_map"])
     assert isinstance(local.options().robust, Cauchy) and local.window == 10.0
+    assert local.options().robust.scale == 1.0
     assert LocalMapConfig.from_dict({"batch_window": 0}).window is None
     with pytest.raises(ValueError, match="robust_kernel"):
         LocalMapConfig.from_dict({"robust_kernel": "tukey"})

@@ -277,6 +277,8 @@ def test_config_file_loads() -> None:
     assert isinstance(config["noise"], MrclamNoise)
     assert config["noise"] == MrclamNoise()  # the defaults are the config's values
     assert config["landmark_swaps"] == [[11, 17]]
+    assert sorted(config["range_scale"]) == [1, 2, 3, 4, 5]
+    assert all(0.95 < v < 1.05 for v in config["range_scale"].values())
 
 
 def test_landmark_swaps_exchange_truth_positions(tmp_path: Path) -> None:
@@ -291,6 +293,29 @@ def test_landmark_swaps_exchange_truth_positions(tmp_path: Path) -> None:
     assert plain.truth_corrections == []
     with pytest.raises(ValueError, match=r"\(6, 3\)"):
         import_mrclam(d, landmark_swaps=[(6, 3)])
+
+
+def test_range_scale_divides_every_range_of_that_robot(tmp_path: Path) -> None:
+    meas = {1: ["1001.0 72 2.0 0.1", "1002.0 14 1.5 0.0"], 2: ["1001.2 72 2.1 0.1"]}
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry(), 2: clean_odometry()}, meas)
+    noise = MrclamNoise(sigma_range=0.05, sigma_range_per_m=0.02)
+    log, report = import_mrclam(d, noise=noise, range_scale={1: 0.98})
+    robot1, robot2 = log.robots["robot1"], log.robots["robot2"]
+    assert robot1.features.ranges.tolist() == pytest.approx([2.0 / 0.98])
+    assert robot1.rendezvous.ranges.tolist() == pytest.approx([1.5 / 0.98])
+    # the sigma follows the corrected range
+    assert robot1.features.sigma_range.tolist() == pytest.approx([0.05 + 0.02 * 2.0 / 0.98])
+    assert robot2.features.ranges.tolist() == pytest.approx([2.1])
+    assert report.range_scale == {"robot1": 0.98}
+    assert report.to_dict()["range_scale"] == {"robot1": 0.98}
+    for bad, match in (
+        ({4: 1.0}, "robot 4 is not in the data set"),
+        ({"robot1": 1.0}, "robot 'robot1' is not in the data set"),
+        ({1: 0.0}, "range_scale of robot 1 must be finite and > 0"),
+        ({2: float("nan")}, "range_scale of robot 2"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            import_mrclam(d, range_scale=bad)
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
