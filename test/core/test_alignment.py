@@ -1,6 +1,7 @@
 """Base-node initialisation and Algorithm 1: closed-form cases without noise, observability
-checks (pending), chains through non-reference robots, the connector's Jacobians, and
-agreement of Algorithm 1 (rendezvous parts only) with the full joint solve."""
+checks (pending), chains through non-reference robots, the connector's Jacobians and second
+derivatives, the dense Newton path against the generic Gauss-Newton path, and agreement of
+Algorithm 1 (rendezvous parts only) with the full joint solve."""
 
 from __future__ import annotations
 
@@ -10,13 +11,16 @@ import pytest
 from csam_ros.core import se2, sensor
 from csam_ros.core.alignment import (
     BASE_NODE,
+    AlignmentOptions,
     Connector,
     RendezvousPart,
+    _connector_curvature,
+    _dense_information,
     align,
     initial_pair_base,
 )
 from csam_ros.core.csam import CsamConfig, run_csam
-from csam_ros.core.factors import POSE
+from csam_ros.core.factors import POSE, LinearPrior
 from csam_ros.core.rendezvous import RendezvousSet
 from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
@@ -199,3 +203,107 @@ def test_rendezvous_far_from_the_frame_origin_is_still_observable() -> None:
     assert init.base is not None, init.reason
     np.testing.assert_allclose(init.base, _true_base(world, 1), atol=1e-6)
     assert init.heading_sigma < np.deg2rad(1.0)
+
+
+def _drifting_parts(world, rng, sigma_step=0.02, sigma_start=(0.3, 0.3, 0.1)):
+    """Local estimates with odometry-like noise and their dense prior: information of
+    consecutive differences (sigma_step) plus a weak prior on the first pose, so that a rigid
+    rotation of all poses is weakly determined (as in real local maps)."""
+    parts = []
+    for w in world:
+        local = se2.between(w[0], w)
+        n = len(local)
+        local = local + rng.normal(0, sigma_step, local.shape).cumsum(axis=0)
+        diff = np.zeros((3 * n, 3 * n))
+        diff[:3, :3] = np.diag(1.0 / np.asarray(sigma_start))
+        for k in range(1, n):
+            diff[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = np.eye(3) / sigma_step
+            diff[3 * k : 3 * k + 3, 3 * k - 3 : 3 * k] = -np.eye(3) / sigma_step
+        upper = np.linalg.cholesky(diff.T @ diff).T
+        parts.append(RendezvousPart(np.arange(n), local, upper))
+    return parts
+
+
+@pytest.fixture
+def three_drifting_robots():
+    rng = np.random.default_rng(11)
+    world = [
+        _straight((0.0, 0.0), 0.0, 0.4, 12),
+        _straight((6.0, 2.0), np.pi - 0.1, 0.4, 12),
+        _straight((1.0, 5.0), -0.5, 0.4, 12),
+    ]
+    pairs = [(0, 1, i) for i in range(0, 12, 2)] + [(1, 0, i) for i in range(1, 12, 3)]
+    pairs += [(1, 2, i) for i in range(0, 12, 3)] + [(2, 0, i) for i in range(0, 12, 4)]
+    meas = _measurements(world, pairs, ["a", "b", "c"])
+    meas.position += rng.normal(0, 0.05, meas.position.shape)  # large residuals
+    return _drifting_parts(world, rng), meas
+
+
+def test_dense_newton_matches_gauss_newton(three_drifting_robots) -> None:
+    """Both paths reach the same minimum (Gauss-Newton run to convergence); Newton's is at
+    least as low and needs no more iterations."""
+    parts, meas = three_drifting_robots
+    newton = align(parts, meas, AlignmentOptions(method="newton", max_iterations=500))
+    generic = align(parts, meas, AlignmentOptions(method="gauss-newton", max_iterations=500))
+    assert newton.status == generic.status == ["reference", "aligned", "aligned"]
+    np.testing.assert_allclose(newton.base_nodes, generic.base_nodes, atol=1e-6)
+    for r, poses in generic.rendezvous_poses.items():
+        np.testing.assert_allclose(newton.rendezvous_poses[r], poses, atol=1e-6)
+    assert newton.state_keys == generic.state_keys
+    scale = np.sqrt(np.outer(np.diag(generic.covariance), np.diag(generic.covariance)))
+    np.testing.assert_allclose(newton.covariance / scale, generic.covariance / scale, atol=1e-5)
+    assert newton.final_cost <= generic.final_cost + 1e-9
+    assert 1 <= newton.iterations <= generic.iterations
+    auto = align(parts, meas, AlignmentOptions(max_iterations=500))
+    np.testing.assert_array_equal(auto.base_nodes, newton.base_nodes)
+
+
+def test_newton_matrix_is_the_hessian_of_the_cost() -> None:
+    """``A^T A`` plus the connectors' curvature equals the numerical Hessian of the cost."""
+    rng = np.random.default_rng(3)
+    k = 5
+    problem = Problem()
+    poses = problem.add_variables(POSE, range(2 * k), rng.normal(0, 2, (2 * k, 3)))
+    base = problem.add_variable(BASE_NODE, "b", rng.normal(0, 1, 3))
+    prior_sqrt = np.triu(rng.normal(0, 1, (6 * k, 6 * k))) + 5 * np.eye(6 * k)
+    problem.add_factor(LinearPrior(poses, [POSE] * 2 * k, rng.normal(0, 2, 6 * k), prior_sqrt))
+    problem.add_factor(
+        Connector(
+            poses[:k],
+            poses[k:],
+            rng.normal(0, 3, (k, 2)),
+            covariance=0.01 * np.eye(2),
+            observed_bases=np.full(k, base),
+        )
+    )
+    problem.add_factor(
+        Connector(
+            poses[k:],
+            poses[:k],
+            rng.normal(0, 3, (k, 2)),
+            covariance=0.04 * np.eye(2),
+            observer_bases=np.full(k, base),
+        )
+    )
+    system = problem.normal_equations()
+    x = problem.values.copy()
+    system.linearize(x)
+    newton = _dense_information(problem) + _connector_curvature(problem, x, problem.dim)
+    numeric = np.empty_like(newton)
+    h = 1e-5
+    for j in range(problem.dim):
+        step = np.zeros(problem.dim)
+        step[j] = h
+        system.linearize(x + step)
+        plus = system.gradient.copy()
+        system.linearize(x - step)
+        numeric[:, j] = (plus - system.gradient) / (2 * h)
+    assert np.abs(_connector_curvature(problem, x, problem.dim)).max() > 1.0  # not trivial
+    np.testing.assert_allclose(newton, numeric, atol=1e-4 * np.abs(numeric).max())
+
+
+def test_unknown_alignment_method_is_an_error(two_robots) -> None:
+    meas = _measurements(two_robots, [(0, 1, i) for i in range(8)], ["p", "q"])
+    parts, _ = _parts(two_robots)
+    with pytest.raises(ValueError, match="method"):
+        align(parts, meas, AlignmentOptions(method="bfgs"))
