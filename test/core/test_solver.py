@@ -24,7 +24,7 @@ from csam_ros.core.factors import (
     RelativePosition,
     VariableKind,
 )
-from csam_ros.core.solver import Problem, SingularProblemError, SolverOptions
+from csam_ros.core.solver import WIDE_FACTOR_ROWS, Problem, SingularProblemError, SolverOptions
 
 
 def mixed_problem(seed=0):
@@ -90,6 +90,25 @@ def test_normal_equations_equal_dense_product_of_whitened_jacobian():
     A, r = dense_system(p)
     upper = system.matrix().toarray()
     np.testing.assert_allclose(upper, np.triu(A.T @ A), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(system.gradient, A.T @ r, rtol=1e-12, atol=1e-9)
+    assert cost == pytest.approx(p.cost())
+
+
+def test_wide_factor_is_assembled_like_the_dense_product():
+    """A LinearPrior with more rows than WIDE_FACTOR_ROWS takes the matrix-product path."""
+    p = mixed_problem(seed=1)
+    rng = np.random.default_rng(4)
+    ids = [p.index(("x", i)) for i in (6, 2, 4)] + [p.index(("l", 3))]
+    rows = WIDE_FACTOR_ROWS + 7
+    p.add_factor(
+        LinearPrior(
+            ids, [POSE, POSE, POSE, POINT], rng.normal(size=11), rng.normal(size=(rows, 11))
+        )
+    )
+    system = p.normal_equations()
+    cost = system.linearize(p.values)
+    A, r = dense_system(p)
+    np.testing.assert_allclose(system.matrix().toarray(), np.triu(A.T @ A), rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(system.gradient, A.T @ r, rtol=1e-12, atol=1e-9)
     assert cost == pytest.approx(p.cost())
 
