@@ -22,9 +22,15 @@ Refinement (Algorithm 1): Gauss-Newton on the rendezvous poses of all placed rob
 their base nodes. Each local map enters only through its :class:`RendezvousPart`, the marginal
 square-root information ``R_r`` of its rendezvous poses at its own estimate (a dense linear
 prior ``||R_r (rho_r - rho_r^0)||^2`` that is never relinearised); only the connector rows
-(eq. 22-24, :class:`Connector`) are relinearised. Stopping rule: the solver stops after a step
-whose largest component is below ``step_tolerance`` (m, rad) or whose relative cost decrease
-is below ``relative_tolerance``, at most ``max_iterations`` steps.
+(eq. 22-24, :class:`Connector`) are relinearised. Solver (:func:`dense_newton`, up to
+``DENSE_NEWTON_LIMIT`` unknowns): Newton's method with the connectors' second derivatives,
+Gauss-Newton where that matrix is not positive definite, Levenberg-Marquardt safeguard, dense
+LAPACK Cholesky. Gauss-Newton alone converges linearly here (the priors are weak along each
+map's rigid rotation and the connector residuals stay large): on MR.CLAM Dataset 1 (five
+robots, 1,941 unknowns) it took about 100 iterations, Newton 24 to a lower cost. Larger
+systems (or ``method="gauss-newton"``) use the generic sparse solver. Stopping rule (both):
+after a step whose largest component is below ``step_tolerance`` (m, rad) or whose relative
+cost decrease is below ``relative_tolerance``, at most ``max_iterations`` steps.
 
 The observability check is on what the rendezvous rows determine (local poses fixed), not on
 the base node's marginal after Algorithm 1, which also carries each map's own drift between
@@ -620,7 +626,7 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
     Second derivatives by central differences of the analytic whitened Jacobians, one
     vectorised evaluation per column of a connector (at most 12).
     """
-    out = np.zeros(n * n)
+    out = np.zeros((n, n))
     for factor in problem.factors:
         if not isinstance(factor, Connector):
             continue
@@ -637,9 +643,9 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
             curvature[:, :, j] = np.einsum("ki,kid->kd", r, a_plus - a_minus)
         curvature /= 2.0 * CURVATURE_STEP
         curvature = 0.5 * (curvature + curvature.transpose(0, 2, 1))
-        flat = (cols[:, :, None] * n + cols[:, None, :]).reshape(-1)
-        out += np.bincount(flat, weights=curvature.reshape(-1), minlength=n * n)
-    return out.reshape(n, n)
+        rows = np.broadcast_to(cols[:, :, None], curvature.shape)
+        np.add.at(out, (rows, np.broadcast_to(cols[:, None, :], curvature.shape)), curvature)
+    return out
 
 
 def _dense_information(problem: Problem) -> Array:
@@ -658,14 +664,15 @@ def _damped(matrix: Array, scale: Array) -> Array:
 
 
 def _cholesky(matrix: Array) -> tuple[Array, bool] | None:
-    """Upper Cholesky factor (scipy ``cho_factor`` form) or ``None`` if not positive definite
-    (a pivot below ``1e-14`` of its diagonal entry counts as zero, as in the sparse solver)."""
+    """Upper Cholesky factor (scipy ``cho_factor`` form, ``matrix`` is overwritten) or ``None``
+    if not positive definite (a pivot below ``1e-14`` of its diagonal entry counts as zero,
+    as in the sparse solver)."""
+    reference = np.maximum(np.diag(matrix).copy(), 1e-300)
     try:
-        factor = scipy.linalg.cho_factor(matrix, lower=False, check_finite=False)
+        factor = scipy.linalg.cho_factor(matrix, lower=False, overwrite_a=True, check_finite=False)
     except np.linalg.LinAlgError:
         return None
-    diag = np.diag(factor[0]) ** 2
-    if not np.all(diag > 1e-14 * np.maximum(np.diag(matrix), 1e-300)):
+    if not np.all(np.diag(factor[0]) ** 2 > 1e-14 * reference):
         return None
     return factor
 
@@ -760,8 +767,7 @@ def dense_newton(
                 break
     # covariance from A^T A at the estimate (no damping, no curvature), like the sparse path
     system.assemble(system.evaluate(problem.values))
-    information = _dense_information(problem)
-    factor = _cholesky(information)
+    factor = _cholesky(_dense_information(problem))
     if factor is None:
         raise SingularProblemError("the Algorithm 1 information matrix is singular")
     cols = problem.scalar_indices(problem.indices(keys))

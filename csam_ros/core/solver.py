@@ -32,7 +32,9 @@ directly in compressed sparse column form (upper triangle) from index arrays: th
 pattern and the position of every Jacobian product in it are computed once per problem
 structure; each iteration only refills values with one ``np.bincount`` (products of the
 whitened Jacobians taken component-major, one contiguous vector operation per pair of
-columns). The factorisation is
+columns; a factor kind with more than ``WIDE_FACTOR_ROWS`` rows per factor, such as a dense
+``LinearPrior`` of a few hundred rows, by one BLAS product ``A_k^T A_k`` per factor instead).
+The factorisation is
 sparse ``L D L^T`` by qdldl with its approximate-minimum-degree fill-reducing ordering; the
 symbolic analysis is kept and only the numeric factorisation is redone (``update``). The
 upper-triangular square-root information is ``R = sqrt(D) L^T`` (permuted), ``R^T R = A^T A``.
