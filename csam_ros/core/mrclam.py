@@ -193,6 +193,9 @@ class ImportReport:
         for reason in reasons:
             row = " ".join(f"{self.counts[r].get(reason, 0):>8}" for r in self.robots)
             lines.append(f"  {row}  {reason}")
+        if self.range_scale:
+            scales = " ".join(f"{self.range_scale.get(r, 1.0):>8.4f}" for r in self.robots)
+            lines.append(f"  {scales}  range scale (measured / true; ranges divided by it)")
         return "\n".join(lines)
 
 

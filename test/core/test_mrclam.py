@@ -308,6 +308,7 @@ def test_range_scale_divides_every_range_of_that_robot(tmp_path: Path) -> None:
     assert robot2.features.ranges.tolist() == pytest.approx([2.1])
     assert report.range_scale == {"robot1": 0.98}
     assert report.to_dict()["range_scale"] == {"robot1": 0.98}
+    assert "0.9800   1.0000  range scale" in report.summary()
     for bad, match in (
         ({4: 1.0}, "robot 4 is not in the data set"),
         ({"robot1": 1.0}, "robot 'robot1' is not in the data set"),
