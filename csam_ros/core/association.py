@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -177,23 +178,30 @@ class _State:
 
 
 def _condition(
-    prior_information: Array,
+    prior_covariance: Array,
     glob: dict[int, _GlobalFeatures],
     pairs: list[tuple[int, int, int, int]],
 ) -> tuple[_State, Array]:
     """Condition the state on ``r_k = 0`` for matches ``(a, i, c, j)``; returns the state and
-    the leave-one-out distance of every match (module docs)."""
+    the leave-one-out distance of every match (module docs).
+
+    Kalman form of the linear update, ``S = N + H P H^T`` (2K x 2K for K matches) instead of
+    the information form: the state has thousands of columns, the matches a few dozen rows.
+    """
     if not pairs:
-        cov = np.linalg.inv(prior_information)
-        return _State(np.zeros(len(cov)), cov), np.zeros(0)
+        return _State(np.zeros(len(prior_covariance)), prior_covariance), np.zeros(0)
     nu, h, noise = _stack(glob, pairs)
-    w = np.linalg.inv(noise)
-    d = h.shape[2]
-    wh = w @ h
-    info = prior_information + h.reshape(-1, d).T @ wh.reshape(-1, d)
-    cov = np.linalg.inv(info)
+    k, _, d = h.shape
+    rows = h.reshape(2 * k, d)
+    hp = rows @ prior_covariance  # (2K, d)
+    innovation = rows @ hp.T
+    for m in range(k):
+        innovation[2 * m : 2 * m + 2, 2 * m : 2 * m + 2] += noise[m]
+    factor = cho_factor(0.5 * (innovation + innovation.T))
+    gain_t = cho_solve(factor, hp)  # (2K, d) = S^-1 H P
+    shift = -gain_t.T @ nu.reshape(-1)
+    cov = prior_covariance - hp.T @ gain_t
     cov = 0.5 * (cov + cov.T)
-    shift = -cov @ (wh.reshape(-1, d).T @ nu.reshape(-1))
     resid = nu + h @ shift
     v = noise - h @ cov @ h.transpose(0, 2, 1)
     loo = np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])
@@ -342,11 +350,10 @@ def associate(
     robot_pairs = [(a, c) for k, a in enumerate(robots) for c in robots[k + 1 :]]
     if not robot_pairs:
         return Associations([], [])
-    prior_information = np.linalg.inv(alignment.covariance)
     root_gate = float(np.sqrt(gate))
     accepted: dict[tuple[int, int, int, int], float] = {}
     rejected: set[tuple[int, int, int, int]] = set()
-    state, _ = _condition(prior_information, glob, [])
+    state, _ = _condition(alignment.covariance, glob, [])
     candidates = gated = 0
     for _ in range(options.max_passes):
         used = {(a, i) for a, i, _, _ in accepted} | {(c, j) for _, _, c, j in accepted}
@@ -375,7 +382,7 @@ def associate(
         accepted.update(new)
         while True:  # joint compatibility: drop the match least compatible with the others
             pairs = list(accepted)
-            state, loo = _condition(prior_information, glob, pairs)
+            state, loo = _condition(alignment.covariance, glob, pairs)
             worst = int(np.argmax(loo)) if len(loo) else -1
             if worst < 0 or loo[worst] < gate:
                 break

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.linalg import block_diag
 
 from csam_ros.core import association
 from csam_ros.core.alignment import align
@@ -17,6 +18,7 @@ from csam_ros.core.association import (
     _condition,
     _global_features,
     _pair_distances,
+    _stack,
     associate,
 )
 from csam_ros.core.covariance import factorize_at_estimate
@@ -65,7 +67,7 @@ def test_spatial_gate_loses_nothing_and_true_pairs_are_chi_square() -> None:
         log, maps, alignment, feats, roots = _stage("map_joining", seed)
         inv = [np.linalg.inv(r) for r in roots]
         g = {r: _global_features(r, feats[r], alignment, inv[r] @ inv[r].T) for r in (0, 1)}
-        state, _ = _condition(np.linalg.inv(alignment.covariance), g, [])
+        state, _ = _condition(alignment.covariance, g, [])
         everything = [np.arange(len(g[r].labels)) for r in (0, 1)]
         ia, ic = _candidates(g[0], g[1], *everything, state, np.sqrt(gate))
         ja, jc = (x.ravel() for x in np.meshgrid(*everything, indexing="ij"))
@@ -91,11 +93,21 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
     _, _, alignment, feats, roots = _stage("map_joining", 0)
     inv = [np.linalg.inv(r) for r in roots]
     g = {r: _global_features(r, feats[r], alignment, inv[r] @ inv[r].T) for r in (0, 1)}
-    prior = np.linalg.inv(alignment.covariance)
+    prior = alignment.covariance
     result = associate(feats, alignment, roots)
     index = [{int(lab): k for k, lab in enumerate(g[r].labels)} for r in (0, 1)]
     pairs = [(0, index[0][m.label_a], 1, index[1][m.label_c]) for m in result.matches][:12]
-    _, loo = _condition(prior, g, pairs)
+    state, loo = _condition(prior, g, pairs)
+    # the Kalman-form update equals the information form: (P^-1 + H^T N^-1 H)^-1
+    nu, h, noise = _stack(g, pairs)
+    rows = h.reshape(-1, h.shape[2])
+    weight = block_diag(*np.linalg.inv(noise))
+    information = np.linalg.inv(prior) + rows.T @ weight @ rows
+    covariance = np.linalg.inv(information)
+    scale = np.abs(covariance).max()
+    np.testing.assert_allclose(state.covariance, covariance, atol=1e-9 * scale)
+    shift = -covariance @ rows.T @ weight @ nu.reshape(-1)
+    np.testing.assert_allclose(state.shift, shift, atol=1e-8 * np.abs(shift).max())
     for k in (0, 5, 11):
         others, _ = _condition(prior, g, pairs[:k] + pairs[k + 1 :])
         _, i, _, j = pairs[k]
