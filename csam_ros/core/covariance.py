@@ -104,11 +104,15 @@ def marginal_sqrt_information(
     Returns ``(R_S, order)``; the columns of ``R_S`` follow ``order`` (= ``keys``), block by
     block, and ``R_S`` is the last block of ``R`` for an ordering with ``keys`` last.
     """
-    cov = marginal_covariance(problem, keys, system)
-    # upper R with R^T R = cov^-1: cov = U U^T with U upper gives cov^-1 = U^-T U^-1, R = U^-1.
-    flip = np.arange(len(cov))[::-1]
-    lower_of_flipped = np.linalg.cholesky(cov[np.ix_(flip, flip)])
+    return upper_sqrt_information(marginal_covariance(problem, keys, system)), list(keys)
+
+
+def upper_sqrt_information(covariance: Array) -> Array:
+    """Upper-triangular ``R`` with positive diagonal and ``R^T R = covariance^-1``."""
+    # covariance = U U^T with U upper gives covariance^-1 = U^-T U^-1, so R = U^-1
+    flip = np.arange(len(covariance))[::-1]
+    lower_of_flipped = np.linalg.cholesky(covariance[np.ix_(flip, flip)])
     upper = lower_of_flipped[np.ix_(flip, flip)]
-    r = solve_triangular(upper, np.eye(len(cov)), lower=False)
+    r = solve_triangular(upper, np.eye(len(covariance)), lower=False)
     signs = np.sign(np.diag(r))
-    return r * signs[:, None], list(keys)
+    return r * signs[:, None]

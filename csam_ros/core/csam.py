@@ -48,7 +48,7 @@ from csam_ros.core.association import (
     MapFeatures,
     associate,
 )
-from csam_ros.core.covariance import factorize_at_estimate, marginal_sqrt_information
+from csam_ros.core.covariance import factorize_at_estimate, upper_sqrt_information
 from csam_ros.core.joining import (
     RobotMap,
     SelectedInverse,
@@ -254,29 +254,36 @@ class CsamResult:
 
 
 def _local_inputs(
-    m: RobotMap,
-    system: NormalEquations,
-    rendezvous_poses: NDArray[np.int64],
-    inverse: SelectedInverse | None,
-) -> tuple[RendezvousPart | None, MapFeatures | None]:
-    """A robot's rendezvous part and, given its local selected ``inverse``, its features'
-    rendezvous gains and marginal covariances (the map's own when it carries them)."""
+    m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64]
+) -> tuple[RendezvousPart | None, Array | None]:
+    """A robot's rendezvous part and the cross covariance ``P_l,rho`` (F, 2, k) of its
+    features with its rendezvous poses, both from one set of covariance columns."""
     if len(rendezvous_poses) == 0:
         return None, None
     problem = m.problem
-    keys = [problem.key(int(i)) for i in m.pose_ids[rendezvous_poses]]
-    root, _ = marginal_sqrt_information(problem, keys, system)
+    pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
+    columns = covariance_columns(system, pose_columns)
+    root = upper_sqrt_information(columns[pose_columns])
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
-    if inverse is None or len(m.feature_ids) == 0:
-        return part, None
-    columns = covariance_columns(system, problem.scalar_indices(m.pose_ids[rendezvous_poses]))
     cross = columns[problem.scalar_indices(m.feature_ids)].reshape(len(m.feature_ids), 2, -1)
+    return part, cross
+
+
+def _map_features(
+    m: RobotMap, part: RendezvousPart | None, cross: Array | None, inverse: SelectedInverse
+) -> MapFeatures | None:
+    """A robot's features with their rendezvous gains ``K = P_l,rho P_rho,rho^-1`` and
+    marginal covariances (the map's own when it carries them, else from its selected
+    ``inverse``), as association takes them."""
+    if part is None or cross is None or len(m.feature_ids) == 0:
+        return None
+    root = part.sqrt_information
     gain = cross @ (root.T @ root)
     if m.feature_covariances is not None:
         covs = np.asarray(m.feature_covariances, dtype=float)
     else:
-        covs = inverse.blocks(problem, m.feature_ids)
-    return part, MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
+        covs = inverse.blocks(m.problem, m.feature_ids)
+    return MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
 
 
 def filter_rendezvous(
@@ -334,10 +341,10 @@ def join_maps(
         )
         for r in range(len(maps))
     ]
-    parts = [
-        _local_inputs(m, s, idx, None)[0]
-        for m, s, idx in zip(maps, systems, rdv_poses, strict=True)
-    ]
+    parts, crosses = zip(
+        *(_local_inputs(m, s, idx) for m, s, idx in zip(maps, systems, rdv_poses, strict=True)),
+        strict=True,
+    )
     lap("local_rendezvous_parts")
 
     alignment = align(parts, measurements, config.alignment_options())
@@ -359,7 +366,7 @@ def join_maps(
     if config.associate and len(aligned) > 1:
         feats: list[MapFeatures | None] = [None] * len(maps)
         for r in aligned:
-            feats[r] = _local_inputs(maps[r], systems[r], rdv_poses[r], inverses[r])[1]
+            feats[r] = _map_features(maps[r], parts[r], crosses[r], inverses[r])
         associations = associate(
             feats,
             alignment,

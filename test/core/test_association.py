@@ -22,7 +22,7 @@ from csam_ros.core.association import (
     associate,
 )
 from csam_ros.core.covariance import factorize_at_estimate
-from csam_ros.core.csam import _local_inputs, robot_map_from_local_map
+from csam_ros.core.csam import _local_inputs, _map_features, robot_map_from_local_map
 from csam_ros.core.joining import SelectedInverse
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.rendezvous import collect, required_stamps
@@ -45,7 +45,8 @@ def _stage(scenario: str, seed: int):
             )
         )
         system = factorize_at_estimate(m.problem)
-        part, feat = _local_inputs(m, system, idx, SelectedInverse(system))
+        part, cross = _local_inputs(m, system, idx)
+        feat = _map_features(m, part, cross, SelectedInverse(system))
         parts.append(part)
         feats.append(feat)
     alignment = align(parts, meas)
