@@ -82,6 +82,9 @@ class CsamConfig:
     max_iterations: int = 100  # of Algorithm 1 and of the joint solve
     step_tolerance: float = 1e-9  # m, rad: stop when the largest step component is below
     relative_tolerance: float = 1e-12  # stop when the relative cost decrease is below
+    # joint solve: stretch a robust (reweighted) step by up to this factor while the cost
+    # falls (SolverOptions.max_step_scale; 1: off). MR.CLAM: 100+ -> 68 iterations
+    max_step_scale: float = 64.0
     associate: bool = True  # False: join through rendezvous rows only
     # rendezvous filters for real data (csam_ros.core.robust; defaults keep everything): the
     # thinning acts where poses are chosen (smoothers, run_csam), the check in join_maps
@@ -141,6 +144,7 @@ class CsamConfig:
             max_iterations=self.max_iterations,
             relative_tolerance=self.relative_tolerance,
             step_tolerance=self.step_tolerance,
+            max_step_scale=self.max_step_scale,
         )
 
 

@@ -51,13 +51,29 @@ Levenberg-Marquardt damping ``lambda * diag(A^T A)`` is switched on (``initial_d
 divided by 10 after a step with ``rho > 0.75``, doubled after one with ``rho < 0.25``,
 multiplied by 10 after a rejected step, and dropped (pure Gauss-Newton again) below
 ``1e-9``. A step is accepted when it does not raise the cost. (On Victoria Park from dead
-reckoning this simple rule reached lower local minima than Nielsen's rule.) Convergence:
-after an accepted step whose cost decrease is below ``relative_tolerance`` times the previous
-cost or whose largest component is below ``step_tolerance`` (metres / radians), or when a
-rejected step is already below ``step_tolerance`` (numerical minimum). ``iterations`` counts
-factorisations (accepted and rejected steps). A trial point is evaluated once, residuals and
-Jacobians together (:meth:`NormalEquations.evaluate`); if the step is accepted these are
-assembled into the next normal equations (:meth:`NormalEquations.assemble`) without
+reckoning this simple rule reached lower local minima than Nielsen's rule.)
+
+Extrapolation (``max_step_scale`` > 1, off by default). With a robust kernel each step is
+iteratively reweighted least squares: the model's curvature ``rho'(s) A^T A`` exceeds the
+cost's true curvature wherever residuals lie in the kernel's flat part (for Cauchy, the
+curvature along a residual is ``(1 - s/c^2) / (1 + s/c^2)^2``, zero at one scale and
+negative beyond, against ``1 / (1 + s/c^2)``), so convergence becomes linear and slow along
+nearly flat directions. The symptom is a gain ratio near 2 (actual decrease twice the
+predicted one: no curvature along the step). After an undamped step with gain above
+``extrapolation_gain`` the step is doubled (2, 4, ... up to ``max_step_scale``) while the
+cost keeps falling, judged by cost evaluations only; the best point is then linearised as
+usual. Every accepted point still lowers the cost. (The exact Hessian of the kernel, the
+Triggs correction clamped to stay positive, led the C-SAM joint solve of MR.CLAM to local
+minima 35 units higher; on the same solve extrapolation converges in 68 iterations
+where plain reweighting needs 220.)
+
+Convergence: after an accepted step whose cost decrease is below ``relative_tolerance``
+times the previous cost or whose largest component is below ``step_tolerance`` (metres /
+radians; the stretched step if extrapolated), or when a rejected step is already below
+``step_tolerance`` (numerical minimum). ``iterations`` counts factorisations (accepted and
+rejected steps). A trial point is evaluated once, residuals and Jacobians together
+(:meth:`NormalEquations.evaluate`); if the step is accepted these are assembled into the
+next normal equations (:meth:`NormalEquations.assemble`) without
 evaluating the factors again.
 
 Gauge: a smoother fixes its frame with a :class:`~csam_ros.core.factors.PosePrior` on the
@@ -104,6 +120,16 @@ class SolverOptions:
     initial_damping: float = 1e-4
     max_damping: float = 1e12
     backend: str = "qdldl"  # or "splu" (scipy SuperLU with COLAMD)
+    # largest factor an undamped step with gain ratio above ``extrapolation_gain`` is
+    # stretched by, doubling while the cost falls (1: never; see the module docstring)
+    max_step_scale: float = 1.0
+    extrapolation_gain: float = 1.5
+
+    def __post_init__(self) -> None:
+        if not self.max_step_scale >= 1.0:
+            raise ValueError(f"max_step_scale must be at least 1, got {self.max_step_scale}")
+        if not self.extrapolation_gain > 1.0:
+            raise ValueError(f"extrapolation_gain must be above 1, got {self.extrapolation_gain}")
 
 
 @dataclass
@@ -117,6 +143,7 @@ class SolveReport:
     reason: str
     seconds: float
     cost_history: list[float] = field(default_factory=list)
+    extrapolations: int = 0  # accepted steps that were stretched (``max_step_scale``)
 
 
 @dataclass
@@ -633,6 +660,7 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     iterations = 0
     reason = "maximum iterations reached"
     converged = False
+    extrapolations = 0
     angles = problem._angle_positions
     while iterations < options.max_iterations:
         system.factorize(damping)
@@ -650,6 +678,16 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
         predicted = 0.5 * (scaled - float(gradient @ step))
         if new_cost <= cost:
             gain = (cost - new_cost) / predicted if predicted > 0.0 else 1.0
+            if damping == 0.0 and gain > options.extrapolation_gain:
+                scale, stretched, _ = _extrapolate(
+                    problem, system, step, new_cost, options.max_step_scale
+                )
+                if scale > 1.0:
+                    candidate = stretched
+                    trial = system.evaluate(candidate)
+                    new_cost = trial.cost
+                    step_norm *= scale
+                    extrapolations += 1
             problem.values = candidate
             decrease = cost - new_cost
             cost = new_cost
@@ -684,7 +722,26 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
         reason=reason,
         seconds=time.perf_counter() - start,
         cost_history=history,
+        extrapolations=extrapolations,
     )
+
+
+def _extrapolate(
+    problem: Problem, system: NormalEquations, step: Array, cost: float, max_scale: float
+) -> tuple[float, Array, float]:
+    """Stretch ``step`` by 2, 4, ... (at most ``max_scale``) while the cost falls below
+    ``cost`` (its value at the full step); returns the best scale, point and cost (scale 1:
+    no stretch helped). Only costs are evaluated here."""
+    angles = problem._angle_positions
+    scale, best, best_cost = 1.0, problem.values, cost
+    while 2.0 * scale <= max_scale:
+        candidate = problem.values + (2.0 * scale) * step
+        candidate[angles] = se2.wrap_angle(candidate[angles])
+        trial_cost = system.cost(candidate)
+        if not trial_cost < best_cost:
+            break
+        scale, best, best_cost = 2.0 * scale, candidate, trial_cost
+    return scale, best, best_cost
 
 
 def gauge_prior_sqrt_information(sigma: float = GAUGE_SIGMA) -> Array:

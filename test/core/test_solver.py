@@ -15,6 +15,7 @@ from csam_ros.core.covariance import marginal_covariance
 from csam_ros.core.factors import (
     POINT,
     POSE,
+    Cauchy,
     Huber,
     LinearPrior,
     PointObservation,
@@ -175,6 +176,61 @@ def test_robust_kernel_limits_an_outlier():
 
     plain, robust = solve(None), solve(Huber(1.0))
     assert np.linalg.norm(robust - [1.0, 1.0]) < 0.2 < np.linalg.norm(plain - [1.0, 1.0])
+
+
+def flat_robust_problem(offset=0.95):
+    """Six poses with exact odometry see one landmark twice each, at ``+-offset`` Cauchy
+    scales across the truth: the truth is the minimum (by symmetry), where the cost's
+    curvature in y is ``(1 - offset^2) / (1 + offset^2)`` of the reweighted model's."""
+    rng = np.random.default_rng(1)
+    truth = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    p = Problem()
+    x = p.add_variables(POSE, [("x", i) for i in range(6)], truth + rng.normal(0, 0.05, (6, 3)))
+    landmark = p.add_variables(POINT, ["l"], [[3.2, 0.5]])
+    p.add_factor(PosePrior(x[:1], truth[:1], np.eye(3) * 1e6))
+    odometry = se2.between(truth[:-1], truth[1:])
+    p.add_factor(RelativePose(x[:-1], x[1:], odometry, covariance=np.eye(3) * 1e-4))
+    sigma = 0.1
+    seen_from = np.repeat(np.arange(6), 2)
+    z = se2.inverse_transform_point(truth[seen_from], np.array([3.0, 0.0]))
+    z[:, 1] += np.tile([offset * sigma, -offset * sigma], 6)
+    p.add_factor(
+        PointObservation(
+            x[seen_from],
+            np.repeat(landmark, 12),
+            z,
+            covariance=np.eye(2) * sigma**2,
+            robust=Cauchy(1.0),
+        )
+    )
+    return p, truth
+
+
+def test_extrapolation_speeds_up_reweighted_steps_on_a_flat_robust_cost():
+    options = SolverOptions(max_iterations=100, relative_tolerance=1e-12)
+    plain, truth = flat_robust_problem()
+    report = plain.solve(options)
+    assert not report.converged  # reweighting alone creeps (gain ratio near 2)
+    reference, _ = flat_robust_problem()
+    assert reference.solve(SolverOptions(max_iterations=5000, relative_tolerance=1e-15)).converged
+
+    p, _ = flat_robust_problem()
+    report = p.solve(SolverOptions(max_iterations=100, relative_tolerance=1e-12, max_step_scale=64))
+    assert report.converged and report.iterations < 40
+    assert report.extrapolations > 0
+    assert np.all(np.diff(report.cost_history) <= 0)
+    np.testing.assert_allclose(p.value("l"), [3.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(p.values, reference.values, atol=1e-6)
+    assert report.final_cost == pytest.approx(reference.cost(), rel=1e-12)
+    ids = p.indices([("x", i) for i in range(6)])
+    np.testing.assert_allclose(p.values_of(ids), truth, atol=1e-6)
+
+
+def test_extrapolation_options_are_checked():
+    with pytest.raises(ValueError, match="max_step_scale"):
+        SolverOptions(max_step_scale=0.5)
+    with pytest.raises(ValueError, match="extrapolation_gain"):
+        SolverOptions(extrapolation_gain=1.0)
 
 
 def test_a_new_pose_like_kind_works_with_the_generic_factors():
