@@ -60,7 +60,13 @@ from csam_ros.core.factors import (
     sqrt_information_from_covariance,
 )
 from csam_ros.core.rendezvous import RendezvousSet
-from csam_ros.core.solver import Problem, SingularProblemError, SolveReport, SolverOptions
+from csam_ros.core.solver import (
+    Problem,
+    SingularProblemError,
+    SolveReport,
+    SolverOptions,
+    StepControl,
+)
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -705,28 +711,26 @@ def dense_newton(
     history = [cost]
     information = _dense_information(problem)
     curvature = _connector_curvature(problem, problem.values, n)
-    damping = 0.0
+    control = StepControl(options)
     iterations = 0
-    converged = False
-    reason = "maximum iterations reached"
     while iterations < options.max_iterations:
         iterations += 1
         gradient = system.gradient
-        scale = damping * np.diag(information)
+        scale = control.damping * np.diag(information)
         model = information + curvature
         factor = _cholesky(_damped(model, scale))
         if factor is None:
             model = information
             factor = _cholesky(_damped(model, scale))
         if factor is None:
-            if damping == 0.0:
+            if control.damping == 0.0:
                 raise SingularProblemError(
                     "the Algorithm 1 information matrix is singular: some base node or "
                     "rendezvous pose is not determined"
                 )
-            damping *= 10.0
-            if damping > options.max_damping:
-                reason = "damping exceeded its maximum without a positive definite system"
+            control.damping *= 10.0
+            if control.damping > options.max_damping:
+                control.reason = "damping exceeded its maximum without a positive definite system"
                 break
             continue
         step = -scipy.linalg.cho_solve(factor, gradient, check_finite=False)
@@ -737,34 +741,16 @@ def dense_newton(
         predicted = -float(gradient @ step + 0.5 * step @ (model @ step))
         if trial.cost <= cost:
             gain = (cost - trial.cost) / predicted if predicted > 0.0 else 1.0
-            decrease = cost - trial.cost
             problem.values = candidate
-            cost = trial.cost
+            decrease, cost = cost - trial.cost, trial.cost
             history.append(cost)
-            if decrease <= options.relative_tolerance * max(history[-2], 1e-300):
-                converged, reason = True, "relative cost decrease below tolerance"
-            elif step_norm <= options.step_tolerance:
-                converged, reason = True, "step below tolerance"
-            if converged:
+            if control.accepted(decrease, history[-2], step_norm, gain):
                 break
-            if damping == 0.0:
-                if gain < 0.25:
-                    damping = options.initial_damping
-            elif gain > 0.75:
-                damping = damping / 10.0 if damping > 1e-9 else 0.0
-            elif gain < 0.25:
-                damping *= 2.0
             system.assemble(trial)
             information = _dense_information(problem)
             curvature = _connector_curvature(problem, problem.values, n)
-        else:
-            if step_norm <= options.step_tolerance:
-                converged, reason = True, "step below tolerance (cost at numerical minimum)"
-                break
-            damping = options.initial_damping if damping == 0.0 else damping * 10.0
-            if damping > options.max_damping:
-                reason = "damping exceeded its maximum without lowering the cost"
-                break
+        elif control.rejected(step_norm):
+            break
     # covariance from A^T A at the estimate (no damping, no curvature), like the sparse path
     system.assemble(system.evaluate(problem.values))
     factor = _cholesky(_dense_information(problem))
@@ -778,8 +764,8 @@ def dense_newton(
         iterations=iterations,
         initial_cost=initial,
         final_cost=cost,
-        converged=converged,
-        reason=reason,
+        converged=control.converged,
+        reason=control.reason,
         seconds=time.perf_counter() - start,
         cost_history=history,
     )

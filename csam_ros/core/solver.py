@@ -647,6 +647,48 @@ class NormalEquations:
         return np.asarray(self._factorization.solve(rhs))  # type: ignore[union-attr]
 
 
+@dataclass
+class StepControl:
+    """Levenberg-Marquardt damping and the stopping rules (module docstring), shared by the
+    sparse solver and Algorithm 1's dense Newton solver."""
+
+    options: SolverOptions
+    damping: float = 0.0
+    converged: bool = False
+    reason: str = "maximum iterations reached"
+
+    def accepted(
+        self, decrease: float, previous_cost: float, step_norm: float, gain: float
+    ) -> bool:
+        """After a step that lowered the cost by ``decrease``, ``gain`` times the predicted
+        decrease: whether to stop; otherwise start damping on a poor model, relax it on a
+        good one."""
+        o = self.options
+        if decrease <= o.relative_tolerance * max(previous_cost, 1e-300):
+            self.converged, self.reason = True, "relative cost decrease below tolerance"
+        elif step_norm <= o.step_tolerance:
+            self.converged, self.reason = True, "step below tolerance"
+        elif self.damping == 0.0:
+            self.damping = o.initial_damping if gain < 0.25 else 0.0
+        elif gain > 0.75:
+            self.damping = self.damping / 10.0 if self.damping > 1e-9 else 0.0
+        elif gain < 0.25:
+            self.damping *= 2.0
+        return self.converged
+
+    def rejected(self, step_norm: float) -> bool:
+        """After a step that raised the cost: whether to stop; otherwise damp more."""
+        o = self.options
+        if step_norm <= o.step_tolerance:
+            self.converged, self.reason = True, "step below tolerance (cost at numerical minimum)"
+            return True
+        self.damping = o.initial_damping if self.damping == 0.0 else self.damping * 10.0
+        if self.damping > o.max_damping:
+            self.reason = "damping exceeded its maximum without lowering the cost"
+            return True
+        return False
+
+
 def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     """Gauss-Newton with Levenberg-Marquardt safeguard (see the module docstring)."""
     start = time.perf_counter()
@@ -656,13 +698,12 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     cost = current.cost
     history = [cost]
     initial = cost
-    damping = 0.0
+    control = StepControl(options)
     iterations = 0
-    reason = "maximum iterations reached"
-    converged = False
     extrapolations = 0
     angles = problem._angle_positions
     while iterations < options.max_iterations:
+        damping = control.damping
         system.factorize(damping)
         iterations += 1
         gradient = system.gradient
@@ -689,37 +730,19 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
                     step_norm *= scale
                     extrapolations += 1
             problem.values = candidate
-            decrease = cost - new_cost
-            cost = new_cost
+            decrease, cost = cost - new_cost, new_cost
             history.append(cost)
-            if decrease <= options.relative_tolerance * max(history[-2], 1e-300):
-                converged, reason = True, "relative cost decrease below tolerance"
-            elif step_norm <= options.step_tolerance:
-                converged, reason = True, "step below tolerance"
-            if converged:
+            if control.accepted(decrease, history[-2], step_norm, gain):
                 break
-            if damping == 0.0:
-                if gain < 0.25:
-                    damping = options.initial_damping
-            elif gain > 0.75:
-                damping = damping / 10.0 if damping > 1e-9 else 0.0
-            elif gain < 0.25:
-                damping *= 2.0
             system.assemble(trial)
-        else:
-            if step_norm <= options.step_tolerance:
-                converged, reason = True, "step below tolerance (cost at numerical minimum)"
-                break
-            damping = options.initial_damping if damping == 0.0 else damping * 10.0
-            if damping > options.max_damping:
-                reason = "damping exceeded its maximum without lowering the cost"
-                break
+        elif control.rejected(step_norm):
+            break
     return SolveReport(
         iterations=iterations,
         initial_cost=initial,
         final_cost=cost,
-        converged=converged,
-        reason=reason,
+        converged=control.converged,
+        reason=control.reason,
         seconds=time.perf_counter() - start,
         cost_history=history,
         extrapolations=extrapolations,
