@@ -29,8 +29,9 @@ What real data needed beyond simulation (measured on the whole of Dataset 1, 1,4
   pair, one per 5 s at most (:func:`csam_ros.core.robust.thin_rendezvous`).
 - Rendezvous: bearings spread 1.9x the landmark bearings (factors in the config); a RANSAC
   consistency check (:func:`csam_ros.core.robust.consistent_rendezvous`) rejects the rest.
-- Association: the local maps are over-confident (landmark NEES up to 15 against truth), so
-  the 99% gate (9.21) finds only about half the true pairs; 30 finds 95% with precision 1.0.
+- Association: the local maps are over-confident against the truth (landmark NEES up to 15
+  with the 2.38 kernel scale, up to about 1.5 with 1.0), so the 99% gate (9.21) finds only
+  79% of the true pairs (half with the 2.38 scale); 30 finds 97% with precision 1.0.
 
 Noise estimation (no robot ground truth exists in the data set, only landmark truth):
 
