@@ -116,6 +116,8 @@ class CsamConfig:
                 pass
             elif not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{source}.{key}: must be a positive number, got {value!r}")
+            elif key == "max_step_scale" and value < 1:
+                raise ValueError(f"{source}.{key}: must be at least 1 (1: off), got {value!r}")
             values[key] = type(default)(value)
         return cls(**values)
 

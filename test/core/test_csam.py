@@ -267,6 +267,8 @@ def test_real_data_settings_and_errors() -> None:
     assert CsamConfig.from_dict({"rendezvous_max_per_pair": 0}).thinning().max_per_pair is None
     with pytest.raises(ValueError, match="rendezvous_min_interval"):
         CsamConfig.from_dict({"rendezvous_min_interval": -1.0})
+    with pytest.raises(ValueError, match="max_step_scale: must be at least 1"):
+        CsamConfig.from_dict({"max_step_scale": 0.5})
     local = LocalMapConfig.from_dict(document["local_map"])
     assert isinstance(local.options().robust, Cauchy) and local.window == 10.0
     assert local.options().robust.scale == 1.0
