@@ -125,8 +125,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             f"rate:={args.rate}",
             "-p",
             "exit_when_done:=true",
+            # every sensor topic: the recorder and at least the robot's own smoother
             "-p",
-            "min_subscribers:=1",
+            "min_subscribers:=2",
             "-p",
             'required_subscriber_nodes:=["recorder"]',
         ],
@@ -220,6 +221,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     "2.0",
                     "--wait-for-subscribers",
                     *sensor_topics(robots),
+                    "--min-subscribers",  # the recorder and at least the robot's smoother
+                    "2",
                 ],
                 smoother_params=smoother_params,
                 merger_params=merger_params,

@@ -1,6 +1,7 @@
 """player: publish a recorded bag again, like ``ros2 bag play``, with /clock.
 
     player BAG [--rate R] [--topics T ...] [--loop] [--wait-for-subscribers [T ...]]
+           [--min-subscribers N]
 
 Messages go out raw (the recorded CDR bytes) with their recorded log-time spacing divided by
 ``--rate`` (2 = twice as fast, 0 = as fast as possible). /clock (rosgraph_msgs/Clock) carries
@@ -79,16 +80,18 @@ class PlayerNode(Node):
         """Topics this player publishes (bag topics with an installed message type)."""
         return list(self._topic_publishers)
 
-    def wait_for_subscribers(self, topics: Iterable[str], timeout_s: float) -> list[str]:
-        """Wait until each of ``topics`` (played topics or /clock) has a matched subscription;
-        returns those without one when ``timeout_s`` ran out."""
+    def wait_for_subscribers(
+        self, topics: Iterable[str], timeout_s: float, count: int = 1
+    ) -> list[str]:
+        """Wait until each of ``topics`` (played topics or /clock) has ``count`` matched
+        subscriptions; returns those short of it when ``timeout_s`` ran out."""
         publishers = dict(self._topic_publishers)
         if self._clock_publisher is not None:
             publishers[CLOCK_TOPIC] = self._clock_publisher
         waiting = [topic for topic in topics if topic in publishers]
         deadline = time.monotonic() + timeout_s
         while not self.stop.is_set():
-            waiting = [t for t in waiting if publishers[t].get_subscription_count() == 0]
+            waiting = [t for t in waiting if publishers[t].get_subscription_count() < count]
             if not waiting or time.monotonic() >= deadline:
                 break
             self.stop.wait(0.02)
@@ -186,6 +189,13 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
         help="before playing, wait until these topics (none named: all) have a subscriber",
     )
     parser.add_argument(
+        "--min-subscribers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="subscribers each of those topics needs (e.g. 2: a recorder and a smoother)",
+    )
+    parser.add_argument(
         "--wait-timeout", type=float, default=10.0, metavar="S", help="longest wait for them"
     )
     parser.add_argument(
@@ -194,6 +204,8 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
     options = parser.parse_args(argv)
     if options.rate < 0:
         parser.error(f"--rate must be >= 0, got {options.rate}")
+    if options.min_subscribers < 1:
+        parser.error(f"--min-subscribers must be >= 1, got {options.min_subscribers}")
     for name in ("clock_period", "delay", "wait_timeout", "linger"):
         if getattr(options, name) < 0 or (name == "clock_period" and options.clock_period == 0):
             parser.error(f"--{name.replace('_', '-')} must be positive")
@@ -244,9 +256,14 @@ def main(args: Sequence[str] | None = None) -> int:
             return 1
         if options.wait_for_subscribers is not None:
             wanted = options.wait_for_subscribers or node.topics
-            unmatched = node.wait_for_subscribers(wanted, options.wait_timeout)
+            unmatched = node.wait_for_subscribers(
+                wanted, options.wait_timeout, options.min_subscribers
+            )
             if unmatched:
-                node.get_logger().warning(f"no subscriber on {', '.join(unmatched)}; playing")
+                node.get_logger().warning(
+                    f"fewer than {options.min_subscribers} subscriber(s) on "
+                    f"{', '.join(unmatched)}; playing"
+                )
         # after the publisher sees a subscriber, the subscriber may not see the publisher yet;
         # a best-effort sample sent in that gap is lost, so let discovery settle both ways
         stop.wait(options.delay)

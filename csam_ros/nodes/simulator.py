@@ -97,8 +97,14 @@ class Simulator(Node):
         self.timer = self.create_timer(0.01, self._tick, clock=steady_clock())
 
     def _subscribers_ready(self) -> bool:
+        # matched subscriptions of this node's publishers, not the graph's count (which can
+        # list a subscription before the middleware has matched it)
         sensors = [f"/{r}/{s}" for r in self.robots for s in ("odom", "features", "rendezvous")]
-        if any(self.count_subscribers(t) < self.min_subscribers for t in sensors):
+        if any(
+            self.topic_publishers[t].get_subscription_count() < self.min_subscribers
+            for t in sensors
+            if t in self.topic_publishers
+        ):
             return False
         required = {n for n in self.required_nodes if n}
         return all(

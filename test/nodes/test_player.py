@@ -148,7 +148,7 @@ def test_record_play_record_gives_the_same_messages(
         "player", first, "--delay", "0", "--wait-for-subscribers", "--wait-timeout", "30"
     )
     assert player.wait(timeout=60) == 0, nodes.output(player)
-    assert "no subscriber" not in nodes.output(player)
+    assert "fewer than" not in nodes.output(player)
     assert nodes.stop(recorder, signal.SIGINT) == 0, nodes.output(recorder)
 
     recorded = [(m.topic, m.msgtype, m.data) for m in read_bag(first)]
@@ -192,6 +192,33 @@ def test_killed_bag_without_metadata_plays_its_complete_chunks(
     spin(executor, lambda: len(received) == 10, 5)
     assert received == payloads[:10]
     assert "cut short" in nodes.output(player)
+    executor.shutdown()
+    node.destroy_node()
+
+
+def test_min_subscribers_waits_for_that_many_then_plays_anyway(
+    ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
+) -> None:
+    import rclpy
+    from csam_msgs.msg import FeatureObservations
+    from rclpy.executors import SingleThreadedExecutor
+
+    bag = tmp_path / "few"
+    payloads = _features_bag(bag, 3, SECOND // 100)
+    node = rclpy.create_node("one_sink", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    received: list[bytes] = []
+    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
+    player = nodes.start(
+        "player", bag, "--delay", "0.5", "--wait-for-subscribers", FEATURES,
+        "--min-subscribers", "2", "--wait-timeout", "1",
+    )  # fmt: skip
+    assert spin(executor, lambda: player.poll() is not None, 30)
+    assert player.returncode == 0, nodes.output(player)
+    assert f"fewer than 2 subscriber(s) on {FEATURES}; playing" in nodes.output(player)
+    spin(executor, lambda: len(received) == 3, 5)
+    assert received == payloads
     executor.shutdown()
     node.destroy_node()
 
@@ -265,3 +292,11 @@ def test_bad_bag_is_a_one_line_error(nodes: Any, tmp_path: Path, case: str) -> N
     assert len(stderr.strip().splitlines()) == 1, stderr
     assert stderr.startswith("player: ") and str(bag) in stderr
     assert files() == before
+
+
+def test_min_subscribers_below_one_is_refused() -> None:
+    from csam_ros.nodes.player import parse_arguments
+
+    assert parse_arguments(["bag", "--min-subscribers", "2"]).min_subscribers == 2
+    with pytest.raises(SystemExit):
+        parse_arguments(["bag", "--min-subscribers", "0"])
