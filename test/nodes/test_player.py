@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import signal
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +61,25 @@ def _features_bag(path: Path, count: int, spacing_ns: int) -> list[bytes]:
         for label, data in enumerate(payloads):
             bag.write(FEATURES, 10 * SECOND + label * spacing_ns, data)
     return payloads
+
+
+@contextmanager
+def _features_sink(ros_context: Any, name: str) -> Iterator[tuple[Any, list[bytes]]]:
+    """A node collecting the raw bytes of every message on FEATURES, and its executor."""
+    import rclpy
+    from csam_msgs.msg import FeatureObservations
+    from rclpy.executors import SingleThreadedExecutor
+
+    node = rclpy.create_node(name, context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    received: list[bytes] = []
+    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
+    try:
+        yield executor, received
+    finally:
+        executor.shutdown()
+        node.destroy_node()
 
 
 def test_plays_in_order_with_clock_and_recorded_qos(
@@ -165,9 +186,6 @@ def test_record_play_record_gives_the_same_messages(
 def test_killed_bag_without_metadata_plays_its_complete_chunks(
     ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
 ) -> None:
-    import rclpy
-    from csam_msgs.msg import FeatureObservations
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.serialization import serialize_message
 
     bag = tmp_path / "killed"
@@ -181,71 +199,45 @@ def test_killed_bag_without_metadata_plays_its_complete_chunks(
     writer._file.flush()  # killed: ten messages in a complete chunk, five never written
     (bag / "metadata.yaml").unlink()
 
-    node = rclpy.create_node("killed_sink", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    received: list[bytes] = []
-    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
-    player = nodes.start("player", bag, "--delay", "0", "--wait-for-subscribers")
-    assert spin(executor, lambda: player.poll() is not None, 30)
-    assert player.returncode == 0, nodes.output(player)
-    spin(executor, lambda: len(received) == 10, 5)
-    assert received == payloads[:10]
-    assert "cut short" in nodes.output(player)
-    executor.shutdown()
-    node.destroy_node()
+    with _features_sink(ros_context, "killed_sink") as (executor, received):
+        player = nodes.start("player", bag, "--delay", "0", "--wait-for-subscribers")
+        assert spin(executor, lambda: player.poll() is not None, 30)
+        assert player.returncode == 0, nodes.output(player)
+        spin(executor, lambda: len(received) == 10, 5)
+        assert received == payloads[:10]
+        assert "cut short" in nodes.output(player)
 
 
 def test_min_subscribers_waits_for_that_many_then_plays_anyway(
     ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
 ) -> None:
-    import rclpy
-    from csam_msgs.msg import FeatureObservations
-    from rclpy.executors import SingleThreadedExecutor
-
     bag = tmp_path / "few"
     payloads = _features_bag(bag, 3, SECOND // 100)
-    node = rclpy.create_node("one_sink", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    received: list[bytes] = []
-    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
-    player = nodes.start(
-        "player", bag, "--delay", "0.5", "--wait-for-subscribers", FEATURES,
-        "--min-subscribers", "2", "--wait-timeout", "1",
-    )  # fmt: skip
-    assert spin(executor, lambda: player.poll() is not None, 30)
-    assert player.returncode == 0, nodes.output(player)
-    assert f"fewer than 2 subscriber(s) on {FEATURES}; playing" in nodes.output(player)
-    spin(executor, lambda: len(received) == 3, 5)
-    assert received == payloads
-    executor.shutdown()
-    node.destroy_node()
+    with _features_sink(ros_context, "one_sink") as (executor, received):
+        player = nodes.start(
+            "player", bag, "--delay", "0.5", "--wait-for-subscribers", FEATURES,
+            "--min-subscribers", "2", "--wait-timeout", "1",
+        )  # fmt: skip
+        assert spin(executor, lambda: player.poll() is not None, 30)
+        assert player.returncode == 0, nodes.output(player)
+        assert f"fewer than 2 subscriber(s) on {FEATURES}; playing" in nodes.output(player)
+        spin(executor, lambda: len(received) == 3, 5)
+        assert received == payloads
 
 
 def test_loop_plays_again_until_interrupted(
     ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
 ) -> None:
-    import rclpy
-    from csam_msgs.msg import FeatureObservations
-    from rclpy.executors import SingleThreadedExecutor
-
     bag = tmp_path / "bag"
     payloads = _features_bag(bag, count=3, spacing_ns=SECOND)
-    node = rclpy.create_node("loop_sink", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    received: list[bytes] = []
-    node.create_subscription(FeatureObservations, FEATURES, received.append, 100, raw=True)
-    player = nodes.start(
-        "player", bag, "--loop", "--rate", "20", "--topics", FEATURES, "--delay", "0",
-        "--wait-for-subscribers",
-    )  # fmt: skip
-    assert spin(executor, lambda: len(received) >= 3 * len(payloads), 30), nodes.output(player)
-    assert received[: 3 * len(payloads)] == payloads * 3
-    assert nodes.stop(player, signal.SIGINT) == 0, nodes.output(player)
-    executor.shutdown()
-    node.destroy_node()
+    with _features_sink(ros_context, "loop_sink") as (executor, received):
+        player = nodes.start(
+            "player", bag, "--loop", "--rate", "20", "--topics", FEATURES, "--delay", "0",
+            "--wait-for-subscribers",
+        )  # fmt: skip
+        assert spin(executor, lambda: len(received) >= 3 * len(payloads), 30), nodes.output(player)
+        assert received[: 3 * len(payloads)] == payloads * 3
+        assert nodes.stop(player, signal.SIGINT) == 0, nodes.output(player)
 
 
 def _bad_bag(tmp_path: Path, case: str) -> tuple[Path, list[str]]:
