@@ -720,7 +720,7 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
         if new_cost <= cost:
             gain = (cost - new_cost) / predicted if predicted > 0.0 else 1.0
             if damping == 0.0 and gain > options.extrapolation_gain:
-                scale, stretched, _ = _extrapolate(
+                scale, stretched = _extrapolate(
                     problem, system, step, new_cost, options.max_step_scale
                 )
                 if scale > 1.0:
@@ -751,10 +751,10 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
 
 def _extrapolate(
     problem: Problem, system: NormalEquations, step: Array, cost: float, max_scale: float
-) -> tuple[float, Array, float]:
+) -> tuple[float, Array]:
     """Stretch ``step`` by 2, 4, ... (at most ``max_scale``) while the cost falls below
-    ``cost`` (its value at the full step); returns the best scale, point and cost (scale 1:
-    no stretch helped). Only costs are evaluated here."""
+    ``cost`` (its value at the full step); returns the best scale and point (scale 1: no
+    stretch helped). Only costs are evaluated here."""
     angles = problem._angle_positions
     scale, best, best_cost = 1.0, problem.values, cost
     while 2.0 * scale <= max_scale:
@@ -764,7 +764,7 @@ def _extrapolate(
         if not trial_cost < best_cost:
             break
         scale, best, best_cost = 2.0 * scale, candidate, trial_cost
-    return scale, best, best_cost
+    return scale, best
 
 
 def gauge_prior_sqrt_information(sigma: float = GAUGE_SIGMA) -> Array:
