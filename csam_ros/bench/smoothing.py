@@ -26,8 +26,10 @@ time; seconds on one loaded run): 200 poses 2.2 s, 500 1.0 s, 700 1.0 s, 1000 0.
 Printed side by side: problem size, iterations, seconds per Gauss-Newton iteration
 (linearise, factor, solve, evaluate the cost), total seconds to convergence (solver call
 only; problem construction listed separately), final cost on its own objective and on this
-project's objective, peak memory. The problem builders are also used by the tests (GTSAM as
-an oracle).
+project's objective, peak memory. For this project also where the time goes (structure,
+ordering with the first factorisation, and each part of an iteration) and the share of
+GTSAM's time its factorisations alone take. The problem builders are also used by the tests
+(GTSAM as an oracle).
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from csam_ros.core.factors import POINT, POSE, Cauchy, PointObservation, PosePri
 from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
 from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
 from csam_ros.core.slam2d import Slam2dData, initial_values, read_slam2d
-from csam_ros.core.solver import GAUGE_SIGMA, Problem, SolverOptions
+from csam_ros.core.solver import GAUGE_SIGMA, NormalEquations, Problem, SolverOptions
 
 Array = NDArray[np.float64]
 
@@ -575,6 +577,38 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def iteration_parts(problem: Problem, backend: str = "qdldl", reps: int = 5) -> dict[str, float]:
+    """Seconds of each part of a Gauss-Newton solve at the current values, on a fresh
+    structure: ``structure`` (sparsity pattern and index maps), ``first_factorisation``
+    (fill-reducing ordering, symbolic analysis and the numeric factorisation), then per
+    iteration ``linearise`` (evaluate and assemble), ``refactorise`` (numeric only),
+    ``solve`` and ``cost`` (mean of ``reps``)."""
+    t0 = time.perf_counter()
+    system = NormalEquations(problem, backend)
+    structure = time.perf_counter() - t0
+    system.linearize(problem.values)
+    t0 = time.perf_counter()
+    system.factorize(0.0)
+    first = time.perf_counter() - t0
+    laps = np.zeros(4)
+    for _ in range(reps):
+        t = [time.perf_counter()]
+        system.linearize(problem.values)
+        t.append(time.perf_counter())
+        system.factorize(0.0)
+        t.append(time.perf_counter())
+        step = system.solve(-system.gradient)
+        t.append(time.perf_counter())
+        system.cost(problem.values + step)
+        t.append(time.perf_counter())
+        laps += np.diff(t)
+    laps /= reps
+    names = ("linearise", "refactorise", "solve", "cost")
+    return {"structure": structure, "first_factorisation": first} | dict(
+        zip(names, laps.tolist(), strict=True)
+    )
+
+
 def _values_of(poses: Array, lms: Array) -> Array:
     return np.concatenate([poses.reshape(-1), lms.reshape(-1)])
 
@@ -611,17 +645,12 @@ def worker(solver: str, spec: str, args: argparse.Namespace, out: Path) -> dict[
                 backend=backend,
             )
         )
-        system = problem.normal_equations(backend)
-        reps = 5
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            system.linearize(problem.values)
-            system.factorize(0.0)
-            step = system.solve(-system.gradient)
-            system.cost(problem.values + step)
+        result["peak_mb"] = peak_rss_mb()  # before the timing below builds a second system
+        parts = iteration_parts(problem, backend)
         result.update(
+            parts=parts,
             iterations=report.iterations,
-            per_iteration=(time.perf_counter() - t0) / reps,
+            per_iteration=sum(parts[k] for k in ("linearise", "refactorise", "solve", "cost")),
             total=report.seconds,
             cost=report.final_cost,
             converged=report.converged,
@@ -660,7 +689,7 @@ def worker(solver: str, spec: str, args: argparse.Namespace, out: Path) -> dict[
             converged=optimizer.iterations() < args.max_iterations,
         )
         np.save(out, _values_of(poses, lms))
-    result["peak_mb"] = peak_rss_mb()
+    result.setdefault("peak_mb", peak_rss_mb())
     result["baseline_mb"] = baseline_mb
     return result
 
@@ -706,6 +735,8 @@ def compare(spec: str, args: argparse.Namespace, argv: list[str], solvers: list[
             f"{r['baseline_mb']:9.0f}"
         )
     by_name = {name: (r, est) for name, r, est in rows}
+    if "ours" in by_name:
+        print_parts(by_name["ours"][0], by_name.get("gtsam-native", (None,))[0])
     if "ours" in by_name and "gtsam-native" in by_name:
         ours, native = by_name["ours"][0], by_name["gtsam-native"][0]
         print(
@@ -725,6 +756,22 @@ def compare(spec: str, args: argparse.Namespace, argv: list[str], solvers: list[
         diff = np.abs(a - b)
         diff[2 : 3 * n : 3] = np.abs(se2.wrap_angle(a[2 : 3 * n : 3] - b[2 : 3 * n : 3]))
         print(f"   identical objective: max |ours - GTSAM| over all unknowns {diff.max():.2e}")
+
+
+def print_parts(ours: dict[str, Any], gtsam: dict[str, Any] | None) -> None:
+    """Where this project's time to convergence goes, and the share of it the sparse
+    factorisations alone take (the floor of any solver built on the same factorisation)."""
+    p = {k: 1e3 * v for k, v in ours["parts"].items()}
+    print(
+        f"   ours, set-up: structure {p['structure']:.1f} ms, ordering + first factorisation "
+        f"{p['first_factorisation']:.1f} ms; per iteration: linearise {p['linearise']:.1f}, "
+        f"refactorise {p['refactorise']:.1f}, solve {p['solve']:.1f}, cost {p['cost']:.1f} ms"
+    )
+    floor = p["first_factorisation"] + (ours["iterations"] - 1) * p["refactorise"]
+    line = f"   the {ours['iterations']} factorisations alone: {floor:.1f} ms"
+    if gtsam is not None:
+        line += f" = {floor / (1e3 * gtsam['total']):.3f} of GTSAM's time to convergence"
+    print(line)
 
 
 def online_rate(log: RobotLog, options: LocalMapOptions) -> dict[str, float]:
