@@ -3,7 +3,9 @@
 With ``A^T A = P L D L^T P^T`` (the solver's factorisation at the current estimate) the
 joint covariance of a set ``S`` of variables is ``E_S^T (A^T A)^-1 E_S = Y^T D^-1 Y`` with
 ``Y = L^-1 P^T E_S``: one sparse forward substitution per needed column, never the dense
-inverse (paper section III, METHOD section 4).
+inverse (paper section III, METHOD section 4). ``Y`` is nonzero only on the rows reached from
+``S`` in the elimination tree, so the substitution runs on those rows of ``L`` alone (at the
+end of an MR.CLAM robot's map, 60 poses reach 6,162 of 15,051 rows: 101 -> 44 ms).
 
 The marginal square-root information of ``S`` is the last block of the upper-triangular
 square-root information ``R`` when ``S`` is ordered last; it equals the upper Cholesky factor
@@ -64,16 +66,44 @@ def marginal_covariance(
         cov = x[cols]
         return 0.5 * (cov + cov.T)
     strict_lower, d, perm = system._factorization.factors()  # type: ignore[union-attr]
+    strict_lower = sp.csc_matrix(strict_lower)
     n = system.n
     inverse_perm = np.empty(n, dtype=np.int64)
     inverse_perm[perm] = np.arange(n)
-    unit_lower = (strict_lower + sp.eye(n, format="csc")).tocsr()
-    rhs = np.zeros((n, len(cols)))
-    rhs[inverse_perm[cols], np.arange(len(cols))] = 1.0
+    # Y is zero outside the rows the forward substitution reaches from the selected columns
+    rows = _reach(_elimination_tree(strict_lower), inverse_perm[cols])
+    restricted = strict_lower[rows][:, rows]
+    unit_lower = (restricted + sp.eye(len(rows), format="csc")).tocsr()
+    rhs = np.zeros((len(rows), len(cols)))
+    rhs[np.searchsorted(rows, inverse_perm[cols]), np.arange(len(cols))] = 1.0
     y = spsolve_triangular(unit_lower, rhs, lower=True, unit_diagonal=True)
     y = np.atleast_2d(y.T).T
-    cov = (y / d[:, None]).T @ y
+    cov = (y / d[rows, None]).T @ y
     return 0.5 * (cov + cov.T)
+
+
+def _elimination_tree(strict_lower: sp.csc_matrix) -> NDArray[np.int64]:
+    """Parent of each column in the elimination tree of a factor with this strictly lower
+    pattern (its first row below the diagonal; -1 for a root)."""
+    counts = np.diff(strict_lower.indptr)
+    parent = np.full(strict_lower.shape[1], -1, dtype=np.int64)
+    filled = counts > 0
+    if filled.any():
+        parent[filled] = np.minimum.reduceat(strict_lower.indices, strict_lower.indptr[:-1][filled])
+    return parent
+
+
+def _reach(parent: NDArray[np.int64], columns: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Sorted union of the paths from ``columns`` to their roots: the rows where a forward
+    substitution with right-hand sides at ``columns`` can be nonzero (Gilbert's theorem)."""
+    marked = bytearray(len(parent))
+    up = parent.tolist()
+    for start in np.asarray(columns).tolist():
+        c = start
+        while c >= 0 and not marked[c]:
+            marked[c] = 1
+            c = up[c]
+    return np.flatnonzero(np.frombuffer(marked, dtype=np.uint8))
 
 
 def marginal_covariances(

@@ -5,6 +5,8 @@ import pytest
 
 from csam_ros.bench.smoothing import build_problem, simulate_landmark_problem
 from csam_ros.core.covariance import (
+    _elimination_tree,
+    _reach,
     factorize_at_estimate,
     marginal_covariance,
     marginal_covariances,
@@ -33,6 +35,29 @@ def test_joint_marginal_with_cross_terms_equals_dense_inverse(solved):
     blocks = marginal_covariances(problem, keys, system)
     np.testing.assert_allclose(blocks[1], dense[2:5, 2:5], rtol=1e-8)
     np.testing.assert_allclose(blocks[3], dense[8:10, 8:10], rtol=1e-8)
+
+
+def test_reach_is_the_union_of_the_tree_paths_to_the_roots():
+    parent = np.array([2, 2, 4, 4, -1, -1])  # 0, 1 -> 2 -> 4 <- 3; 5 alone
+    np.testing.assert_array_equal(_reach(parent, np.array([0])), [0, 2, 4])
+    np.testing.assert_array_equal(_reach(parent, np.array([3, 1])), [1, 2, 3, 4])
+    np.testing.assert_array_equal(_reach(parent, np.array([5])), [5])
+
+
+def test_single_variables_whose_solve_reaches_part_of_the_factor(solved):
+    problem, system, info = solved
+    lower, _, perm = system._factorization.factors()
+    parent = _elimination_tree(lower.tocsc())
+    inverse_perm = np.argsort(perm)
+    dense = np.linalg.inv(info)
+    partial = 0
+    for key in [("x", 0), ("x", 40), ("x", 80), ("x", 119), ("l", 3), ("l", 9)]:
+        cols = problem.scalar_indices(problem.indices([key]))
+        partial += len(_reach(parent, inverse_perm[cols])) < problem.dim
+        cov = marginal_covariance(problem, [key], system)
+        expected = dense[np.ix_(cols, cols)]
+        np.testing.assert_allclose(cov, expected, rtol=1e-8, atol=1e-12 * np.abs(expected).max())
+    assert partial > 0  # the restriction is exercised, not only the whole factor
 
 
 def test_splu_backend_gives_the_same_covariance(solved):
