@@ -22,7 +22,7 @@ from collections.abc import Hashable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import solve_triangular
 from scipy.sparse.linalg import spsolve_triangular
 
@@ -58,7 +58,13 @@ def marginal_covariance(
     made when not given. Cost: one sparse triangular solve per selected scalar column.
     """
     system = system or factorize_at_estimate(problem)
-    cols = _columns_of(problem, keys)
+    return covariance_block(system, _columns_of(problem, keys))
+
+
+def covariance_block(system: NormalEquations, scalar_indices: ArrayLike) -> Array:
+    """``(A^T A)^-1`` at the given scalar positions (rows and columns in that order) from the
+    factorisation ``system``: the joint covariance of those components."""
+    cols = np.asarray(scalar_indices, dtype=np.int64)
     if system.backend != "qdldl":
         rhs = np.zeros((system.n, len(cols)))
         rhs[cols, np.arange(len(cols))] = 1.0

@@ -48,11 +48,14 @@ from csam_ros.core.association import (
     MapFeatures,
     associate,
 )
-from csam_ros.core.covariance import factorize_at_estimate, upper_sqrt_information
+from csam_ros.core.covariance import (
+    covariance_block,
+    factorize_at_estimate,
+    upper_sqrt_information,
+)
 from csam_ros.core.joining import (
     RobotMap,
     SelectedInverse,
-    covariance_columns,
     find_gauge_factor,
     heading_sigmas,
     joint_solve,
@@ -263,15 +266,17 @@ def _local_inputs(
     m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64]
 ) -> tuple[RendezvousPart | None, Array | None]:
     """A robot's rendezvous part and the cross covariance ``P_l,rho`` (F, 2, k) of its
-    features with its rendezvous poses, both from one set of covariance columns."""
+    features with its rendezvous poses, both from one joint covariance block."""
     if len(rendezvous_poses) == 0:
         return None, None
     problem = m.problem
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
-    columns = covariance_columns(system, pose_columns)
-    root = upper_sqrt_information(columns[pose_columns])
+    feature_columns = problem.scalar_indices(m.feature_ids)
+    k = len(pose_columns)
+    block = covariance_block(system, np.concatenate([pose_columns, feature_columns]))
+    root = upper_sqrt_information(block[:k, :k])
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
-    cross = columns[problem.scalar_indices(m.feature_ids)].reshape(len(m.feature_ids), 2, -1)
+    cross = block[k:, :k].reshape(len(m.feature_ids), 2, k)
     return part, cross
 
 
@@ -394,7 +399,7 @@ def join_maps(
     joint = solution.problem
     system = factorize_at_estimate(joint)
     first = joint.scalar_indices([int(solution.pose_ids[r][0]) for r in aligned])
-    base_cov = covariance_columns(system, first)[first].reshape(len(aligned), 3, -1, 3)
+    base_cov = covariance_block(system, first).reshape(len(aligned), 3, -1, 3)
     base_cov = base_cov[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
     lap("joint_base_node_covariance")
     inverse = SelectedInverse(system)
