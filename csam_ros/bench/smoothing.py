@@ -30,6 +30,11 @@ project's objective, peak memory. For this project also where the time goes (str
 ordering with the first factorisation, and each part of an iteration) and the share of
 GTSAM's time its factorisations alone take. The problem builders are also used by the tests
 (GTSAM as an oracle).
+
+Online (``--no-online`` skips it): a robot log fed to a local map one second at a time, a
+simulated one or, with ``--mrclam DIR``, each MR.CLAM robot as ``csam replay --config
+config/mrclam.yaml`` runs the smoothers. Printed: the real-time factor, the converged online
+map against the offline build, and what the smoother computes for its messages at the end.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -774,9 +779,12 @@ def print_parts(ours: dict[str, Any], gtsam: dict[str, Any] | None) -> None:
     print(line)
 
 
-def online_rate(log: RobotLog, options: LocalMapOptions) -> dict[str, float]:
+def online_rate(
+    log: RobotLog, options: LocalMapOptions, window: float | None = 60.0
+) -> dict[str, float]:
     """Feed a log to a local map one second of data at a time (``maybe_update`` after each
-    second); compare the final converged map with the offline build."""
+    second); compare the final converged map with the offline build (``window``: its
+    ``build_local_map`` window)."""
     local = LocalMap(log.name, options)
     o, f, rv = log.odometry, log.features, log.rendezvous
     order = np.argsort(f.stamps, kind="stable")
@@ -806,11 +814,23 @@ def online_rate(log: RobotLog, options: LocalMapOptions) -> dict[str, float]:
         worst = max(worst, time.perf_counter() - t0)
     compute = time.perf_counter() - start
     local.update(converge=True)
+    # what a smoother computes for its messages after an update (its map's size at the end)
     t0 = time.perf_counter()
-    offline = build_local_map(log, options=options)
+    local.pose_covariances()
+    local.landmark_covariances()
+    covariances = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rendezvous = rv.stamps[rv.stamps <= local.stamps[-1]]
+    if len(rendezvous):
+        local.sqrt_information(rendezvous)
+    sqrt_information = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    offline = build_local_map(log, options=options, window=window)
     offline_seconds = time.perf_counter() - t0
     duration = float(o.stamps[-1] - o.stamps[0])
     same = local.poses.shape == offline.poses.shape
+    difference = local.poses - offline.poses if same else np.full((1, 3), np.inf)
+    same_landmarks = np.array_equal(local.landmark_labels, offline.landmark_labels)
     return {
         "duration": duration,
         "odometry": len(o.stamps),
@@ -821,7 +841,16 @@ def online_rate(log: RobotLog, options: LocalMapOptions) -> dict[str, float]:
         "real_time_factor": duration / compute,
         "worst_update": worst,
         "offline_seconds": offline_seconds,
-        "max_pose_difference": float(np.abs(local.poses - offline.poses).max()) if same else np.inf,
+        "max_position_difference": float(np.abs(difference[:, :2]).max()),
+        "max_heading_difference": float(np.abs(se2.wrap_angle(difference[:, 2])).max()),
+        "max_landmark_difference": float(np.abs(local.landmarks - offline.landmarks).max())
+        if same_landmarks
+        else np.inf,
+        "online_cost": local.problem.cost(),
+        "offline_cost": offline.problem.cost(),
+        "publish_covariances": covariances,
+        "rendezvous_poses": len(np.unique(local.pose_index(rendezvous))) if len(rendezvous) else 0,
+        "publish_sqrt_information": sqrt_information,
     }
 
 
@@ -833,8 +862,18 @@ def print_online(name: str, r: dict[str, float]) -> None:
     print(
         f"   online: {r['updates']} updates in {r['compute']:.1f} s = "
         f"{r['real_time_factor']:.0f}x real time (worst second {r['worst_update']:.3f} s); "
-        f"offline build {r['offline_seconds']:.1f} s; max |online - offline| "
-        f"{r['max_pose_difference']:.1e} m"
+        f"offline build {r['offline_seconds']:.1f} s"
+    )
+    print(
+        f"   online (converged at the end) vs offline: max difference of positions "
+        f"{r['max_position_difference']:.1e} m, headings {r['max_heading_difference']:.1e} rad, "
+        f"landmarks {r['max_landmark_difference']:.1e} m; cost {r['online_cost']:.2f} vs "
+        f"{r['offline_cost']:.2f}"
+    )
+    print(
+        f"   for the smoother's messages at the end: every pose and landmark covariance "
+        f"{1e3 * r['publish_covariances']:.0f} ms, square-root information of "
+        f"{r['rendezvous_poses']} rendezvous poses {1e3 * r['publish_sqrt_information']:.0f} ms"
     )
 
 
@@ -888,11 +927,30 @@ def main(argv: list[str] | None = None) -> None:
     print("\n== online local map, one update per second of data")
     options = LocalMapOptions(robust=Cauchy())
     if args.mrclam:
-        from csam_ros.core.mrclam import import_mrclam  # the project's MR.CLAM importer
+        # as `csam replay --config config/mrclam.yaml` runs the smoothers: calibrated import,
+        # thinned rendezvous, the local_map section, one update per publish period
+        from csam_ros.bench.mrclam import CONFIG, RunOptions
+        from csam_ros.core.mrclam import import_mrclam, load_config
+        from csam_ros.core.robust import thin_rendezvous
 
-        multi, _ = import_mrclam(args.mrclam)
+        section = load_config(CONFIG)
+        run = RunOptions.from_config(CONFIG)
+        multi, _ = import_mrclam(
+            args.mrclam,
+            noise=section["noise"],
+            landmark_swaps=section.get("landmark_swaps") or [],
+            range_scale=section.get("range_scale"),
+        )
+        thinned, _ = thin_rendezvous(
+            {n: r.rendezvous for n, r in multi.robots.items()},
+            run.csam.rendezvous_min_interval,
+            run.csam.rendezvous_max_per_pair or None,
+        )
+        options = replace(run.local_map.options(), update_period=run.local_map.publish_period)
         for name, log in multi.robots.items():
-            print_online(f"MR.CLAM {name} (Cauchy kernel)", online_rate(log, options))
+            log = replace(log, rendezvous=thinned[name])
+            rate = online_rate(log, options, run.local_map.window)
+            print_online(f"MR.CLAM {name} ({CONFIG.name})", rate)
     else:
         log = simulate_robot_log(duration=1500.0, landmarks=40, scan_rate=5.0)[0]
         print_online("simulated MR.CLAM-rate robot (Cauchy kernel)", online_rate(log, options))

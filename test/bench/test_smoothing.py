@@ -4,6 +4,8 @@ asserted)."""
 import numpy as np
 
 from csam_ros.bench import smoothing
+from csam_ros.core.factors import Cauchy
+from csam_ros.core.local_map import LocalMapOptions
 
 
 def test_benchmark_runs_and_reports_each_solver(capsys):
@@ -39,3 +41,14 @@ def test_graph_round_trip(tmp_path):
     assert h.name == g.name
     np.testing.assert_array_equal(h.obs_landmark, g.obs_landmark)
     np.testing.assert_array_equal(h.odometry_covariance, g.odometry_covariance)
+
+
+def test_online_policy_ends_at_the_offline_map_and_times_the_message_work():
+    log = smoothing.simulate_robot_log(duration=60.0, landmarks=10, scan_rate=5.0)[0]
+    r = smoothing.online_rate(log, LocalMapOptions(robust=Cauchy()))
+    assert r["updates"] > 0
+    assert r["max_position_difference"] < 1e-6
+    assert r["max_heading_difference"] < 1e-6
+    assert r["max_landmark_difference"] < 1e-6
+    assert r["rendezvous_poses"] == 2
+    assert r["publish_covariances"] > 0 and r["publish_sqrt_information"] > 0
