@@ -13,6 +13,10 @@ BUILD := build/csam_msgs
 MSG_SOURCES := $(wildcard msg_defs/msg/*.msg) msg_defs/CMakeLists.txt msg_defs/package.xml
 RUN_ARGS ?=
 PYTEST_ARGS ?=
+# MR.CLAM Dataset 1 for the tests on real data (skipped without it): CSAM_MRCLAM_DIR, by
+# default the data folder beside the checkout where there is one
+CSAM_MRCLAM_DIR ?= $(wildcard $(abspath ../shared/data/mrclam/MRCLAM_Dataset1))
+export CSAM_MRCLAM_DIR
 
 .PHONY: run test bench lint setup setup-dev clean
 

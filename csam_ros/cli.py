@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from csam_ros.launch import executable
-from csam_ros.live import LiveRunError
+from csam_ros.run.launch import executable
+from csam_ros.run.live import LiveRunError
 
 RUNS_DIR = Path("runs")
 
@@ -98,8 +98,8 @@ def _finish(out: Path, summary: dict, truth=None) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from csam_ros.core.scenario import load_document, load_scenario
-    from csam_ros.live import LiveRun, run_live
+    from csam_ros.datasets.scenario import load_document, load_scenario
+    from csam_ros.run.live import LiveRun, run_live
 
     scenario = load_scenario(args.scenario)
     document = load_document(args.scenario)
@@ -161,9 +161,9 @@ def _bag_contents(bag: Path) -> tuple[list[str], float]:
 def offline_summary(bag: Path, config_document: dict | None = None) -> tuple[dict, object]:
     """The summary of a bag run through the core in stamp order (no DDS), and its truth."""
     from csam_ros.bag import read_bag_messages
-    from csam_ros.conversions import FEATURES_TRUTH_TOPIC, LogBuilder, sensor_topics
     from csam_ros.core.csam import CsamConfig, run_csam
     from csam_ros.core.local_map import LocalMapConfig
+    from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, LogBuilder, sensor_topics
 
     document = config_document or {}
     try:
@@ -189,11 +189,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise CliError(f"{bag}: no such bag")
     document = {}
     if args.config is not None:
-        from csam_ros.core.scenario import ScenarioError, load_document
+        from csam_ros.core.config_file import ConfigFileError, load_document
 
         try:
             document = load_document(args.config)
-        except (ScenarioError, OSError) as err:
+        except (ConfigFileError, OSError) as err:
             raise CliError(f"--config: {err}") from None
     merger_params, smoother_params = _csam_params(document), _smoother_params(document)
     out = _fresh_dir(args.out, f"replay-{bag.name}")
@@ -201,8 +201,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if args.offline:
             summary, _ = offline_summary(bag, document)
         else:
-            from csam_ros.conversions import FEATURES_TRUTH_TOPIC, sensor_topics
-            from csam_ros.live import LiveRun, run_live
+            from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, sensor_topics
+            from csam_ros.run.live import LiveRun, run_live
 
             robots, duration = _bag_contents(bag)
             topics = [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]
@@ -282,7 +282,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _truth_of(run_dir: Path, summary: dict):
     from csam_ros.bag import read_bag_messages
-    from csam_ros.conversions import FEATURES_TRUTH_TOPIC, truth_from_message
+    from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, truth_from_message
 
     candidates = [run_dir / "bag"]
     if summary.get("source"):
@@ -295,15 +295,15 @@ def _truth_of(run_dir: Path, summary: dict):
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from csam_ros.bag_io import write_log_bag
+    from csam_ros.run.bag_io import write_log_bag
 
     if args.out.exists():
         raise CliError(f"{args.out} exists: an import never overwrites a bag")
     if args.format == "mrclam":
-        from csam_ros.core.mrclam import MrclamFormatError, import_mrclam, load_config
-        from csam_ros.core.scenario import CONFIG_DIR
+        from csam_ros.core.config_file import resolve_config_path
+        from csam_ros.datasets.mrclam import MrclamFormatError, import_mrclam, load_config
 
-        config = load_config(CONFIG_DIR / "mrclam.yaml")
+        config = load_config(resolve_config_path("mrclam"))
         robots = [int(r) for r in args.robots.split(",")] if args.robots else None
         try:
             log, report = import_mrclam(
@@ -319,8 +319,8 @@ def cmd_import(args: argparse.Namespace) -> int:
             raise CliError(str(err)) from None
         print(report.summary())
     else:
-        from csam_ros.core.slam2d import Slam2dFormatError
-        from csam_ros.core.slam2d_log import read_slam2d_log
+        from csam_ros.datasets.slam2d import Slam2dFormatError
+        from csam_ros.datasets.slam2d_log import read_slam2d_log
 
         try:
             log = read_slam2d_log(args.source)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from csam_ros.ros_env import isolate_this_process, reserve_domain_id
+from csam_ros.run.ros_env import isolate_this_process, reserve_domain_id
 
 REPO = Path(__file__).resolve().parents[1]
 CUSTOM_MSG_DIR = REPO / "msg_defs" / "msg"

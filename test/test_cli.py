@@ -12,7 +12,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from csam_ros.bag import MessageTypes
-from csam_ros.core.mrclam import default_dataset_dir
+from csam_ros.datasets.mrclam import default_dataset_dir
 
 MRCLAM = default_dataset_dir()
 REPO = Path(__file__).resolve().parents[1]
@@ -153,7 +153,7 @@ def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
     assert len(a["associations"]) == len(b["associations"])
 
 
-@pytest.mark.skipif(not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
+@pytest.mark.skipif(MRCLAM is None or not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
 def test_mrclam_window_imports_replays_and_evaluates(tmp_path: Path) -> None:
     """Real data end to end with the real-data settings: five robots, the first 120 s."""
     bag = tmp_path / "mrclam"

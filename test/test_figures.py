@@ -289,8 +289,8 @@ def test_large_summary_draws(tmp_path: Path) -> None:
 def test_draw_from_a_real_csam_run(tmp_path: Path, scenario: str) -> None:
     """The summary C-SAM writes (CsamResult.to_dict through JSON) draws, truth included."""
     from csam_ros.core.csam import run_csam
-    from csam_ros.core.scenario import load_scenario
     from csam_ros.core.simulation import simulate
+    from csam_ros.datasets.scenario import load_scenario
 
     log = simulate(load_scenario(scenario), seed=1)
     summary = json.loads(json.dumps(run_csam(log).to_dict()))

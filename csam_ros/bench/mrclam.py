@@ -75,14 +75,14 @@ from scipy.optimize import minimize
 from scipy.stats import chi2
 
 from csam_ros.core import se2
+from csam_ros.core.config_file import load_document
 from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
 from csam_ros.core.evaluation import evaluate
 from csam_ros.core.local_map import LocalMapConfig, build_local_map
 from csam_ros.core.log import GroundTruth, MultiRobotLog, OdometryLog, RobotLog
-from csam_ros.core.mrclam import MrclamNoise, default_dataset_dir, import_mrclam, load_config
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.robust import select_rendezvous, thin_rendezvous
-from csam_ros.core.scenario import load_document
+from csam_ros.datasets.mrclam import MrclamNoise, default_dataset_dir, import_mrclam, load_config
 
 FloatArray = NDArray[np.float64]
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "mrclam.yaml"
@@ -1344,7 +1344,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     sub = parser.add_subparsers(dest="command", required=True)
     noise = sub.add_parser("noise", help="estimate the noise model from the data set")
-    noise.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+    noise.add_argument(
+        "--dataset", type=Path, default=DEFAULT_DATASET, required=DEFAULT_DATASET is None
+    )
     noise.add_argument("--json", action="store_true", help="print JSON instead of a table")
     noise.add_argument(
         "--config", type=Path, default=CONFIG, help="landmark_swaps are taken from here"
@@ -1357,7 +1359,9 @@ def main(argv: list[str] | None = None) -> int:
     table = sub.add_parser("table", help="each robot alone, all pairs, all five")
     table.add_argument("--json", type=Path, default=None, help="write every record here")
     for command in (run, table):
-        command.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+        command.add_argument(
+            "--dataset", type=Path, default=DEFAULT_DATASET, required=DEFAULT_DATASET is None
+        )
         command.add_argument("--config", type=Path, default=CONFIG, help="csam:, local_map:")
         command.add_argument("--start", type=float, default=0.0)
         command.add_argument("--duration", type=float, default=None)

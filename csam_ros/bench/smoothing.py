@@ -58,8 +58,8 @@ from csam_ros.core import motion, se2, sensor
 from csam_ros.core.factors import POINT, POSE, Cauchy, PointObservation, PosePrior, RelativePose
 from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
 from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
-from csam_ros.core.slam2d import Slam2dData, initial_values, read_slam2d
 from csam_ros.core.solver import GAUGE_SIGMA, NormalEquations, Problem, SolverOptions
+from csam_ros.datasets.slam2d import Slam2dData, initial_values, read_slam2d
 
 Array = NDArray[np.float64]
 
@@ -930,8 +930,8 @@ def main(argv: list[str] | None = None) -> None:
         # as `csam replay --config config/mrclam.yaml` runs the smoothers: calibrated import,
         # thinned rendezvous, the local_map section, one update per publish period
         from csam_ros.bench.mrclam import CONFIG, RunOptions
-        from csam_ros.core.mrclam import import_mrclam, load_config
         from csam_ros.core.robust import thin_rendezvous
+        from csam_ros.datasets.mrclam import import_mrclam, load_config
 
         section = load_config(CONFIG)
         run = RunOptions.from_config(CONFIG)

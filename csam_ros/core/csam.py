@@ -48,6 +48,7 @@ from csam_ros.core.association import (
     MapFeatures,
     associate,
 )
+from csam_ros.core.config_file import load_document
 from csam_ros.core.covariance import (
     covariance_block,
     factorize_at_estimate,
@@ -64,7 +65,6 @@ from csam_ros.core.local_map import LocalMap, LocalMapConfig, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
 from csam_ros.core.robust import RendezvousThinning, consistent_rendezvous, thin_rendezvous
-from csam_ros.core.scenario import load_document
 from csam_ros.core.solver import NormalEquations, SolverOptions
 
 Array = NDArray[np.float64]

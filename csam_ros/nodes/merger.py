@@ -23,17 +23,17 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
-from csam_ros.conversions import time_to_ns
 from csam_ros.core.csam import CsamConfig, join_maps
 from csam_ros.core.validation import DropCounter
-from csam_ros.map_messages import (
+from csam_ros.nodes.common import LATCHED, declare, run_node, steady_clock
+from csam_ros.ros.conversions import time_to_ns
+from csam_ros.ros.map_messages import (
     LocalMapError,
     joined_map_message,
     rendezvous_log_from_message,
     robot_map_from_message,
 )
-from csam_ros.markers import joined_map_markers
-from csam_ros.nodes.common import LATCHED, declare, run_node, steady_clock
+from csam_ros.ros.markers import joined_map_markers
 
 STATUS_TOPIC = "/csam/status"
 

@@ -23,7 +23,14 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from csam_ros.conversions import (
+from csam_ros.core.csam import robot_map_from_local_map
+from csam_ros.core.local_map import LocalMap as CoreLocalMap
+from csam_ros.core.local_map import LocalMapConfig
+from csam_ros.core.log import RendezvousLog
+from csam_ros.core.robust import RendezvousThinning, select_rendezvous
+from csam_ros.core.validation import MeasurementFilter
+from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA_BUFFERED, declare, run_node
+from csam_ros.ros.conversions import (
     features_from_message,
     ns_to_time,
     odometry_from_message,
@@ -32,14 +39,7 @@ from csam_ros.conversions import (
     stamp_to_ns,
     time_to_ns,
 )
-from csam_ros.core.csam import robot_map_from_local_map
-from csam_ros.core.local_map import LocalMap as CoreLocalMap
-from csam_ros.core.local_map import LocalMapConfig
-from csam_ros.core.log import RendezvousLog
-from csam_ros.core.robust import RendezvousThinning, select_rendezvous
-from csam_ros.core.validation import MeasurementFilter
-from csam_ros.map_messages import rendezvous_poses_message, robot_map_to_message
-from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA_BUFFERED, declare, run_node
+from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
 
 STATUS_TOPIC = "/csam/status"
 

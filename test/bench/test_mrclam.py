@@ -22,7 +22,7 @@ from csam_ros.core.log import (
     RobotLog,
     empty_rendezvous,
 )
-from csam_ros.core.mrclam import MrclamNoise
+from csam_ros.datasets.mrclam import MrclamNoise
 
 
 def test_chain_covariances_match_the_dense_inverse() -> None:

@@ -22,9 +22,9 @@ from csam_ros.core.alignment import (
 from csam_ros.core.csam import CsamConfig, run_csam
 from csam_ros.core.factors import POSE, LinearPrior
 from csam_ros.core.rendezvous import RendezvousSet
-from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
 from csam_ros.core.solver import Problem
+from csam_ros.datasets.scenario import load_scenario
 
 
 def _straight(start, heading, step, n):

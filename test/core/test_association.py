@@ -26,8 +26,8 @@ from csam_ros.core.csam import _local_inputs, _map_features, robot_map_from_loca
 from csam_ros.core.joining import SelectedInverse
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.rendezvous import collect, required_stamps
-from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
+from csam_ros.datasets.scenario import load_scenario
 
 
 def _stage(scenario: str, seed: int):

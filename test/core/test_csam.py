@@ -16,8 +16,8 @@ from csam_ros.core.evaluation import evaluate
 from csam_ros.core.factors import Cauchy
 from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
-from csam_ros.core.scenario import load_document, load_scenario, scenario_from_dict
 from csam_ros.core.simulation import simulate
+from csam_ros.datasets.scenario import load_document, load_scenario, scenario_from_dict
 
 
 @pytest.fixture(scope="module")

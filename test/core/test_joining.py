@@ -13,9 +13,9 @@ from csam_ros.core.factors import POSE, PosePrior, RelativePose
 from csam_ros.core.joining import RobotMap, SelectedInverse, heading_sigmas
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.log import MultiRobotLog
-from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
 from csam_ros.core.solver import GAUGE_SIGMA, Problem
+from csam_ros.datasets.scenario import load_scenario
 
 
 @pytest.fixture(scope="module", params=["map_joining", "chain"])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from csam_ros.core import se2
-from csam_ros.core.scenario import ScenarioError, load_document, load_scenario, scenario_from_dict
+from csam_ros.core.config_file import ConfigFileError
 from csam_ros.core.simulation import (
     RangeBearingSensor,
     RobotSpec,
@@ -17,6 +17,12 @@ from csam_ros.core.simulation import (
     Segment,
     simulate,
     true_trajectory,
+)
+from csam_ros.datasets.scenario import (
+    ScenarioError,
+    load_document,
+    load_scenario,
+    scenario_from_dict,
 )
 
 
@@ -188,5 +194,5 @@ def test_scenario_file_values() -> None:
     np.testing.assert_allclose(np.array(q.odometry_sigma) / np.array(p.odometry_sigma), 5.0)
     assert p.feature_sensor.field_of_view == pytest.approx(np.pi)
     assert q.rendezvous_sensor is None and p.observes == ("robot2",)
-    with pytest.raises(ScenarioError, match="no such file"):
+    with pytest.raises(ConfigFileError, match="no such file"):
         load_scenario("no_such_scenario")

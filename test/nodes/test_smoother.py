@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from rclpy.parameter import Parameter
 
-from csam_ros.conversions import rendezvous_message, stamp_to_ns
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.robust import select_rendezvous, thin_rendezvous
+from csam_ros.ros.conversions import rendezvous_message, stamp_to_ns
 
 ROBOTS = ["robot1", "robot2", "robot3"]
 

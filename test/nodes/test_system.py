@@ -18,8 +18,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from csam_ros.core.csam import run_csam
-from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
+from csam_ros.datasets.scenario import load_scenario
 
 SCENARIO = "map_joining"
 SEED = 4
@@ -150,8 +150,8 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
     )
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from csam_ros.conversions import ns_to_time
     from csam_ros.nodes.common import RELIABLE
+    from csam_ros.ros.conversions import ns_to_time
 
     robots = [r.name for r in load_scenario(SCENARIO).robots]
     simulator, smoothers, merger = _nodes(

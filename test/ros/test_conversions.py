@@ -5,8 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from csam_ros.conversions import LogBuilder, log_to_messages
-from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
 from csam_ros.core.validation import (
     DUPLICATE,
@@ -17,6 +15,8 @@ from csam_ros.core.validation import (
     STAMP_BACKWARDS,
     UNKNOWN_ROBOT,
 )
+from csam_ros.datasets.scenario import load_scenario
+from csam_ros.ros.conversions import LogBuilder, log_to_messages
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from csam_ros.core.mrclam import (
+from csam_ros.datasets.mrclam import (
     MrclamFormatError,
     MrclamNoise,
     default_dataset_dir,
@@ -319,7 +319,7 @@ def test_range_scale_divides_every_range_of_that_robot(tmp_path: Path) -> None:
             import_mrclam(d, range_scale=bad)
 
 
-@pytest.mark.skipif(not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
+@pytest.mark.skipif(DATASET is None or not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
 def test_real_dataset_imports() -> None:
     log, report = import_mrclam(DATASET)
     assert list(log.robots) == [f"robot{k}" for k in range(1, 6)]

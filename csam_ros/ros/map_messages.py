@@ -27,7 +27,6 @@ from csam_msgs.msg import (
 )
 from geometry_msgs.msg import Pose2D
 
-from csam_ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
 from csam_ros.core.factors import (
     POINT,
     POSE,
@@ -41,6 +40,7 @@ from csam_ros.core.factors import (
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.solver import Problem
+from csam_ros.ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
 
 
 class LocalMapError(ValueError):

@@ -9,9 +9,9 @@ from csam_ros.core.csam import join_maps, robot_map_from_local_map
 from csam_ros.core.factors import Cauchy, Huber
 from csam_ros.core.local_map import LocalMapOptions, build_local_map
 from csam_ros.core.rendezvous import required_stamps
-from csam_ros.core.scenario import load_scenario
 from csam_ros.core.simulation import simulate
-from csam_ros.map_messages import (
+from csam_ros.datasets.scenario import load_scenario
+from csam_ros.ros.map_messages import (
     dense_matrix,
     rendezvous_log_from_message,
     rendezvous_poses_message,

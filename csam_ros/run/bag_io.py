@@ -6,9 +6,9 @@ from pathlib import Path
 
 from csam_ros.bag import BagWriter
 from csam_ros.bag.types import msgtype_of
-from csam_ros.conversions import FEATURES_TRUTH_TOPIC, log_to_messages
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA
+from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, log_to_messages
 
 
 def topic_qos(topic: str):

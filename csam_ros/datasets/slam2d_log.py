@@ -1,6 +1,6 @@
 """A single-robot 2D landmark SLAM file as a measurement log (``csam import slam2d``).
 
-A file read by :func:`csam_ros.core.slam2d.read_slam2d` holds relative poses and Cartesian
+A file read by :func:`csam_ros.datasets.slam2d.read_slam2d` holds relative poses and Cartesian
 landmark observations with covariances; a :class:`~csam_ros.core.log.MultiRobotLog` holds what
 a robot measures: odometry inputs ``u = (v, v_lat, omega)`` with independent sigmas and
 range-bearing observations with independent sigmas. The conversion:
@@ -53,7 +53,7 @@ from numpy.typing import ArrayLike, NDArray
 from csam_ros.core import se2
 from csam_ros.core.log import FeatureLog, MultiRobotLog, OdometryLog, RobotLog, empty_rendezvous
 from csam_ros.core.motion import increment_and_jacobian
-from csam_ros.core.slam2d import Slam2dData, Slam2dFormatError, read_slam2d
+from csam_ros.datasets.slam2d import Slam2dData, Slam2dFormatError, read_slam2d
 
 Array = NDArray[np.float64]
 

@@ -13,8 +13,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from csam_ros.launch import ProcessGroup, executable
-from csam_ros.ros_env import isolate_this_process, isolated_environment, reserve_domain_id
+from csam_ros.run.launch import ProcessGroup, executable
+from csam_ros.run.ros_env import isolate_this_process, isolated_environment, reserve_domain_id
 
 
 class LiveRunError(RuntimeError):
@@ -89,8 +89,8 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> dic
     from rosgraph_msgs.msg import Clock
     from std_srvs.srv import Trigger
 
-    from csam_ros.conversions import time_to_ns
     from csam_ros.nodes.common import LATCHED
+    from csam_ros.ros.conversions import time_to_ns
 
     sim_time = _param("use_sim_time", True)
     topics = recorded_topics(run.robots) + run.extra_topics

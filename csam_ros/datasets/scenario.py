@@ -37,14 +37,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from csam_ros.core.config_file import ConfigFileError, load_document, resolve_config_path
 from csam_ros.core.simulation import RangeBearingSensor, RobotSpec, Scenario, Segment, feature_grid
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 
-
-class ScenarioError(ValueError):
+class ScenarioError(ConfigFileError):
     """A scenario file that cannot be used; the message names the file and key."""
 
 
@@ -264,30 +262,7 @@ def scenario_from_dict(document: Mapping[str, Any], source: str = "<dict>") -> S
     )
 
 
-def resolve_scenario_path(name_or_path: str | Path) -> Path:
-    """A scenario file path: an existing path, or a name of a file in the config directory."""
-    path = Path(name_or_path)
-    if path.is_file():
-        return path
-    candidate = CONFIG_DIR / f"{name_or_path}.yaml"
-    if candidate.is_file():
-        return candidate
-    raise ScenarioError(
-        f"scenario {str(name_or_path)!r}: no such file and no {candidate.name} in {CONFIG_DIR}"
-    )
-
-
-def load_document(name_or_path: str | Path) -> dict[str, Any]:
-    """The whole parsed YAML document of a scenario file (all top-level keys)."""
-    path = resolve_scenario_path(name_or_path)
-    try:
-        document = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ScenarioError(f"{path}: not valid YAML: {err}") from err
-    return dict(_mapping(document, str(path)))
-
-
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load a scenario by file path or by name (``map_joining`` -> ``config/map_joining.yaml``)."""
-    path = resolve_scenario_path(name_or_path)
+    path = resolve_config_path(name_or_path)
     return scenario_from_dict(load_document(path), str(path))

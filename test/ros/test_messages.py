@@ -9,7 +9,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 # Builds the message both in this test and in the publishing subprocess.
 BUILD_RENDEZVOUS_POSES = textwrap.dedent(

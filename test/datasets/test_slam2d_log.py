@@ -13,8 +13,8 @@ from csam_ros.core import se2
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.motion import increment, increment_and_jacobian
 from csam_ros.core.sensor import polar_to_cartesian
-from csam_ros.core.slam2d import Slam2dFormatError, build_problem, read_slam2d
-from csam_ros.core.slam2d_log import (
+from csam_ros.datasets.slam2d import Slam2dFormatError, build_problem, read_slam2d
+from csam_ros.datasets.slam2d_log import (
     convert_slam2d,
     input_covariances,
     inputs_from_relative_poses,
@@ -333,7 +333,7 @@ def csam(*args):
 
 
 def test_converted_file_replays_offline(tmp_path):
-    from csam_ros.bag_io import write_log_bag
+    from csam_ros.run.bag_io import write_log_bag
 
     sim = simulate(30, 8, seed=11)
     sim.write_text(tmp_path / "run.txt", landmark_ids=np.arange(8) + 40)

@@ -75,15 +75,12 @@ _ROBOT_FILE = re.compile(r"^Robot(\d+)_Odometry\.dat$")
 _MAX_NOTES = 40
 
 
-def default_dataset_dir() -> Path:
-    """Where MR.CLAM Dataset 1 is looked for: ``$CSAM_MRCLAM_DIR``, else the project's
-    ``shared/`` folder beside the repository, else ``/work/shared`` (may not exist)."""
+def default_dataset_dir() -> Path | None:
+    """MR.CLAM Dataset 1 for tests and benchmarks: ``$CSAM_MRCLAM_DIR`` if set, else None."""
     import os
 
-    if os.environ.get("CSAM_MRCLAM_DIR"):
-        return Path(os.environ["CSAM_MRCLAM_DIR"])
-    beside = Path(__file__).resolve().parents[3] / "shared" / "data" / "mrclam" / "MRCLAM_Dataset1"
-    return beside if beside.is_dir() else Path("/work/shared/data/mrclam/MRCLAM_Dataset1")
+    value = os.environ.get("CSAM_MRCLAM_DIR")
+    return Path(value) if value else None
 
 
 class MrclamFormatError(ValueError):

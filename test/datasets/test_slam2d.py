@@ -6,7 +6,7 @@ import pytest
 from csam_ros.bench.smoothing import build_problem as build_sim_problem
 from csam_ros.bench.smoothing import simulate_landmark_problem
 from csam_ros.core import se2
-from csam_ros.core.slam2d import Slam2dFormatError, build_problem, initial_values, read_slam2d
+from csam_ros.datasets.slam2d import Slam2dFormatError, build_problem, initial_values, read_slam2d
 
 
 def upper(m):

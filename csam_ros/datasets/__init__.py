@@ -1,0 +1,1 @@
+"""Readers of data sets and scenario files into core data (no ROS)."""

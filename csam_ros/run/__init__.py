@@ -1,0 +1,1 @@
+"""Running nodes together: process launch, DDS environment, live runs and bag output."""
