@@ -39,7 +39,6 @@ its first pose and the rendezvous and may legitimately be large.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -61,11 +60,12 @@ from csam_ros.core.factors import (
 )
 from csam_ros.core.rendezvous import RendezvousSet
 from csam_ros.core.solver import (
+    NormalEquations,
     Problem,
     SingularProblemError,
     SolveReport,
     SolverOptions,
-    StepControl,
+    minimise,
 )
 
 Array = NDArray[np.float64]
@@ -654,9 +654,9 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
     return out
 
 
-def _dense_information(problem: Problem) -> Array:
-    """The assembled ``A^T A`` of the problem's normal equations as a full dense matrix."""
-    upper = problem.normal_equations().matrix().toarray()
+def _dense_information(system: NormalEquations) -> Array:
+    """The assembled ``A^T A`` of normal equations as a full dense matrix."""
+    upper = system.matrix().toarray()
     full = upper + upper.T
     full.flat[:: len(full) + 1] *= 0.5
     return full
@@ -683,6 +683,41 @@ def _cholesky(matrix: Array) -> tuple[Array, bool] | None:
     return factor
 
 
+class DenseNewtonStep:
+    """Newton step of Algorithm 1's cost with a positive-definite fallback (dense LAPACK
+    Cholesky; :func:`dense_newton`): the model ``A^T A + sum r_i d^2 r_i`` when, damped by
+    ``lambda diag(A^T A)``, it is positive definite, otherwise the Gauss-Newton ``A^T A``."""
+
+    def __init__(self, problem: Problem, system: NormalEquations) -> None:
+        self.problem = problem
+        self.system = system
+        self.information = np.zeros((0, 0))
+        self.curvature = np.zeros((0, 0))
+
+    def relinearised(self) -> None:
+        problem = self.problem
+        self.information = _dense_information(self.system)
+        self.curvature = _connector_curvature(problem, problem.values, problem.dim)
+
+    def propose(self, damping: float) -> tuple[Array, float] | None:
+        gradient = self.system.gradient
+        scale = damping * np.diag(self.information)
+        model = self.information + self.curvature
+        factor = _cholesky(_damped(model, scale))
+        if factor is None:
+            model = self.information
+            factor = _cholesky(_damped(model, scale))
+        if factor is None:
+            if damping == 0.0:
+                raise SingularProblemError(
+                    "the Algorithm 1 information matrix is singular: some base node or "
+                    "rendezvous pose is not determined"
+                )
+            return None
+        step = -scipy.linalg.cho_solve(factor, gradient, check_finite=False)
+        return step, -float(gradient @ step + 0.5 * step @ (model @ step))
+
+
 def dense_newton(
     problem: Problem, options: SolverOptions, keys: Sequence[tuple]
 ) -> tuple[SolveReport, Array]:
@@ -696,77 +731,21 @@ def dense_newton(
     directions; Gauss-Newton then converges linearly (about a hundred iterations on MR.CLAM
     Dataset 1, five robots), Newton quadratically. The Newton matrix ``A^T A + sum r_i
     d^2 r_i`` is used whenever it is positive definite (with the damping), otherwise the
-    Gauss-Newton matrix; damping, gain ratio, acceptance and stopping rules are those of
-    :func:`csam_ros.core.solver.gauss_newton`, the gain measured against the model used.
+    Gauss-Newton matrix (:class:`DenseNewtonStep`); the iteration (damping, gain ratio,
+    acceptance, stopping) is :func:`csam_ros.core.solver.minimise`, the loop of
+    :func:`~csam_ros.core.solver.gauss_newton`, the gain measured against the model used.
     Dense LAPACK Cholesky: the priors make the system dense by blocks anyway (one robot's
     rendezvous poses are all coupled).
     """
-    start = time.perf_counter()
-    system = problem.normal_equations()
-    n = problem.dim
-    angles = problem._angle_positions
-    current = system.evaluate(problem.values)
-    system.assemble(current)
-    cost = initial = current.cost
-    history = [cost]
-    information = _dense_information(problem)
-    curvature = _connector_curvature(problem, problem.values, n)
-    control = StepControl(options)
-    iterations = 0
-    while iterations < options.max_iterations:
-        iterations += 1
-        gradient = system.gradient
-        scale = control.damping * np.diag(information)
-        model = information + curvature
-        factor = _cholesky(_damped(model, scale))
-        if factor is None:
-            model = information
-            factor = _cholesky(_damped(model, scale))
-        if factor is None:
-            if control.damping == 0.0:
-                raise SingularProblemError(
-                    "the Algorithm 1 information matrix is singular: some base node or "
-                    "rendezvous pose is not determined"
-                )
-            control.damping *= 10.0
-            if control.damping > options.max_damping:
-                control.reason = "damping exceeded its maximum without a positive definite system"
-                break
-            continue
-        step = -scipy.linalg.cho_solve(factor, gradient, check_finite=False)
-        candidate = problem.values + step
-        candidate[angles] = se2.wrap_angle(candidate[angles])
-        trial = system.evaluate(candidate)
-        step_norm = float(np.abs(step).max()) if step.size else 0.0
-        predicted = -float(gradient @ step + 0.5 * step @ (model @ step))
-        if trial.cost <= cost:
-            gain = (cost - trial.cost) / predicted if predicted > 0.0 else 1.0
-            problem.values = candidate
-            decrease, cost = cost - trial.cost, trial.cost
-            history.append(cost)
-            if control.accepted(decrease, history[-2], step_norm, gain):
-                break
-            system.assemble(trial)
-            information = _dense_information(problem)
-            curvature = _connector_curvature(problem, problem.values, n)
-        elif control.rejected(step_norm):
-            break
+    system = problem.normal_equations(options.backend)
+    report = minimise(problem, options, DenseNewtonStep(problem, system))
     # covariance from A^T A at the estimate (no damping, no curvature), like the sparse path
     system.assemble(system.evaluate(problem.values))
-    factor = _cholesky(_dense_information(problem))
+    factor = _cholesky(_dense_information(system))
     if factor is None:
         raise SingularProblemError("the Algorithm 1 information matrix is singular")
     cols = problem.scalar_indices(problem.indices(keys))
-    unit = np.zeros((n, len(cols)))
+    unit = np.zeros((problem.dim, len(cols)))
     unit[cols, np.arange(len(cols))] = 1.0
     cov = scipy.linalg.cho_solve(factor, unit, check_finite=False)[cols]
-    report = SolveReport(
-        iterations=iterations,
-        initial_cost=initial,
-        final_cost=cost,
-        converged=control.converged,
-        reason=control.reason,
-        seconds=time.perf_counter() - start,
-        cost_history=history,
-    )
     return report, 0.5 * (cov + cov.T)

@@ -90,6 +90,7 @@ import time
 import weakref
 from collections.abc import Hashable, Iterable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -688,13 +689,66 @@ class StepControl:
             return True
         return False
 
+    def indefinite(self) -> bool:
+        """After a damped model that was not positive definite: whether to stop; otherwise
+        damp ten times more."""
+        self.damping *= 10.0
+        if self.damping > self.options.max_damping:
+            self.reason = "damping exceeded its maximum without a positive definite system"
+            return True
+        return False
+
+
+class StepRule(Protocol):
+    """How :func:`minimise` computes a step at the current linearisation: the sparse
+    Gauss-Newton / Levenberg-Marquardt step (:class:`GaussNewtonStep`) or Algorithm 1's dense
+    Newton step (:class:`csam_ros.core.alignment.DenseNewtonStep`)."""
+
+    def propose(self, damping: float) -> tuple[Array, float] | None:
+        """The step at ``damping`` and the decrease its model predicts, or ``None`` when the
+        damped model is not positive definite (damp more and try again)."""
+        ...
+
+    def relinearised(self) -> None:
+        """The problem's normal equations were reassembled at an accepted point."""
+        ...
+
+
+class GaussNewtonStep:
+    """Gauss-Newton step of the sparse normal equations, damped by ``lambda diag(A^T A)``."""
+
+    def __init__(self, system: NormalEquations) -> None:
+        self.system = system
+
+    def propose(self, damping: float) -> tuple[Array, float]:
+        system = self.system
+        system.factorize(damping)
+        gradient = system.gradient
+        step = system.solve(-gradient)
+        # decrease predicted by the (damped) linear model: 0.5 (lambda d^T D d - g^T d)
+        scaled = damping * float(step @ (system.diagonal * step)) if damping > 0.0 else 0.0
+        return step, 0.5 * (scaled - float(gradient @ step))
+
+    def relinearised(self) -> None:
+        pass
+
 
 def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     """Gauss-Newton with Levenberg-Marquardt safeguard (see the module docstring)."""
+    system = problem.normal_equations(options.backend)
+    return minimise(problem, options, GaussNewtonStep(system))
+
+
+def minimise(problem: Problem, options: SolverOptions, rule: StepRule) -> SolveReport:
+    """Minimise the problem's cost in place with the steps of ``rule``: the one iteration of
+    both solvers (acceptance, damping and stopping by :class:`StepControl`, extrapolation;
+    module docstring). The normal equations are assembled at the current values first, then
+    after every accepted step (``rule.relinearised()``)."""
     start = time.perf_counter()
     system = problem.normal_equations(options.backend)
     current = system.evaluate(problem.values)
     system.assemble(current)
+    rule.relinearised()
     cost = current.cost
     history = [cost]
     initial = cost
@@ -704,19 +758,19 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
     angles = problem._angle_positions
     while iterations < options.max_iterations:
         damping = control.damping
-        system.factorize(damping)
+        proposal = rule.propose(damping)
         iterations += 1
-        gradient = system.gradient
-        step = system.solve(-gradient)
+        if proposal is None:
+            if control.indefinite():
+                break
+            continue
+        step, predicted = proposal
         candidate = problem.values + step
         candidate[angles] = se2.wrap_angle(candidate[angles])
         # residuals and Jacobians at once: an accepted candidate is not evaluated again
         trial = system.evaluate(candidate)
         new_cost = trial.cost
         step_norm = float(np.abs(step).max()) if step.size else 0.0
-        # decrease predicted by the (damped) linear model: 0.5 (lambda d^T D d - g^T d)
-        scaled = damping * float(step @ (system.diagonal * step)) if damping > 0.0 else 0.0
-        predicted = 0.5 * (scaled - float(gradient @ step))
         if new_cost <= cost:
             gain = (cost - new_cost) / predicted if predicted > 0.0 else 1.0
             if damping == 0.0 and gain > options.extrapolation_gain:
@@ -735,6 +789,7 @@ def gauss_newton(problem: Problem, options: SolverOptions) -> SolveReport:
             if control.accepted(decrease, history[-2], step_norm, gain):
                 break
             system.assemble(trial)
+            rule.relinearised()
         elif control.rejected(step_norm):
             break
     return SolveReport(

@@ -288,7 +288,7 @@ def test_newton_matrix_is_the_hessian_of_the_cost() -> None:
     system = problem.normal_equations()
     x = problem.values.copy()
     system.linearize(x)
-    newton = _dense_information(problem) + _connector_curvature(problem, x, problem.dim)
+    newton = _dense_information(system) + _connector_curvature(problem, x, problem.dim)
     numeric = np.empty_like(newton)
     h = 1e-5
     for j in range(problem.dim):
