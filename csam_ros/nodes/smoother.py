@@ -38,6 +38,7 @@ from csam_ros.ros.conversions import (
     rendezvous_log_from_chunks,
     stamp_to_ns,
     time_to_ns,
+    yaw_quaternion,
 )
 from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
 
@@ -267,8 +268,7 @@ class Smoother(Node):
             pose.header.frame_id = msg.header.frame_id
             pose.header.stamp = ns_to_time(stamp_to_ns(t))
             pose.pose.position.x, pose.pose.position.y = float(p[0]), float(p[1])
-            pose.pose.orientation.z = float(np.sin(p[2] / 2))
-            pose.pose.orientation.w = float(np.cos(p[2] / 2))
+            pose.pose.orientation = yaw_quaternion(p[2])
             msg.poses.append(pose)
         return msg
 

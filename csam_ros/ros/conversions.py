@@ -25,6 +25,7 @@ from csam_msgs.msg import (
     RendezvousObservation,
     RendezvousObservations,
 )
+from geometry_msgs.msg import Quaternion
 from nav_msgs.msg import Odometry
 
 from csam_ros.core.log import (
@@ -60,6 +61,11 @@ def time_to_ns(stamp: Time) -> int:
 def time_to_seconds(stamp: Time) -> float:
     """A message stamp in seconds, computed the same way on every path."""
     return time_to_ns(stamp) / 1e9
+
+
+def yaw_quaternion(yaw: float) -> Quaternion:
+    """The orientation of a planar pose: rotation by ``yaw`` [rad] about z."""
+    return Quaternion(z=float(np.sin(yaw / 2)), w=float(np.cos(yaw / 2)))
 
 
 def topic(robot: str, suffix: str) -> str:
@@ -167,8 +173,7 @@ def ground_truth_message(robot: str, stamp_ns: int, pose: np.ndarray) -> Odometr
     msg.child_frame_id = f"{robot}/base_link"
     msg.pose.pose.position.x = float(pose[0])
     msg.pose.pose.position.y = float(pose[1])
-    msg.pose.pose.orientation.z = float(np.sin(pose[2] / 2))
-    msg.pose.pose.orientation.w = float(np.cos(pose[2] / 2))
+    msg.pose.pose.orientation = yaw_quaternion(pose[2])
     return msg
 
 

@@ -16,7 +16,7 @@ from csam_ros.core.validation import (
     UNKNOWN_ROBOT,
 )
 from csam_ros.datasets.scenario import load_scenario
-from csam_ros.ros.conversions import LogBuilder, log_to_messages
+from csam_ros.ros.conversions import LogBuilder, log_to_messages, yaw_quaternion
 
 
 @pytest.fixture(scope="module")
@@ -82,3 +82,11 @@ def test_bad_messages_are_dropped_and_counted(log) -> None:
     # the two good scans and the one surviving observation of the bad scan
     expected = len(first.message.observations) + len(second.message.observations) + 1
     assert len(built.ranges) == expected
+
+
+def test_yaw_quaternion_rotates_about_z() -> None:
+    for yaw in (0.0, 0.7, -2.5, np.pi):
+        q = yaw_quaternion(yaw)
+        assert (q.x, q.y) == (0.0, 0.0)
+        assert q.z**2 + q.w**2 == pytest.approx(1.0)
+        assert 2 * np.arctan2(q.z, q.w) == pytest.approx(yaw)
