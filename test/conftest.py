@@ -3,6 +3,10 @@
 The session fixture ``ros_domain`` reserves a ROS_DOMAIN_ID and limits discovery to this host
 in os.environ before any test initialises rclpy; every subprocess inherits it, so parallel
 test runs and anything else on the machine cannot cross-talk.
+
+This folder is put on ``sys.path``, so that tests import shared plain modules (``jacobians``)
+under ``--import-mode=importlib``; property-based tests run under one fixed hypothesis
+profile (derandomised, so every run draws the same examples).
 """
 
 from __future__ import annotations
@@ -19,11 +23,20 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from csam_ros.run.ros_env import isolate_this_process, reserve_domain_id
 
 REPO = Path(__file__).resolve().parents[1]
 CUSTOM_MSG_DIR = REPO / "msg_defs" / "msg"
+
+if str(Path(__file__).parent) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).parent))
+
+settings.register_profile(
+    "csam", max_examples=60, deadline=None, derandomize=True, database=None, print_blob=True
+)
+settings.load_profile("csam")
 
 
 @pytest.fixture(scope="session", autouse=True)

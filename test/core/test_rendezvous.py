@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from jacobians import numeric_block_jacobians
 
 from csam_ros.core import rendezvous, se2, sensor
 from csam_ros.core.log import RendezvousLog
@@ -12,16 +13,6 @@ from csam_ros.core.log import RendezvousLog
 
 def _random_poses(rng: np.random.Generator, k: int) -> np.ndarray:
     return np.column_stack([rng.uniform(-5, 5, (k, 2)), rng.uniform(-np.pi, np.pi, k)])
-
-
-def _numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-    """Central differences of f: (K, n) -> (K, m), returned as (K, m, n)."""
-    cols = []
-    for i in range(x.shape[1]):
-        dx = np.zeros_like(x)
-        dx[:, i] = eps
-        cols.append((f(x + dx) - f(x - dx)) / (2 * eps))
-    return np.stack(cols, -1)
 
 
 def test_predict_matches_compounding() -> None:
@@ -38,14 +29,10 @@ def test_predict_jacobians_finite_difference(seed: int) -> None:
     x_o, b_o, b_t = (_random_poses(rng, 15) for _ in range(3))
     t = rng.uniform(-3, 3, (15, 2))
     pred = rendezvous.predict(x_o, b_o, t, b_t)
-    checks = [
-        (pred.d_observer_pose, x_o, lambda v: rendezvous.predict(v, b_o, t, b_t).position),
-        (pred.d_observer_base, b_o, lambda v: rendezvous.predict(x_o, v, t, b_t).position),
-        (pred.d_observed_position, t, lambda v: rendezvous.predict(x_o, b_o, v, b_t).position),
-        (pred.d_observed_base, b_t, lambda v: rendezvous.predict(x_o, b_o, t, v).position),
-    ]
-    for analytic, at, f in checks:
-        np.testing.assert_allclose(analytic, _numeric_jacobian(f, at), atol=1e-7)
+    analytic = (pred.d_observer_pose, pred.d_observer_base, pred.d_observed_position)
+    numeric = numeric_block_jacobians(lambda a: rendezvous.predict(*a).position, [x_o, b_o, t, b_t])
+    for got, expected in zip((*analytic, pred.d_observed_base), numeric, strict=True):
+        np.testing.assert_allclose(got, expected, atol=1e-7)
 
 
 def test_pair_directions_match_paper_equations() -> None:
@@ -56,15 +43,11 @@ def test_pair_directions_match_paper_equations() -> None:
     p_sees_q = se2.compose(se2.compose(se2.inverse(x_p), b), x_q)[:, :2]
     q_sees_p = se2.compose(se2.compose(se2.inverse(x_q), se2.inverse(b)), x_p)[:, :2]
     np.testing.assert_allclose(pos, np.where(forward[:, None], p_sees_q, q_sees_p), atol=1e-12)
-    for analytic, idx in ((d_p, 0), (d_b, 1), (d_q, 2)):
-        args = [x_p, b, x_q]
-
-        def f(v, idx=idx, args=args):
-            a = list(args)
-            a[idx] = v
-            return rendezvous.predict_pair(a[0], a[1], a[2], forward)[0]
-
-        np.testing.assert_allclose(analytic, _numeric_jacobian(f, args[idx]), atol=1e-7)
+    numeric = numeric_block_jacobians(
+        lambda a: rendezvous.predict_pair(a[0], a[1], a[2], forward)[0], [x_p, b, x_q]
+    )
+    for analytic, expected in zip((d_p, d_b, d_q), numeric, strict=True):
+        np.testing.assert_allclose(analytic, expected, atol=1e-7)
     # the observed robot's heading never enters the prediction
     assert np.all(d_q[forward][:, :, 2] == 0.0)
     assert np.all(d_p[~forward][:, :, 2] == 0.0)
@@ -78,15 +61,11 @@ def test_point_difference_and_jacobians() -> None:
     np.testing.assert_allclose(
         r, se2.transform_point(b_a, l_a) - se2.transform_point(b_c, l_c), atol=1e-12
     )
-    args = [l_a, b_a, l_c, b_c]
-    for analytic, idx in ((d_la, 0), (d_ba, 1), (d_lc, 2), (d_bc, 3)):
-
-        def f(v, idx=idx):
-            a = list(args)
-            a[idx] = v
-            return rendezvous.point_difference(*a)[0]
-
-        np.testing.assert_allclose(analytic, _numeric_jacobian(f, args[idx]), atol=1e-7)
+    numeric = numeric_block_jacobians(
+        lambda a: rendezvous.point_difference(*a)[0], [l_a, b_a, l_c, b_c]
+    )
+    for analytic, expected in zip((d_la, d_ba, d_lc, d_bc), numeric, strict=True):
+        np.testing.assert_allclose(analytic, expected, atol=1e-7)
 
 
 def _logs():
