@@ -226,3 +226,31 @@ def dead_reckoning(relative_poses: ArrayLike, start: ArrayLike = (0.0, 0.0, 0.0)
     px = np.cumsum(c * inc[:, 0] - s * inc[:, 1])
     py = np.cumsum(s * inc[:, 0] + c * inc[:, 1])
     return np.stack([px, py, se2.wrap_angle(heading_after)], axis=1)
+
+
+def odometry_poses(
+    stamps: ArrayLike, inputs: ArrayLike, start: ArrayLike = (0.0, 0.0, 0.0)
+) -> Array:
+    """Dead-reckoned poses ``(N, 3)`` at the odometry sample stamps from ``start``.
+
+    Sample ``i`` holds its input over ``(stamps[i-1], stamps[i]]`` (the first only marks the
+    start); the exact increments ``U(u, T)`` (eq. 4-10) are composed with ``(+)``.
+    """
+    t = np.asarray(stamps, dtype=float)
+    u = np.asarray(inputs, dtype=float)
+    return dead_reckoning(increment(u[1:], np.diff(t)), start)
+
+
+def odometry_poses_at(
+    stamps: ArrayLike, inputs: ArrayLike, poses: ArrayLike, query: ArrayLike
+) -> Array:
+    """Dead-reckoned poses ``(Q, 3)`` at ``query`` stamps inside ``[stamps[0], stamps[-1]]``:
+    the pose of :func:`odometry_poses` at the last sample stamp before, moved on by the exact
+    increment of the input active then."""
+    t = np.asarray(stamps, dtype=float)
+    u = np.asarray(inputs, dtype=float)
+    p = np.asarray(poses, dtype=float)
+    q = np.asarray(query, dtype=float)
+    index = np.clip(np.searchsorted(t, q, side="right"), 1, len(t) - 1)
+    before = index - 1
+    return se2.compose(p[before], increment(u[index], q - t[before]))

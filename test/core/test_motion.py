@@ -139,3 +139,28 @@ def test_bad_odometry_is_named():
         motion.odometry_between(t, u, q, [0.0, 0.5])
     with pytest.raises(ValueError, match="does not increase"):
         motion.odometry_between(t, u, q, [0.2, 0.1])
+
+
+def test_odometry_poses_close_a_circle():
+    n = 1001
+    stamps = np.linspace(0.0, 2 * np.pi, n)  # omega = 1 rad/s for 2 pi seconds
+    inputs = np.tile([0.5, 0.0, 1.0], (n, 1))
+    poses = motion.odometry_poses(stamps, inputs)
+    np.testing.assert_allclose(poses[-1, :2], [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(poses[n // 2, :2], [0.0, 1.0], atol=1e-12)  # radius v / omega
+
+
+def test_odometry_poses_at_split_a_sample_exactly():
+    rng = np.random.default_rng(4)
+    stamps = np.cumsum(rng.uniform(0.05, 0.2, size=40))
+    inputs = rng.normal(size=(40, 3))
+    poses = motion.odometry_poses(stamps, inputs, start=[1.0, 2.0, 0.3])
+    at_samples = motion.odometry_poses_at(stamps, inputs, poses, stamps)
+    np.testing.assert_allclose(at_samples[:, :2], poses[:, :2], atol=1e-12)
+    assert np.all(np.abs(se2.wrap_angle(at_samples[:, 2] - poses[:, 2])) < 1e-12)
+    middle = 0.5 * (stamps[9] + stamps[10])
+    split = np.insert(stamps, 10, middle)
+    refined = motion.odometry_poses(split, np.insert(inputs, 10, inputs[10], axis=0), poses[0])
+    at_middle = motion.odometry_poses_at(stamps, inputs, poses, [middle])[0]
+    np.testing.assert_allclose(at_middle[:2], refined[10, :2], atol=1e-12)
+    assert abs(se2.wrap_angle(at_middle[2] - refined[10, 2])) < 1e-12
