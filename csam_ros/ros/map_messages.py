@@ -1,4 +1,4 @@
-"""Conversions of local maps, rendezvous parts and C-SAM results to and from messages.
+"""Conversions of local maps, rendezvous poses and C-SAM results to and from messages.
 
 A smoother publishes its :class:`~csam_ros.core.joining.RobotMap` as a ``csam_msgs/LocalMap``:
 the estimate, marginal pose covariances, feature estimates, and the local problem as whitened
@@ -22,8 +22,6 @@ from csam_msgs.msg import (
     OdometryFactor,
     RendezvousPoses,
     RobotTrajectory,
-    SparseMatrix,
-    SquareRootInformation,
 )
 from geometry_msgs.msg import Pose2D
 
@@ -199,37 +197,11 @@ def robot_map_from_message(msg: LocalMap) -> RobotMap:
     return RobotMap(name, problem, stamps, pose_ids, labels, feature_ids, gauge_factor=0)
 
 
-def sparse_matrix(matrix: np.ndarray) -> SparseMatrix:
-    """A dense (upper-triangular) matrix as CSR, dropping exact zeros."""
-    dense = np.asarray(matrix, dtype=float)
-    rows, cols = np.nonzero(dense)
-    counts = np.bincount(rows, minlength=dense.shape[0])
-    return SparseMatrix(
-        rows=dense.shape[0],
-        cols=dense.shape[1],
-        row_offsets=np.r_[0, np.cumsum(counts)].astype(np.uint32).tolist(),
-        column_indices=cols.astype(np.uint32).tolist(),
-        values=dense[rows, cols].tolist(),
-    )
-
-
-def dense_matrix(msg: SparseMatrix) -> np.ndarray:
-    out = np.zeros((msg.rows, msg.cols))
-    offsets = np.asarray(msg.row_offsets, dtype=np.int64)
-    rows = np.repeat(np.arange(msg.rows), np.diff(offsets))
-    out[rows, np.asarray(msg.column_indices, dtype=np.int64)] = msg.values
-    return out
-
-
 def rendezvous_poses_message(
-    m: RobotMap,
-    stamp_ns: int,
-    pose_indices: np.ndarray,
-    sqrt_information: np.ndarray,
-    measurements: RendezvousLog,
+    m: RobotMap, stamp_ns: int, pose_indices: np.ndarray, measurements: RendezvousLog
 ) -> RendezvousPoses:
-    """This robot's poses at rendezvous stamps with their marginal square-root information,
-    plus the rendezvous measurements it made."""
+    """The rendezvous measurements a robot made, with its poses at rendezvous stamps (the
+    merger reads only the measurements: it takes the rendezvous parts from the local map)."""
     msg = RendezvousPoses()
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.header.frame_id = f"{m.name}/map"
@@ -238,12 +210,6 @@ def rendezvous_poses_message(
     msg.stamps = [ns_to_time(stamp_to_ns(t)) for t in m.stamps[pose_indices]]
     msg.poses = [Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2])) for p in poses]
     msg.pose_indices = np.asarray(pose_indices, dtype=np.uint32).tolist()
-    msg.sqrt_information = SquareRootInformation(
-        variables=[f"pose/{int(i)}" for i in pose_indices],
-        dimensions=[3] * len(pose_indices),
-        linearization_point=poses.reshape(-1).tolist(),
-        matrix=sparse_matrix(sqrt_information),
-    )
     stamps = measurements.stamps
     if len(stamps):
         starts = np.flatnonzero(np.r_[True, np.diff(stamps) != 0])
