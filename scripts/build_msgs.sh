@@ -32,6 +32,10 @@ if [ $status -ne 0 ]; then
   echo "csam_msgs: ignored the known wheel include-path error of geometry_msgs (see $log)"
 fi
 cmake --build "$build" -j 2 >"$build/build.log" 2>&1 || { tail -30 "$build/build.log" >&2; exit 1; }
+# remove the previous install first, so that a message type deleted from msg_defs goes away
+if [ -f "$build/install_manifest.txt" ]; then
+  tr '\n' '\0' <"$build/install_manifest.txt" | xargs -0 rm -f
+fi
 cmake --install "$build" >"$build/install.log" 2>&1 || { tail -30 "$build/install.log" >&2; exit 1; }
 "$venv/bin/python" -c "from csam_msgs.msg import LocalMap, JoinedMap" \
   || { echo "csam_msgs: installed but does not import" >&2; exit 1; }

@@ -24,6 +24,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from csam_ros.core.csam import robot_map_from_local_map
+from csam_ros.core.joining import RobotMap
 from csam_ros.core.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
@@ -236,15 +237,11 @@ class Smoother(Node):
         self.path_pub.publish(self.path(stamp_ns))
         self.published_ns = stamp_ns
 
-    def rendezvous_poses(self, robot_map, stamp_ns: int) -> RendezvousPoses:
+    def rendezvous_poses(self, robot_map: RobotMap, stamp_ns: int) -> RendezvousPoses:
         measurements, stamps = self.kept_rendezvous()
         stamps = stamps[stamps <= self.map.stamps[-1]]
-        if len(stamps):
-            root, _, _ = self.map.sqrt_information(stamps)
-            indices = np.unique(self.map.pose_index(stamps))
-        else:
-            root, indices = np.zeros((0, 0)), np.zeros(0, dtype=np.int64)
-        return rendezvous_poses_message(robot_map, stamp_ns, indices, root, measurements)
+        indices = np.unique(self.map.pose_index(stamps)) if len(stamps) else np.zeros(0, int)
+        return rendezvous_poses_message(robot_map, stamp_ns, indices, measurements)
 
     def kept_rendezvous(self) -> tuple[RendezvousLog, np.ndarray]:
         """This robot's kept measurements, and the stamps of every kept measurement that

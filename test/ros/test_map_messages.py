@@ -12,12 +12,10 @@ from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.ros.map_messages import (
-    dense_matrix,
     rendezvous_log_from_message,
     rendezvous_poses_message,
     robot_map_from_message,
     robot_map_to_message,
-    sparse_matrix,
 )
 
 
@@ -57,7 +55,7 @@ def test_join_from_messages_equals_join_in_process(maps_and_logs) -> None:
     rebuilt = [robot_map_from_message(robot_map_to_message(m, 1)) for m in maps]
     logs_back = {}
     for m in maps:
-        msg = rendezvous_poses_message(m, 1, np.arange(2), np.eye(6), logs[m.name])
+        msg = rendezvous_poses_message(m, 1, np.arange(2), logs[m.name])
         logs_back[m.name] = rendezvous_log_from_message(msg)
         assert logs_back[m.name].observed == list(logs[m.name].observed)
     via = join_maps(rebuilt, logs_back).to_dict()
@@ -68,9 +66,3 @@ def test_join_from_messages_equals_join_in_process(maps_and_logs) -> None:
                 via["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-9
             )
     assert [a["a"] for a in via["associations"]] == [a["a"] for a in direct["associations"]]
-
-
-def test_sparse_matrix_round_trip() -> None:
-    r = np.triu(np.arange(1.0, 37.0).reshape(6, 6))
-    r[1, 3] = 0.0
-    np.testing.assert_array_equal(dense_matrix(sparse_matrix(r)), r)

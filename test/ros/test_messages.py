@@ -17,7 +17,7 @@ BUILD_RENDEZVOUS_POSES = textwrap.dedent(
     from builtin_interfaces.msg import Time
     from geometry_msgs.msg import Pose2D
     from csam_msgs.msg import (RendezvousObservation, RendezvousObservations,
-                               RendezvousPoses, SparseMatrix, SquareRootInformation)
+                               RendezvousPoses)
 
     def build():
         msg = RendezvousPoses(robot="robot2", pose_indices=[4, 9])
@@ -25,12 +25,6 @@ BUILD_RENDEZVOUS_POSES = textwrap.dedent(
         msg.header.stamp = Time(sec=12, nanosec=345)
         msg.stamps = [Time(sec=3, nanosec=7), Time(sec=8, nanosec=1)]
         msg.poses = [Pose2D(x=1.5, y=-2.25, theta=0.125), Pose2D(x=-3.0, y=4.5, theta=-3.0)]
-        msg.sqrt_information = SquareRootInformation(
-            variables=["pose/4", "pose/9"], dimensions=[3, 3],
-            linearization_point=[1.5, -2.25, 0.125, -3.0, 4.5, -3.0],
-            matrix=SparseMatrix(rows=6, cols=6, row_offsets=[0, 2, 3, 4, 5, 6, 7],
-                                column_indices=[0, 3, 1, 2, 3, 4, 5],
-                                values=[2.0, -0.5, 3.0, 4.0, 5.0, 6.0, 7.0]))
         observation = RendezvousObservations(observations=[RendezvousObservation(
             observed_robot="robot1", range=2.5, bearing=-0.75, sigma_range=0.1,
             sigma_bearing=0.02)])
