@@ -101,7 +101,8 @@ NEUTRAL_START = MrclamNoise(
 
 
 def arc_increments(v: FloatArray, omega: FloatArray, durations: FloatArray) -> FloatArray:
-    """Exact constant-turn increments ``U((v, 0, omega), T)`` (METHOD eq. 4-10), shape (N, 3)."""
+    """Exact constant-turn increments ``U((v, 0, omega), T)`` (paper eq. 4-10, docs/METHOD.md
+    section 2), shape (N, 3)."""
     turn = omega * durations
     small = np.abs(turn) < 1e-4
     safe = np.where(small, 1.0, omega)

@@ -1,9 +1,9 @@
-"""Map alignment through base nodes (paper section IV-A, Algorithm 1; METHOD sections 5, 7).
+"""Map alignment through base nodes (paper section IV-A, Algorithm 1; docs/METHOD.md sections 5, 7).
 
 Every robot ``r`` connected to the reference robot (the first one) through the rendezvous
 graph gets a base node ``B_r``: the pose of its local frame ``G_r`` in the reference frame.
 
-Initial value, from what is observable (METHOD section 5). For a pair of robots ``a``
+Initial value, from what is observable (docs/METHOD.md section 5). For a pair of robots ``a``
 (already placed) and ``c``:
 
 - if both measured each other at (nearly) the same stamp, the relative heading of the two

@@ -1,4 +1,5 @@
-"""Feature association between aligned maps (paper section IV-B, Algorithm 2; METHOD 6).
+"""Feature association between aligned maps (paper section IV-B, Algorithm 2; docs/METHOD.md
+section 6).
 
 The hypothesis "feature ``i`` of robot ``a`` and feature ``j`` of robot ``c`` are one" predicts
 ``r = B_a (+) l_i - B_c (+) l_j = 0`` (the paper's ``l_i^p - b_pq (+) l_j^q`` when ``a`` is the

@@ -3,9 +3,10 @@
 With ``A^T A = P L D L^T P^T`` (the solver's factorisation at the current estimate) the
 joint covariance of a set ``S`` of variables is ``E_S^T (A^T A)^-1 E_S = Y^T D^-1 Y`` with
 ``Y = L^-1 P^T E_S``: one sparse forward substitution per needed column, never the dense
-inverse (paper section III, METHOD section 4). ``Y`` is nonzero only on the rows reached from
-``S`` in the elimination tree, so the substitution runs on those rows of ``L`` alone (at the
-end of an MR.CLAM robot's map, 60 poses reach 6,162 of 15,051 rows: 101 -> 44 ms).
+inverse (paper section III, docs/METHOD.md section 4.5). ``Y`` is nonzero only on the rows
+reached from ``S`` in the elimination tree, so the substitution runs on those rows of ``L``
+alone (at the end of an MR.CLAM robot's map, 60 poses reach 6,162 of 15,051 rows: 101 -> 44
+ms).
 
 The marginal square-root information of ``S`` is the last block of the upper-triangular
 square-root information ``R`` when ``S`` is ordered last; it equals the upper Cholesky factor

@@ -14,7 +14,7 @@ Error conventions (``e = prediction - measurement``):
 
 - ``PosePrior``: ``(t - t0, wrap(phi - phi0))``, covariance in the global frame.
 - ``PointPrior``: ``l - l0``.
-- ``RelativePose`` (odometry, METHOD section 2): ``between(x_a, x_b) - z`` with the angle
+- ``RelativePose`` (odometry, docs/METHOD.md section 2): ``between(x_a, x_b) - z`` with the angle
   wrapped, i.e. the pose of ``x_b`` in the frame of ``x_a`` minus the measured one; the
   covariance is expressed in the frame of ``x_a`` (independent of heading).
 - ``PointObservation`` (paper eq. 11-17): ``R(phi)^T (l - t) - z``.

@@ -1,4 +1,5 @@
-"""The joint solve of C-SAM (paper section IV-B, last step of Algorithm 2; METHOD 6-7).
+"""The joint solve of C-SAM (paper section IV-B, last step of Algorithm 2; docs/METHOD.md
+sections 6-7).
 
 After alignment and association, one nonlinear least-squares problem holds every pose and
 every feature of every aligned robot, all factors of their local maps, the rendezvous rows

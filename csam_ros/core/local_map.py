@@ -10,7 +10,7 @@ the path is sampled during stretches without observations. Stamps closer than
 ``stamp_tolerance`` share one key pose. Odometry samples between consecutive keys are composed
 into one relative-pose factor (:func:`csam_ros.core.motion.odometry_between`); a key inserted
 in the past splits the factor of its interval (exact for the mean). Features give Cartesian
-observation factors (METHOD section 3); a new landmark is initialised from its first
+observation factors (docs/METHOD.md section 3); a new landmark is initialised from its first
 observation.
 
 Update policy (online). Data are buffered as they arrive. :meth:`LocalMap.update` integrates

@@ -1,4 +1,4 @@
-"""Motion model: constant turn with lateral slip (paper eq. 4-10, METHOD section 2).
+"""Motion model: constant turn with lateral slip (paper eq. 4-10, docs/METHOD.md section 2).
 
 Input ``u = (v, v_lat, omega)`` held constant over ``T``::
 

@@ -1,4 +1,4 @@
-"""Rendezvous measurement model through base nodes (paper eq. 22-24, METHOD section 5).
+"""Rendezvous measurement model through base nodes (paper eq. 22-24, docs/METHOD.md section 5).
 
 A rendezvous measurement is the position of the observed robot in the observer's body frame.
 With every robot's local frame ``G_r`` placed in the reference frame by its base node ``B_r``
@@ -10,7 +10,7 @@ for observer pose ``x_o`` in ``G_o`` and observed pose ``x_t`` in ``G_t``. Betwe
 ``p`` (reference) and ``q`` with ``b_pq = B_q`` this is the paper's eq. 22 when ``p`` observes
 ``q``, ``translation((-)x_p (+) b_pq (+) x_q)``, and its mirror ``translation((-)x_q (+) (-)b_pq
 (+) x_p)`` when ``q`` observes ``p``: one function covers both directions and measurements
-between two non-reference robots (METHOD section 7).
+between two non-reference robots (docs/METHOD.md section 7).
 
 The same model with points instead of poses gives the feature association residual of
 Algorithm 2: ``r = B_a (+) l_a - B_c (+) l_c`` (see :func:`point_difference`).
@@ -163,7 +163,7 @@ class RendezvousSet:
 
     Robot fields index :attr:`robots`; pose fields index that robot's pose stamps (the poses
     of its local map). ``position`` and ``covariance`` are the Cartesian observation of the
-    observed robot in the observer's body frame (METHOD section 3).
+    observed robot in the observer's body frame (docs/METHOD.md section 3).
     """
 
     robots: list[str]

@@ -1,4 +1,4 @@
-"""Range-bearing sensor model in Cartesian form (paper eq. 11-17, METHOD section 3).
+"""Range-bearing sensor model in Cartesian form (paper eq. 11-17, docs/METHOD.md section 3).
 
 A feature measured at range ``r`` and bearing ``beta`` from the robot centre becomes the
 Cartesian observation ``z = (r cos beta, r sin beta)`` with covariance

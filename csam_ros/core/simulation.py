@@ -4,16 +4,16 @@ The world is a set of point features; each robot follows a program of constant
 ``(v, omega)`` segments sampled every ``sample_time`` seconds on a clock shared by all robots.
 The true motion is the commanded one; the logged odometry is the commanded input plus white
 noise of the robot's ``odometry_sigma`` (so the logged input ``u_i`` satisfies
-``x_i = x_{i-1} (+) U(u_i - w_i, T)`` with ``w_i ~ N(0, diag(sigma^2))``, METHOD section 2).
+``x_i = x_{i-1} (+) U(u_i - w_i, T)`` with ``w_i ~ N(0, diag(sigma^2))``, docs/METHOD.md section 2).
 Because the true paths do not depend on the noise seed, rendezvous happen at the same samples
 for every seed.
 
 At every pose (the first one included) a robot scans once with its feature sensor (range and
-field of view, METHOD section 3: the paper's URG-04LX has 4 m, 240 degrees, ``s_r = 0.01 m``,
-``s_beta = 0.012 rad``) and with its rendezvous sensor observes every other robot it may
-observe that is in range and field of view. Each robot labels features with its own numbering
-(a seeded permutation plus a per-robot offset), so labels mean nothing across robots; the
-label -> feature map stays in :class:`~csam_ros.core.log.GroundTruth`, for scoring only.
+field of view, docs/METHOD.md section 3: the paper's URG-04LX has 4 m, 240 degrees,
+``s_r = 0.01 m``, ``s_beta = 0.012 rad``) and with its rendezvous sensor observes every other
+robot it may observe that is in range and field of view. Each robot labels features with its
+own numbering (a seeded permutation plus a per-robot offset), so labels mean nothing across
+robots; the label -> feature map stays in :class:`~csam_ros.core.log.GroundTruth`, for scoring only.
 """
 
 from __future__ import annotations

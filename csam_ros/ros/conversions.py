@@ -5,7 +5,7 @@ The simulator node and the importers publish or write a :class:`MultiRobotLog` t
 :class:`LogBuilder`, through the same :class:`MeasurementFilter` the smoother nodes apply, so a
 bag gives the same input to the core offline as through the nodes.
 
-Topics (ARCHITECTURE.md): ``/<robot>/odom`` (nav_msgs/Odometry, twist = measured v, v_lat,
+Topics (docs/ARCHITECTURE.md): ``/<robot>/odom`` (nav_msgs/Odometry, twist = measured v, v_lat,
 omega in the body frame with their variances), ``/<robot>/features``, ``/<robot>/rendezvous``,
 ``/<robot>/ground_truth`` and ``/sim/features_truth``.
 """

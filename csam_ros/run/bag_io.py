@@ -12,7 +12,7 @@ from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, log_to_messages
 
 
 def topic_qos(topic: str):
-    """The QoS a topic is offered with in a live run (ARCHITECTURE.md)."""
+    """The QoS a topic is offered with in a live run (docs/ARCHITECTURE.md)."""
     if topic == FEATURES_TRUTH_TOPIC:
         return LATCHED
     if topic.endswith(("/odom", "/ground_truth")):

@@ -1,6 +1,6 @@
 """Start node executables as separate processes, like a launch file, and stop them all.
 
-There is no ``ros2 launch`` here (ENVIRONMENT.md); `csam demo` and `csam replay` use this small
+There is no ``ros2 launch`` here (docs/ENVIRONMENT.md); `csam demo` and `csam replay` use this small
 process group instead. Each process logs to ``<log_dir>/<name>.log``; stopping sends SIGINT
 (rclpy shuts down cleanly), then SIGTERM, then SIGKILL, and leaves no process behind.
 """
