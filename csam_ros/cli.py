@@ -331,6 +331,64 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Estimate a data set's noise model and range scales; write them as a config file."""
+    from csam_ros.core.config_file import ConfigFileError, resolve_config_path
+    from csam_ros.datasets.mrclam import MrclamFormatError, load_config
+    from csam_ros.datasets.mrclam_calibration import (
+        calibrate_mrclam,
+        calibration_config,
+        range_scales,
+    )
+
+    if args.out.exists():
+        raise CliError(f"{args.out} exists: calibrate never overwrites a file")
+    if not args.source.is_dir():
+        raise CliError(f"{args.source}: no such data set directory")
+    if args.rounds < 1:
+        raise CliError(f"--rounds must be at least 1, got {args.rounds}")
+    try:
+        base = resolve_config_path(args.config or "mrclam")
+        swaps = load_config(base).get("landmark_swaps") or []
+    except (ConfigFileError, OSError, ValueError) as err:
+        raise CliError(f"--config: {err}") from None
+    robots = [int(r) for r in args.robots.split(",")] if args.robots else None
+    window = f"[{args.start}, {'end' if args.duration is None else args.start + args.duration}] s"
+    print(f"calibrating on {args.source}, window {window} (about 40 s for all of Dataset 1)")
+    began = time.perf_counter()
+    try:
+        estimate = calibrate_mrclam(
+            args.source,
+            landmark_swaps=[] if args.no_swaps else swaps,
+            robots=robots,
+            start=args.start,
+            duration=args.duration,
+            rounds=args.rounds,
+            progress=lambda line: print(line, flush=True),
+        )
+    except (MrclamFormatError, ValueError) as err:
+        raise CliError(str(err)) from None
+    source = f"{args.source} (window {window}, robots {args.robots or 'all'})"
+    text = calibration_config(estimate, base, source)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with open(args.out, "x") as stream:
+            stream.write(text)
+    except FileExistsError:
+        raise CliError(f"{args.out} exists: calibrate never overwrites a file") from None
+    n = estimate.noise
+    print(
+        f"noise: sigma_range {n.sigma_range:.4f} + {n.sigma_range_per_m:.4f} r m, "
+        f"sigma_bearing {n.sigma_bearing:.4f} rad, q = ({n.q_v:.4f}, {n.q_vlat:.4f}, "
+        f"{n.q_omega:.4f}), rendezvous factors {n.rendezvous_range_factor:.2f}, "
+        f"{n.rendezvous_bearing_factor:.2f}"
+    )
+    scales = ", ".join(f"robot{k} {v:.4f}" for k, v in range_scales(estimate).items())
+    print(f"range scale (measured / true): {scales}")
+    print(f"wrote {args.out} ({time.perf_counter() - began:.0f} s)")
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="csam", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -379,6 +437,25 @@ def parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("evaluate", help="compare a run with its ground truth: metrics.json")
     ev.add_argument("dir", type=Path)
     ev.set_defaults(func=cmd_evaluate)
+
+    cal = sub.add_parser(
+        "calibrate", help="estimate a data set's noise model and range scales: a config file"
+    )
+    cal.add_argument("format", choices=["mrclam"])
+    cal.add_argument("source", type=Path, help="MR.CLAM data set directory")
+    cal.add_argument("--out", type=Path, required=True, help="config file to write (new)")
+    cal.add_argument(
+        "--config",
+        type=Path,
+        help="config whose window, truth swaps and other sections the new file keeps "
+        "(default: the installed mrclam.yaml)",
+    )
+    cal.add_argument("--no-swaps", action="store_true", help="ignore the config's truth swaps")
+    cal.add_argument("--robots", help="robots to calibrate on, e.g. 1,2,3 (default: all)")
+    cal.add_argument("--start", type=float, default=0.0, help="seconds after the data start")
+    cal.add_argument("--duration", type=float, help="seconds of data to calibrate on")
+    cal.add_argument("--rounds", type=int, default=12, help="most expectation-maximisation rounds")
+    cal.set_defaults(func=cmd_calibrate)
     return p
 
 

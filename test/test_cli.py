@@ -172,3 +172,47 @@ def test_mrclam_window_imports_replays_and_evaluates(tmp_path: Path) -> None:
     summary = json.loads((run / "summary.json").read_text())
     assert "consistency" in summary["rendezvous_filter"]
     assert (run / "joined_map.png").stat().st_size > 0
+
+
+def test_calibrate_gives_one_line_errors(tmp_path: Path) -> None:
+    missing = csam("calibrate", "mrclam", tmp_path / "nowhere", "--out", tmp_path / "c.yaml")
+    assert missing.returncode == 2 and "no such data set directory" in missing.stderr
+    assert len(missing.stderr.strip().splitlines()) == 1
+    taken = tmp_path / "taken.yaml"
+    taken.write_text("mine")
+    exists = csam("calibrate", "mrclam", tmp_path, "--out", taken)
+    assert exists.returncode == 2 and "never overwrites" in exists.stderr
+    assert taken.read_text() == "mine"
+
+
+@pytest.mark.skipif(MRCLAM is None or not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
+def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) -> None:
+    """The first 200 s of Dataset 1, two EM rounds: a config file in config/mrclam.yaml's form."""
+    from csam_ros.cli import _csam_params, _smoother_params
+    from csam_ros.core.config_file import load_document
+    from csam_ros.datasets.mrclam import import_mrclam, load_config
+
+    out = tmp_path / "calibrated" / "mrclam.yaml"
+    base = REPO / "config" / "mrclam.yaml"
+    args = ["--duration", "200", "--rounds", "2", "--config", base, "--out", out]
+    done = csam("calibrate", "mrclam", MRCLAM, *args)
+    assert done.returncode == 0, done.stderr
+    assert "EM round 2" in done.stdout and f"wrote {out}" in done.stdout
+    config = load_config(out)
+    reference = load_config(base)
+    assert config["landmark_swaps"] == reference["landmark_swaps"]
+    assert 0.02 < config["noise"].sigma_range_per_m < 0.06
+    assert 1.0 < config["noise"].rendezvous_bearing_factor < 3.0
+    assert sorted(config["range_scale"]) == [1, 2, 3, 4, 5]
+    assert all(0.97 < v < 1.03 for v in config["range_scale"].values())
+    document, base_document = load_document(out), load_document(base)
+    for section in ("local_map", "merger", "csam"):
+        assert document[section] == base_document[section]
+    assert _csam_params(document) == _csam_params(base_document)
+    assert _smoother_params(document) == _smoother_params(base_document)
+    log, report = import_mrclam(
+        MRCLAM, duration=10.0, noise=config["noise"], range_scale=config["range_scale"]
+    )
+    assert report.range_scale == {f"robot{k}": v for k, v in config["range_scale"].items()}
+    again = csam("calibrate", "mrclam", MRCLAM, *args)
+    assert again.returncode == 2 and "never overwrites" in again.stderr

@@ -14,8 +14,8 @@ with a pose at every rendezvous stamp. Steps (paper section IV, METHOD 5-7):
 4. One joint solve of all poses and features of the aligned robots
    (:mod:`csam_ros.core.joining`), then the marginal covariances the summary reports.
 
-The :class:`CsamResult` carries everything ``summary.json`` holds (ARCHITECTURE.md);
-:meth:`CsamResult.to_dict` returns that JSON-ready structure. Heading standard deviations:
+The :class:`~csam_ros.core.result.CsamResult` carries everything C-SAM reports
+(:mod:`csam_ros.core.result` writes and reads it as ``summary.json``). Heading standard deviations:
 ``sigma_phi_local`` is the local map's marginal heading sigma in ``G_r``;
 ``sigma_phi_joined`` is the heading sigma after joining *relative to the robot's own first
 pose* (in ``G_r``, the like-for-like comparison of the paper's figures 5c and 6c: it can
@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +64,13 @@ from csam_ros.core.joining import (
 from csam_ros.core.local_map import LocalMap, LocalMapConfig, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
-from csam_ros.core.robust import RendezvousThinning, consistent_rendezvous, thin_rendezvous
+from csam_ros.core.result import AssociationRecord, CsamResult, FeatureResult, RobotResult
+from csam_ros.core.robust import (
+    FilterReport,
+    RendezvousThinning,
+    consistent_rendezvous,
+    thin_rendezvous,
+)
 from csam_ros.core.solver import NormalEquations, SolverOptions
 
 Array = NDArray[np.float64]
@@ -153,115 +159,6 @@ class CsamConfig:
         )
 
 
-@dataclass
-class RobotResult:
-    """One robot in the result; ``None`` / empty joined fields when it is pending."""
-
-    name: str
-    alignment: str  # "reference" | "aligned" | "pending: <reason>"
-    stamps: Array
-    poses_local: Array  # (N, 3) in G_r
-    sigma_phi_local: Array  # (N,)
-    base_node: Array | None = None  # G_r in the reference frame
-    base_node_cov: Array | None = None  # (3, 3)
-    poses_joined: Array | None = None  # (N, 3) in the reference frame
-    sigma_phi_joined: Array | None = None  # (N,) relative to the robot's own first pose
-    sigma_phi_joined_reference: Array | None = None  # (N,) in the reference frame
-    alignment_method: str = ""  # "mutual" | "registration" | "" (reference, pending)
-    alignment_base_node: Array | None = None  # Algorithm 1 (rendezvous parts only)
-    alignment_base_node_cov: Array | None = None
-    rendezvous_stamps: Array = field(default_factory=lambda: np.zeros(0))  # poses that met
-    feature_labels_local: NDArray[np.int64] = field(
-        default_factory=lambda: np.zeros(0, dtype=np.int64)
-    )
-    features_local: Array = field(default_factory=lambda: np.zeros((0, 2)))  # in G_r
-    feature_covariances_local: Array = field(default_factory=lambda: np.zeros((0, 2, 2)))
-
-
-@dataclass
-class FeatureResult:
-    """A feature of the joined map: its members ``robot/label``, position and covariance."""
-
-    members: list[str]
-    xy: Array
-    cov: Array
-
-
-@dataclass
-class AssociationRecord:
-    """An accepted association with its Mahalanobis distance ``D`` (eq. 26)."""
-
-    a: str
-    b: str
-    mahalanobis: float
-
-
-@dataclass
-class CsamResult:
-    """Everything ``summary.json`` reports (see :meth:`to_dict`)."""
-
-    reference_frame: str
-    robots: dict[str, RobotResult]
-    features: list[FeatureResult]
-    associations: list[AssociationRecord]
-    timing_s: dict[str, float]
-    notes: list[str] = field(default_factory=list)
-    statistics: dict[str, float] = field(default_factory=dict)
-    rendezvous_filter: dict[str, Any] = field(default_factory=dict)  # what the filters dropped
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON-ready summary (lists and floats only)."""
-
-        def arr(a: Array | None) -> Any:
-            return None if a is None else np.asarray(a, dtype=float).tolist()
-
-        robots = {}
-        for name, r in self.robots.items():
-            robots[name] = {
-                "base_node": arr(r.base_node),
-                "base_node_cov": arr(r.base_node_cov),
-                "alignment": r.alignment,
-                "alignment_method": r.alignment_method,
-                "alignment_base_node": arr(r.alignment_base_node),
-                "alignment_base_node_cov": arr(r.alignment_base_node_cov),
-                "stamps": arr(r.stamps),
-                "poses_local": arr(r.poses_local),
-                "poses_joined": arr(r.poses_joined) if r.poses_joined is not None else [],
-                "sigma_phi_local": arr(r.sigma_phi_local),
-                "rendezvous_stamps": arr(r.rendezvous_stamps),
-                "features_local": [
-                    {"label": f"{name}/{int(k)}", "xy": arr(xy), "cov": arr(c)}
-                    for k, xy, c in zip(
-                        r.feature_labels_local,
-                        r.features_local,
-                        r.feature_covariances_local,
-                        strict=True,
-                    )
-                ],
-                "sigma_phi_joined": arr(r.sigma_phi_joined)
-                if r.sigma_phi_joined is not None
-                else [],
-                "sigma_phi_joined_reference": arr(r.sigma_phi_joined_reference)
-                if r.sigma_phi_joined_reference is not None
-                else [],
-            }
-        return {
-            "reference_frame": self.reference_frame,
-            "robots": robots,
-            "features": [
-                {"members": list(f.members), "xy": arr(f.xy), "cov": arr(f.cov)}
-                for f in self.features
-            ],
-            "associations": [
-                {"a": a.a, "b": a.b, "mahalanobis": float(a.mahalanobis)} for a in self.associations
-            ],
-            "timing_s": {k: float(v) for k, v in self.timing_s.items()},
-            "statistics": {k: float(v) for k, v in self.statistics.items()},
-            "notes": list(self.notes),
-            "rendezvous_filter": self.rendezvous_filter,
-        }
-
-
 def _local_inputs(
     m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64]
 ) -> tuple[RendezvousPart | None, Array | None]:
@@ -299,7 +196,7 @@ def _map_features(
 
 def filter_rendezvous(
     maps: Sequence[RobotMap], logs: Mapping[str, RendezvousLog], config: CsamConfig
-) -> tuple[Mapping[str, RendezvousLog], dict[str, Any]]:
+) -> tuple[Mapping[str, RendezvousLog], dict[str, FilterReport]]:
     """The consistency check of ``config`` (:func:`csam_ros.core.robust.consistent_rendezvous`)
     against the local maps' trajectories. Thinning is not done here: it decides where the
     local maps hold poses, so the smoothers (online) and :func:`run_csam` (offline) apply it.
@@ -309,7 +206,7 @@ def filter_rendezvous(
     trajectories = {m.name: (np.asarray(m.stamps, dtype=float), m.poses) for m in maps}
     present = {n: log for n, log in logs.items() if n in trajectories}
     kept, checked = consistent_rendezvous(present, trajectories, drift=config.consistency_drift)
-    return {**logs, **kept}, {"consistency": checked.to_dict()}
+    return {**logs, **kept}, {"consistency": checked}
 
 
 def join_maps(
@@ -526,7 +423,7 @@ def run_csam(
     built = time.perf_counter() - start
     result = join_maps(maps, logs, config)
     if thinning.min_interval > 0 or thinning.max_per_pair is not None:
-        result.rendezvous_filter["thinning"] = thinned.to_dict()
+        result.rendezvous_filter["thinning"] = thinned
     result.timing_s["local_maps"] = built
     result.timing_s["total"] += built
     return result

@@ -36,11 +36,11 @@ offending lines quoted in ``ImportReport.notes``; no row ever raises):
 - Ground-truth corrections: ``landmark_swaps`` exchanges the true positions of pairs of
   landmark subjects (Dataset 1 as distributed here has subjects 11 and 17 exchanged: every
   measurement of either is ~4-5 m off the listed position while the other 13 landmarks agree
-  to centimetres; ``python -m csam_ros.bench.mrclam noise`` shows it). Applied swaps are
+  to centimetres; ``csam calibrate mrclam`` without the swap shows it). Applied swaps are
   listed in ``ImportReport.truth_corrections``; nothing is swapped unless asked.
 - Range calibration: ``range_scale`` maps robot numbers to the ratio of measured to true
   range of that robot's camera (a per-camera scale error, estimated against the landmark
-  ground truth by ``python -m csam_ros.bench.mrclam noise``, listed in ``config/mrclam.yaml``).
+  ground truth by ``csam calibrate mrclam``, listed in ``config/mrclam.yaml``).
   Every range the robot measured, of landmarks and of robots, is divided by it before its
   sigma is computed; ``ImportReport.range_scale`` lists what was applied.
 - Labels are local: robot ``k`` numbers the landmarks ``k + permutation_k(index)`` with a
@@ -58,6 +58,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from csam_ros.core.calibration import NoiseModel
 from csam_ros.core.log import (
     FeatureLog,
     GroundTruth,
@@ -87,58 +88,24 @@ class MrclamFormatError(ValueError):
     """A data set that cannot be imported at all (missing file, ambiguous table)."""
 
 
-@dataclass(frozen=True)
-class MrclamNoise:
-    """Sensor and odometry noise of the MR.CLAM robots (defaults = ``config/mrclam.yaml``).
-
-    ``sigma_range(r) = sigma_range + sigma_range_per_m * r``; odometry densities are per
-    sqrt-second (see the module docstring for the per-sample sigmas). Measurements of other
-    robots get the landmark sigmas times ``rendezvous_*_factor``.
-    """
-
-    sigma_range: float = 0.001
-    sigma_range_per_m: float = 0.0383
-    sigma_bearing: float = 0.0047
-    q_v: float = 0.0241
-    q_vlat: float = 0.0073
-    q_omega: float = 0.0559
-    rendezvous_range_factor: float = 1.34  # rendezvous sigmas = landmark sigmas times these
-    rendezvous_bearing_factor: float = 1.93
-
-    def __post_init__(self) -> None:
-        for name in (
-            "sigma_range",
-            "sigma_bearing",
-            "q_v",
-            "q_vlat",
-            "q_omega",
-            "rendezvous_range_factor",
-            "rendezvous_bearing_factor",
-        ):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"MrclamNoise.{name} must be finite and > 0, got {value!r}")
-        if not (np.isfinite(self.sigma_range_per_m) and self.sigma_range_per_m >= 0):
-            raise ValueError(
-                f"MrclamNoise.sigma_range_per_m must be finite and >= 0, "
-                f"got {self.sigma_range_per_m!r}"
-            )
-
-    @classmethod
-    def from_dict(cls, values: dict) -> MrclamNoise:
-        """Build from a mapping (e.g. the ``noise`` section of ``config/mrclam.yaml``)."""
-        known = set(cls.__dataclass_fields__)
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(
-                f"unknown MR.CLAM noise keys {sorted(unknown)}; known: {sorted(known)}"
-            )
-        return cls(**{k: float(v) for k, v in values.items()})
+# The noise model of ``config/mrclam.yaml`` (``csam calibrate mrclam`` estimates it): the
+# importer's default, and the values a config file's ``noise`` section leaves out.
+MRCLAM_NOISE = NoiseModel(
+    sigma_range=0.001,
+    sigma_range_per_m=0.0383,
+    sigma_bearing=0.0047,
+    q_v=0.0241,
+    q_vlat=0.0073,
+    q_omega=0.0559,
+    rendezvous_range_factor=1.34,
+    rendezvous_bearing_factor=1.93,
+)
 
 
 def load_config(path: str | Path) -> dict:
     """Read ``config/mrclam.yaml`` (top-level key ``mrclam``) and return that section, with
-    ``noise`` turned into a :class:`MrclamNoise`."""
+    ``noise`` turned into a :class:`~csam_ros.core.calibration.NoiseModel` (keys it leaves
+    out from :data:`MRCLAM_NOISE`)."""
     import yaml
 
     with open(path) as stream:
@@ -146,7 +113,7 @@ def load_config(path: str | Path) -> dict:
     if not isinstance(data, dict) or "mrclam" not in data:
         raise ValueError(f"{path}: expected a top-level key 'mrclam'")
     section = dict(data["mrclam"])
-    section["noise"] = MrclamNoise.from_dict(section.get("noise") or {})
+    section["noise"] = NoiseModel.from_dict(section.get("noise") or {}, MRCLAM_NOISE)
     return section
 
 
@@ -374,7 +341,7 @@ def _odometry_log(
     odometry: _Table,
     epoch: float,
     window: tuple[float, float],
-    noise: MrclamNoise,
+    noise: NoiseModel,
     counter: _Counter,
     robot: str,
 ) -> OdometryLog | None:
@@ -420,7 +387,7 @@ def import_mrclam(
     robots: list[int] | None = None,
     start: float = 0.0,
     duration: float | None = None,
-    noise: MrclamNoise | None = None,
+    noise: NoiseModel | None = None,
     label_seed: int = 0,
     landmark_swaps: Sequence[tuple[int, int]] = (),
     range_scale: Mapping[int, float] | None = None,
@@ -451,7 +418,7 @@ def import_mrclam(
         )
     if not np.isfinite(start) or (duration is not None and not duration > 0):
         raise ValueError(f"bad window: start={start!r}, duration={duration!r} (need > 0)")
-    noise = noise or MrclamNoise()
+    noise = noise or MRCLAM_NOISE
     scales = _range_scales(range_scale or {}, available)
     names = [f"robot{r}" for r in selected]
     counter = _Counter(names)
@@ -558,7 +525,7 @@ def _measurement_logs(
     barcode_to_subject: dict[int, int],
     robot_subjects: set[int],
     labels: dict[int, int],
-    noise: MrclamNoise,
+    noise: NoiseModel,
     range_scale: float,
     counter: _Counter,
 ) -> tuple[FeatureLog, RendezvousLog]:

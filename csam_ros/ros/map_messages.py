@@ -37,6 +37,7 @@ from csam_ros.core.factors import (
 )
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
+from csam_ros.core.result import CsamResult
 from csam_ros.core.solver import Problem
 from csam_ros.ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
 
@@ -252,48 +253,50 @@ def rendezvous_log_from_message(msg: RendezvousPoses) -> RendezvousLog:
 
 
 def joined_map_message(
-    summary: dict, stamp_ns: int, local_map_stamps: dict[str, int], robots: Sequence[str]
+    result: CsamResult, stamp_ns: int, local_map_stamps: dict[str, int], robots: Sequence[str]
 ) -> JoinedMap:
-    """The joined map message from a C-SAM summary dict (``CsamResult.to_dict()``)."""
-    reference = summary["reference_frame"].rpartition("/")[0]
+    """The joined map message of a C-SAM result."""
     msg = JoinedMap()
     msg.header.stamp = ns_to_time(stamp_ns)
-    msg.header.frame_id = summary["reference_frame"]
-    msg.reference_robot = reference
+    msg.header.frame_id = result.reference_frame
+    msg.reference_robot = result.reference
     for name in robots:
-        r = summary["robots"].get(name)
+        r = result.robots.get(name)
         node = BaseNode(robot=name, local_map_stamp=ns_to_time(local_map_stamps.get(name, 0)))
         if r is None:
             node.alignment = "pending: no local map yet"
             msg.base_nodes.append(node)
             continue
-        node.alignment = r["alignment"]
-        if r.get("base_node") is not None:
-            x, y, phi = r["base_node"]
+        node.alignment = r.alignment
+        if r.base_node is not None:
+            x, y, phi = r.base_node
             node.pose = Pose2D(x=float(x), y=float(y), theta=float(phi))
-            node.covariance = np.asarray(r["base_node_cov"], dtype=float).reshape(-1).tolist()
+        if r.base_node_cov is not None:
+            node.covariance = np.asarray(r.base_node_cov, dtype=float).reshape(-1).tolist()
         msg.base_nodes.append(node)
-        joined = r.get("poses_joined")
-        if joined:
+        if r.poses_joined is not None and len(r.poses_joined):
+            sigma = r.sigma_phi_joined if r.sigma_phi_joined is not None else []
             msg.trajectories.append(
                 RobotTrajectory(
                     robot=name,
-                    stamps=[ns_to_time(stamp_to_ns(t)) for t in r["stamps"]],
-                    poses=[Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2])) for p in joined],
-                    sigma_phi=[float(s) for s in r.get("sigma_phi_joined") or []],
+                    stamps=[ns_to_time(stamp_to_ns(float(t))) for t in r.stamps],
+                    poses=[
+                        Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2]))
+                        for p in r.poses_joined
+                    ],
+                    sigma_phi=[float(s) for s in sigma],
                 )
             )
     msg.features = [
         FeatureEstimate(
-            members=list(f["members"]),
-            x=float(f["xy"][0]),
-            y=float(f["xy"][1]),
-            covariance=[float(f["cov"][0][0]), float(f["cov"][0][1]), float(f["cov"][1][1])],
+            members=list(f.members),
+            x=float(f.xy[0]),
+            y=float(f.xy[1]),
+            covariance=[float(f.cov[0][0]), float(f.cov[0][1]), float(f.cov[1][1])],
         )
-        for f in summary["features"]
+        for f in result.features
     ]
     msg.associations = [
-        Association(a=a["a"], b=a["b"], mahalanobis=float(a["mahalanobis"]))
-        for a in summary["associations"]
+        Association(a=a.a, b=a.b, mahalanobis=float(a.mahalanobis)) for a in result.associations
     ]
     return msg

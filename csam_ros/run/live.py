@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from csam_ros.core.result import RunSummary
 from csam_ros.run.launch import ProcessGroup, executable
 from csam_ros.run.ros_env import isolate_this_process, isolated_environment, reserve_domain_id
 
@@ -68,8 +69,8 @@ def recorded_topics(robots: list[str]) -> list[str]:
     ]
 
 
-def run_live(run: LiveRun, progress=print) -> dict:
-    """Run the nodes; returns the final summary dict (also in ``out_dir/summary.json``)."""
+def run_live(run: LiveRun, progress=print) -> RunSummary:
+    """Run the nodes; returns the merger's final summary (``out_dir/summary.json``)."""
     run.out_dir.mkdir(parents=True, exist_ok=True)
     summary_path = run.out_dir / "summary.json"
     with reserve_domain_id() as reservation:
@@ -82,7 +83,7 @@ def run_live(run: LiveRun, progress=print) -> dict:
             group.stop_all()
 
 
-def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> dict:
+def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> RunSummary:
     import rclpy
     from csam_msgs.msg import JoinedMap
     from rclpy.executors import SingleThreadedExecutor
@@ -222,7 +223,7 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> dic
         rclpy.try_shutdown()
     group.stop("recorder", timeout=20)
     group.stop_all()
-    return json.loads(summary_path.read_text())
+    return RunSummary.read(summary_path)
 
 
 def _check_alive(group: ProcessGroup, ignore: str | None = None) -> None:

@@ -133,7 +133,7 @@ def test_consistent_rendezvous_leaves_unverifiable_pairs_alone() -> None:
 
 
 def test_odometry_scales_recover_a_known_scale() -> None:
-    from csam_ros.bench.mrclam import dead_reckoning
+    from csam_ros.core.motion import odometry_poses
     from csam_ros.core.robust import OdometryScale, odometry_scales, scale_odometry
 
     n = 2001
@@ -142,7 +142,7 @@ def test_odometry_scales_recover_a_known_scale() -> None:
         [0.1 + 0.05 * np.sin(stamps / 7), np.zeros(n), 0.3 * np.sin(stamps / 5)]
     )
     true_log = OdometryLog(stamps, inputs, np.full((n, 3), 0.01))
-    true_poses = dead_reckoning(true_log)
+    true_poses = odometry_poses(stamps, inputs)
     reported = OdometryLog(stamps, inputs / np.array([1.05, 1.0, 1.2]), true_log.sigmas)
     log = MultiRobotLog({"r": RobotLog("r", reported, empty_features(), empty_rendezvous())})
     keys = np.arange(0, n, 20)

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from csam_ros.core.calibration import NoiseModel
 from csam_ros.datasets.mrclam import (
+    MRCLAM_NOISE,
     MrclamFormatError,
-    MrclamNoise,
     default_dataset_dir,
     import_mrclam,
     load_config,
@@ -223,7 +225,7 @@ def test_piecewise_velocity_uses_the_row_active_before_each_sample(tmp_path: Pat
 def test_noise_sigmas(tmp_path: Path) -> None:
     rows = ["1000.0 0.1 0.0", "1000.25 0.1 0.0", "1001.25 0.1 0.0"]
     d = write_dataset(tmp_path / "ds", {1: rows}, {1: ["1000.5 72 2.0 0.1"]})
-    noise = MrclamNoise(
+    noise = NoiseModel(
         sigma_range=0.05,
         sigma_range_per_m=0.02,
         sigma_bearing=0.01,
@@ -239,7 +241,7 @@ def test_noise_sigmas(tmp_path: Path) -> None:
     assert features.sigma_range.tolist() == pytest.approx([0.05 + 0.02 * 2.0])
     assert features.sigma_bearing.tolist() == pytest.approx([0.01])
     with pytest.raises(ValueError, match="sigma_bearing"):
-        MrclamNoise(sigma_bearing=0.0)
+        replace(MRCLAM_NOISE, sigma_bearing=0.0)
 
 
 def test_rendezvous_to_robot_without_odometry_then(tmp_path: Path) -> None:
@@ -274,8 +276,7 @@ def test_missing_measurement_file_counted(tmp_path: Path) -> None:
 
 def test_config_file_loads() -> None:
     config = load_config(ROOT / "config" / "mrclam.yaml")
-    assert isinstance(config["noise"], MrclamNoise)
-    assert config["noise"] == MrclamNoise()  # the defaults are the config's values
+    assert config["noise"] == MRCLAM_NOISE  # the importer's default is the config's model
     assert config["landmark_swaps"] == [[11, 17]]
     assert sorted(config["range_scale"]) == [1, 2, 3, 4, 5]
     assert all(0.95 < v < 1.05 for v in config["range_scale"].values())
@@ -298,7 +299,7 @@ def test_landmark_swaps_exchange_truth_positions(tmp_path: Path) -> None:
 def test_range_scale_divides_every_range_of_that_robot(tmp_path: Path) -> None:
     meas = {1: ["1001.0 72 2.0 0.1", "1002.0 14 1.5 0.0"], 2: ["1001.2 72 2.1 0.1"]}
     d = write_dataset(tmp_path / "ds", {1: clean_odometry(), 2: clean_odometry()}, meas)
-    noise = MrclamNoise(sigma_range=0.05, sigma_range_per_m=0.02)
+    noise = replace(MRCLAM_NOISE, sigma_range=0.05, sigma_range_per_m=0.02)
     log, report = import_mrclam(d, noise=noise, range_scale={1: 0.98})
     robot1, robot2 = log.robots["robot1"], log.robots["robot2"]
     assert robot1.features.ranges.tolist() == pytest.approx([2.0 / 0.98])
