@@ -51,7 +51,10 @@ Levenberg-Marquardt damping ``lambda * diag(A^T A)`` is switched on (``initial_d
 divided by 10 after a step with ``rho > 0.75``, doubled after one with ``rho < 0.25``,
 multiplied by 10 after a rejected step, and dropped (pure Gauss-Newton again) below
 ``1e-9``. A step is accepted when it does not raise the cost. (On Victoria Park from dead
-reckoning this simple rule reached lower local minima than Nielsen's rule.)
+reckoning this simple rule reached lower local minima than Nielsen's rule.) This loop
+(:func:`minimise`, with :class:`StepControl`) is the only one: a :class:`StepRule` supplies the
+step, the sparse Gauss-Newton step here (:class:`GaussNewtonStep`) or Algorithm 1's dense
+Newton step (:class:`csam_ros.core.alignment.DenseNewtonStep`).
 
 Extrapolation (``max_step_scale`` > 1, off by default). With a robust kernel each step is
 iteratively reweighted least squares: the model's curvature ``rho'(s) A^T A`` exceeds the
