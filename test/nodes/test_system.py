@@ -150,8 +150,8 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
     )
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from csam_ros.ros.topics import RELIABLE
     from csam_ros.ros.conversions import ns_to_time
+    from csam_ros.ros.topics import RELIABLE
 
     robots = [r.name for r in load_scenario(SCENARIO).robots]
     simulator, smoothers, merger = _nodes(
