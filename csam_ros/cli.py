@@ -6,13 +6,18 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from csam_ros.run.launch import executable
 from csam_ros.run.live import LiveRunError
+
+if TYPE_CHECKING:
+    from csam_ros.core.log import GroundTruth
+    from csam_ros.core.result import RunSummary
 
 RUNS_DIR = Path("runs")
 
@@ -85,15 +90,17 @@ def _smoother_params(document: dict) -> dict:
     return params
 
 
-def _finish(out: Path, summary: dict, truth=None) -> None:
+def _finish(out: Path, summary: RunSummary) -> None:
+    """Write ``summary.json`` and the figures into ``out`` and say what the run gave."""
     from csam_ros.figures import draw_all
 
-    figures = draw_all(summary, out, truth=truth)
-    robots = summary["robots"]
+    summary.write(out / "summary.json")
+    result = summary.result
+    figures = draw_all(result, out, scenario=summary.scenario)
     print(f"result in {out}/")
-    for name, r in robots.items():
-        print(f"  {name}: {r['alignment']}, {len(r['stamps'])} poses")
-    print(f"  {len(summary['features'])} features, {len(summary['associations'])} associations")
+    for name, r in result.robots.items():
+        print(f"  {name}: {r.alignment}, {len(r.stamps)} poses")
+    print(f"  {len(result.features)} features, {len(result.associations)} associations")
     print("  summary.json, " + ", ".join(p.name for p in figures))
 
 
@@ -134,10 +141,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         smoother_params={"field_of_view_deg": float(fov), **_smoother_params(document)},
         merger_params=_csam_params(document),
     )
-    summary = run_live(run)
-    summary["scenario"] = scenario.name
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    _finish(out, summary)
+    _finish(out, replace(run_live(run), scenario=scenario.name))
     return 0
 
 
@@ -148,23 +152,25 @@ def _bag_robots(bag: Path) -> list[str]:
 def _bag_contents(bag: Path) -> tuple[list[str], float]:
     """The robots of a bag's sensor topics and the bag's duration [s]."""
     from csam_ros.bag import inspect_bag
-    from csam_ros.ros.topics import parse
 
     info = inspect_bag(bag)
-    declared = [parse(t) for t in info.topics]
-    robots = sorted({d[1] for d in declared if d is not None and d[0].sensor})
+    robots = sorted(
+        {t.strip("/").split("/")[0] for t in info.topics if t.endswith(("/odom", "/features"))}
+    )
     if not robots:
-        raise CliError(f"{bag}: no sensor topics (/<robot>/odom, features or rendezvous)")
+        raise CliError(f"{bag}: no /<robot>/odom or /<robot>/features topics")
     return robots, max(info.end_ns - info.start_ns, 0) * 1e-9
 
 
-def offline_summary(bag: Path, config_document: dict | None = None) -> tuple[dict, object]:
+def offline_summary(
+    bag: Path, config_document: dict | None = None
+) -> tuple[RunSummary, GroundTruth | None]:
     """The summary of a bag run through the core in stamp order (no DDS), and its truth."""
     from csam_ros.bag import read_bag_messages
     from csam_ros.core.csam import CsamConfig, run_csam
     from csam_ros.core.local_map import LocalMapConfig
-    from csam_ros.ros.conversions import LogBuilder
-    from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
+    from csam_ros.core.result import RunSummary
+    from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, LogBuilder, sensor_topics
 
     document = config_document or {}
     try:
@@ -174,12 +180,11 @@ def offline_summary(bag: Path, config_document: dict | None = None) -> tuple[dic
         raise CliError(str(err)) from None
     robots = _bag_robots(bag)
     builder = LogBuilder(robots)
-    for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH.name]):
+    for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]):
         builder.add(m.topic, m.message)
     log = builder.build()
-    summary = run_csam(log, config, local_map).to_dict()
-    summary["dropped"] = {r: c.as_dict() for r, c in builder.filter.drops.items()}
-    return summary, log.truth
+    dropped = {r: c.as_dict() for r, c in builder.filter.drops.items()}
+    return RunSummary(run_csam(log, config, local_map), dropped=dropped), log.truth
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -202,11 +207,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if args.offline:
             summary, _ = offline_summary(bag, document)
         else:
-            from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
+            from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, sensor_topics
             from csam_ros.run.live import LiveRun, run_live
 
             robots, duration = _bag_contents(bag)
-            topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
+            topics = [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]
             run = LiveRun(
                 out_dir=out,
                 robots=robots,
@@ -233,25 +238,26 @@ def cmd_replay(args: argparse.Namespace) -> int:
             summary = run_live(run)
     except BagError as err:
         raise CliError(str(err)) from None
-    summary["source"] = str(bag)
-    summary.setdefault("scenario", bag.resolve().name)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    _finish(out, summary)
+    _finish(out, replace(summary, source=str(bag), scenario=summary.scenario or bag.resolve().name))
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from csam_ros.core.evaluation import evaluate
+    from csam_ros.core.result import RunSummary, SummaryError
 
     run_dir = args.dir
     summary_path = run_dir / "summary.json"
     if not summary_path.exists():
         raise CliError(f"{summary_path}: no such file (a run directory holds summary.json)")
-    summary = json.loads(summary_path.read_text())
-    truth = _truth_of(run_dir, summary)
+    try:
+        summary = RunSummary.read(summary_path)
+    except SummaryError as err:
+        raise CliError(str(err)) from None
+    truth = _truth_of(run_dir, summary.source)
     if truth is None:
         raise CliError(f"{run_dir}: no ground truth (/sim/features_truth) in the run's bag")
-    metrics = evaluate(summary, truth)
+    metrics = evaluate(summary.result, truth)
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1))
     error, assoc = metrics["landmark_error"], metrics["association"]
     print(f"{run_dir}/metrics.json")
@@ -276,22 +282,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         true_xy = se2.inverse_transform_point(
             np.asarray(error["transform"]), truth.feature_positions
         )
-        figure = draw_joined_map(summary, run_dir / "joined_map.png", truth=true_xy)
+        figure = draw_joined_map(
+            summary.result, run_dir / "joined_map.png", truth=true_xy, scenario=summary.scenario
+        )
         print(f"  {figure}: the joined map over the true features (grey crosses)")
     return 0
 
 
-def _truth_of(run_dir: Path, summary: dict):
+def _truth_of(run_dir: Path, source: str | None) -> GroundTruth | None:
+    """The ground truth in the run's bag, or in the bag it replayed (``source``)."""
     from csam_ros.bag import read_bag_messages
-    from csam_ros.ros.conversions import truth_from_message
-    from csam_ros.ros.topics import FEATURES_TRUTH
+    from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, truth_from_message
 
     candidates = [run_dir / "bag"]
-    if summary.get("source"):
-        candidates.append(Path(summary["source"]))
+    if source:
+        candidates.append(Path(source))
     for bag in candidates:
         if bag.exists():
-            for m in read_bag_messages(bag, [FEATURES_TRUTH.name]):
+            for m in read_bag_messages(bag, [FEATURES_TRUTH_TOPIC]):
                 return truth_from_message(m.message)
     return None
 

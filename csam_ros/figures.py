@@ -1,4 +1,4 @@
-"""The figures of the paper's section V, drawn from a run's ``summary.json``.
+"""The figures of the paper's section V, drawn from a C-SAM result.
 
 Andersson & Nygards, figures 5 and 6: (a, b) each robot's local map before joining,
 (c) heading standard deviation per sample before and after C-SAM with the rendezvous
@@ -12,19 +12,20 @@ interval marked, (d) the joined map in the reference robot's frame.
   nodes and, optionally, true feature positions in the reference frame.
 - :func:`draw_all`: the three into a directory.
 
-Every function takes the summary as a mapping (``json.load``) or a path to the file. Optional
-keys may be missing or null; what is missing is left out of the figure (and said so in it),
-malformed values raise :class:`SummaryError` naming the key. Covariance ellipses are drawn at
+Every function takes a :class:`~csam_ros.core.result.CsamResult` (``python -m
+csam_ros.figures SUMMARY.json`` reads one from a run's ``summary.json``) and, for the titles,
+the scenario's name. What a result lacks (a pending robot's joined fields, features, rendezvous)
+is left out of the figure (and said so in it); a covariance that is not positive semi-definite
+raises :class:`~csam_ros.core.result.SummaryError` naming it. Covariance ellipses are drawn at
 95 % (chi-square, 2 dof: 5.991) and magnified by a stated factor when they would be invisible
 at map scale. Rendering goes through the Agg canvas directly (no pyplot, no display).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import textwrap
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from numpy.typing import ArrayLike, NDArray
+
+from csam_ros.core.result import CsamResult, RobotResult, RunSummary, SummaryError
 
 FloatArray = NDArray[np.float64]
 
@@ -60,10 +63,6 @@ ROBOT_PALETTE = (
 )
 MULTI_ROBOT_COLOUR = "black"
 UNKNOWN_COLOUR = "0.5"
-
-
-class SummaryError(ValueError):
-    """A summary value has the wrong type or shape; the message names the key."""
 
 
 def chi2_2dof_quantile(confidence: float) -> float:
@@ -170,76 +169,23 @@ def robot_of_label(label: str) -> str:
     return label.rsplit("/", 1)[0]
 
 
-def load_summary(source: Mapping[str, Any] | str | Path) -> Mapping[str, Any]:
-    """The summary itself, or the JSON document at ``source``."""
-    if isinstance(source, Mapping):
-        return source
-    path = Path(source)
-    with path.open(encoding="utf-8") as stream:
-        document = json.load(stream)
-    if not isinstance(document, Mapping):
-        raise SummaryError(f"{path}: expected a JSON object, got {type(document).__name__}")
-    return document
-
-
-# --------------------------------------------------------------------------- parsing
-
-
-def _array(value: Any, tail: tuple[int, ...], where: str) -> FloatArray | None:
-    """``value`` as a float array of shape ``(N, *tail)``; None when absent (None)."""
-    if value is None:
-        return None
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as error:
-        raise SummaryError(f"{where}: expected numbers, got {str(value)[:80]!r}") from error
-    if array.size == 0:
-        return np.empty((0, *tail))
-    if array.ndim != 1 + len(tail) or array.shape[1:] != tail:
-        shape = ", ".join(["N", *map(str, tail)])
-        raise SummaryError(f"{where}: expected shape ({shape}), got {array.shape}")
-    return array
-
-
-def _fixed(value: Any, shape: tuple[int, ...], where: str) -> FloatArray | None:
-    if value is None:
-        return None
-    array = _array([value], shape, where)
-    return None if array is None or array.shape[0] == 0 else array[0]
-
-
-def _covariances(
-    entries: Sequence[Mapping[str, Any]], where: str
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """(N, 2, 2) covariances (NaN where missing) and which are present."""
-    cov = np.full((len(entries), 2, 2), np.nan)
-    present = np.zeros(len(entries), dtype=bool)
-    for i, entry in enumerate(entries):
-        value = entry.get("cov")
-        if value is not None:
-            cov[i] = _fixed(value, (2, 2), f"{where}[{i}].cov")
-            present[i] = True
-    return cov, present
+# --------------------------------------------------------------------------- drawing views
 
 
 def _checked_ellipses(
-    cov: FloatArray, present: NDArray[np.bool_], names: Sequence[str], where: str
+    cov: FloatArray, names: Sequence[str], where: str
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    widths = np.full(len(cov), np.nan)
-    heights = np.full(len(cov), np.nan)
-    angles = np.zeros(len(cov))
-    if present.any():
-        index = np.flatnonzero(present)
-        try:
-            w, h, a = ellipse_axes(cov[index])
-        except ValueError:
-            first = index[_first_bad_covariance(cov[index])]
-            raise SummaryError(
-                f"{where}: covariance of {names[first]!r} is not a finite symmetric "
-                f"positive semi-definite 2x2 matrix: {cov[first].tolist()}"
-            ) from None
-        widths[index], heights[index], angles[index] = w, h, a
-    return widths, heights, angles
+    """:func:`ellipse_axes` of ``cov`` (N, 2, 2); a bad covariance is named."""
+    if len(cov) == 0:
+        return np.empty(0), np.empty(0), np.empty(0)
+    try:
+        return ellipse_axes(cov)
+    except ValueError:
+        first = _first_bad_covariance(cov)
+        raise SummaryError(
+            f"{where}: covariance of {names[first]!r} is not a finite symmetric "
+            f"positive semi-definite 2x2 matrix: {cov[first].tolist()}"
+        ) from None
 
 
 def _first_bad_covariance(cov: FloatArray) -> int:
@@ -256,7 +202,7 @@ def _first_bad_covariance(cov: FloatArray) -> int:
 class _Features:
     labels: list[str]
     xy: FloatArray  # (F, 2)
-    widths: FloatArray  # (F,) full 95 % axes, NaN without covariance
+    widths: FloatArray  # (F,) full 95 % axes
     heights: FloatArray
     angles: FloatArray  # degrees
 
@@ -265,26 +211,11 @@ class _Features:
         return 0.5 * self.widths
 
 
-def _features(entries: Any, where: str, label_key: str) -> _Features:
-    if entries is None:
-        entries = []
-    if not isinstance(entries, Sequence) or isinstance(entries, str | bytes):
-        raise SummaryError(f"{where}: expected a list of features, got {type(entries).__name__}")
-    for i, entry in enumerate(entries):
-        if not isinstance(entry, Mapping) or "xy" not in entry:
-            raise SummaryError(f"{where}[{i}]: expected an object with 'xy', got {entry!r:.80}")
-    labels = [_feature_name(entry.get(label_key), i) for i, entry in enumerate(entries)]
-    xy = _array([entry["xy"] for entry in entries], (2,), f"{where}[*].xy")
-    assert xy is not None
-    cov, present = _covariances(entries, where)
-    widths, heights, angles = _checked_ellipses(cov, present, labels, where)
-    return _Features(labels, xy, widths, heights, angles)
-
-
-def _feature_name(value: Any, index: int) -> str:
-    if isinstance(value, list):
-        return "+".join(map(str, value)) if value else f"#{index}"
-    return str(value) if value is not None else f"#{index}"
+def _features(labels: list[str], xy: ArrayLike, cov: ArrayLike, where: str) -> _Features:
+    widths, heights, angles = _checked_ellipses(
+        np.asarray(cov, dtype=float).reshape(-1, 2, 2), labels, where
+    )
+    return _Features(labels, np.asarray(xy, dtype=float).reshape(-1, 2), widths, heights, angles)
 
 
 @dataclass
@@ -292,10 +223,10 @@ class _Robot:
     name: str
     colour: str
     alignment: str
-    stamps: FloatArray | None
-    poses_local: FloatArray | None
+    stamps: FloatArray
+    poses_local: FloatArray
     poses_joined: FloatArray | None
-    sigma_local: FloatArray | None  # rad
+    sigma_local: FloatArray  # rad
     sigma_joined: FloatArray | None
     features_local: _Features
     rendezvous_stamps: FloatArray
@@ -312,74 +243,52 @@ class _Robot:
         return text.split(":", 1)[1].strip() if ":" in text else text
 
 
-def _robot(name: str, entry: Any, colour: str) -> _Robot:
-    where = f"robots.{name}"
-    if not isinstance(entry, Mapping):
-        raise SummaryError(f"{where}: expected an object, got {type(entry).__name__}")
-    alignment = entry.get("alignment") or "pending: no alignment in summary"
-    stamps = _array(entry.get("stamps"), (), f"{where}.stamps")
-    robot = _Robot(
-        name=name,
+def _robot(robot: RobotResult, colour: str) -> _Robot:
+    labels = [f"{robot.name}/{int(k)}" for k in robot.feature_labels_local]
+    return _Robot(
+        name=robot.name,
         colour=colour,
-        alignment=str(alignment),
-        stamps=stamps,
-        poses_local=_array(entry.get("poses_local"), (3,), f"{where}.poses_local"),
-        poses_joined=_array(entry.get("poses_joined"), (3,), f"{where}.poses_joined"),
-        sigma_local=_array(entry.get("sigma_phi_local"), (), f"{where}.sigma_phi_local"),
-        sigma_joined=_array(entry.get("sigma_phi_joined"), (), f"{where}.sigma_phi_joined"),
-        features_local=_features(entry.get("features_local"), f"{where}.features_local", "label"),
-        rendezvous_stamps=_array(
-            entry.get("rendezvous_stamps") or [], (), f"{where}.rendezvous_stamps"
+        alignment=robot.alignment,
+        stamps=robot.stamps,
+        poses_local=robot.poses_local,
+        poses_joined=robot.poses_joined,
+        sigma_local=robot.sigma_phi_local,
+        sigma_joined=robot.sigma_phi_joined,
+        features_local=_features(
+            labels,
+            robot.features_local,
+            robot.feature_covariances_local,
+            f"robots.{robot.name}.features_local",
         ),
-        base_node=_fixed(entry.get("base_node"), (3,), f"{where}.base_node"),
-        base_node_cov=_fixed(entry.get("base_node_cov"), (3, 3), f"{where}.base_node_cov"),
+        rendezvous_stamps=robot.rendezvous_stamps,
+        base_node=robot.base_node,
+        base_node_cov=robot.base_node_cov,
     )
-    for key, values in (("stamps", stamps), ("rendezvous_stamps", robot.rendezvous_stamps)):
-        if values is not None and not np.isfinite(values).all():
-            raise SummaryError(f"{where}.{key}: not all finite")
-    if stamps is not None:
-        for key, values in (
-            ("poses_local", robot.poses_local),
-            ("poses_joined", robot.poses_joined),
-            ("sigma_phi_local", robot.sigma_local),
-            ("sigma_phi_joined", robot.sigma_joined),
-        ):
-            if values is not None and values.shape[0] not in (0, stamps.shape[0]):
-                raise SummaryError(
-                    f"{where}.{key}: {values.shape[0]} entries but {stamps.shape[0]} stamps"
-                )
-    return robot
 
 
 @dataclass
 class _Summary:
     scenario: str | None
-    reference_frame: str | None
+    reference_frame: str
     robots: list[_Robot]
     features: _Features
     feature_members: list[list[str]]
 
 
-def _parse(source: Mapping[str, Any] | str | Path) -> _Summary:
-    summary = load_summary(source)
-    robots_entry = summary.get("robots") or {}
-    if not isinstance(robots_entry, Mapping):
-        raise SummaryError(f"robots: expected an object, got {type(robots_entry).__name__}")
-    colours = robot_colours(list(robots_entry))
-    robots = [_robot(str(name), robots_entry[name], colours[name]) for name in robots_entry]
-    features_entry = summary.get("features") or []
-    features = _features(features_entry, "features", "members")
-    members = [
-        [str(m) for m in (entry.get("members") or [])] if isinstance(entry, Mapping) else []
-        for entry in features_entry
-    ]
-    scenario = summary.get("scenario")
-    frame = summary.get("reference_frame")
+def _view(result: CsamResult, scenario: str | None) -> _Summary:
+    """What the figures draw of ``result``, with a colour per robot."""
+    colours = robot_colours(list(result.robots))
+    members = [list(f.members) for f in result.features]
     return _Summary(
-        scenario=str(scenario) if scenario else None,
-        reference_frame=str(frame) if frame else None,
-        robots=robots,
-        features=features,
+        scenario=scenario,
+        reference_frame=result.reference_frame,
+        robots=[_robot(r, colours[name]) for name, r in result.robots.items()],
+        features=_features(
+            ["+".join(m) for m in members],
+            [f.xy for f in result.features],
+            [f.cov for f in result.features],
+            "features",
+        ),
         feature_members=members,
     )
 
@@ -474,7 +383,7 @@ def _add_ellipses(
 
 def _rendezvous_poses(robot: _Robot, poses: FloatArray, tolerance: float) -> FloatArray:
     """Poses whose stamps are within ``tolerance`` of one of the robot's rendezvous stamps."""
-    if robot.stamps is None or robot.rendezvous_stamps.size == 0 or poses.shape[0] == 0:
+    if robot.rendezvous_stamps.size == 0 or poses.shape[0] == 0:
         return np.empty((0, 3))
     order = np.argsort(robot.stamps)
     stamps = robot.stamps[order]
@@ -492,7 +401,7 @@ def _rendezvous_poses(robot: _Robot, poses: FloatArray, tolerance: float) -> Flo
 
 
 def _sample_period(robots: Sequence[_Robot]) -> float:
-    gaps = [np.diff(np.sort(r.stamps)) for r in robots if r.stamps is not None and r.stamps.size]
+    gaps = [np.diff(np.sort(r.stamps)) for r in robots if r.stamps.size]
     positive = np.concatenate(gaps) if gaps else np.empty(0)
     positive = positive[positive > 0]
     return float(np.median(positive)) if positive.size else 0.0
@@ -528,9 +437,9 @@ def _start_marker(axes: Axes, poses: FloatArray, colour: str) -> None:
 # --------------------------------------------------------------------------- figures
 
 
-def draw_local_maps(summary: Mapping[str, Any] | str | Path, path: str | Path) -> Path:
+def draw_local_maps(result: CsamResult, path: str | Path, scenario: str | None = None) -> Path:
     """Paper fig. 5/6 (a, b): each robot's trajectory and features in its own frame ``G_r``."""
-    parsed = _parse(summary)
+    parsed = _view(result, scenario)
     robots = parsed.robots
     columns = max(1, min(len(robots), 3))
     rows = max(1, math.ceil(len(robots) / columns))
@@ -542,7 +451,7 @@ def draw_local_maps(summary: Mapping[str, Any] | str | Path, path: str | Path) -
     for axes in grid.ravel()[len(robots) :]:
         axes.set_visible(False)
     if not robots:
-        _note(grid[0, 0], "no robots in summary")
+        _note(grid[0, 0], "no robots in the result")
         return _save(figure, path)
 
     # one magnification for every panel, so that panels compare
@@ -558,10 +467,10 @@ def draw_local_maps(summary: Mapping[str, Any] | str | Path, path: str | Path) -
         axes.set_title(f"{robot.name} ({status})", color=robot.colour, fontsize=10)
         poses = robot.poses_local
         features = robot.features_local
-        if (poses is None or poses.shape[0] == 0) and features.xy.shape[0] == 0:
-            _note(axes, "no local map in summary")
+        if poses.shape[0] == 0 and features.xy.shape[0] == 0:
+            _note(axes, "empty local map")
             continue
-        if poses is not None and poses.shape[0]:
+        if poses.shape[0]:
             axes.plot(poses[:, 0], poses[:, 1], color=robot.colour, linewidth=1.4, zorder=3)
             _start_marker(axes, poses, robot.colour)
             meeting = _rendezvous_poses(robot, poses, tolerance)
@@ -596,10 +505,10 @@ def draw_local_maps(summary: Mapping[str, Any] | str | Path, path: str | Path) -
     return _save(figure, path)
 
 
-def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path) -> Path:
+def draw_heading_sigma(result: CsamResult, path: str | Path, scenario: str | None = None) -> Path:
     """Paper fig. 5/6 (c): heading standard deviation per sample before and after C-SAM."""
-    parsed = _parse(summary)
-    robots = [r for r in parsed.robots if r.sigma_local is not None or r.sigma_joined is not None]
+    parsed = _view(result, scenario)
+    robots = parsed.robots
     figure = _new_figure(5.2)
     axes = figure.subplots()
     axes.set_title(_title(parsed, "heading standard deviation before and after C-SAM"))
@@ -608,10 +517,10 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
     axes.set_axisbelow(True)
     if not robots:
         axes.set_xlabel("time [s]")
-        _note(axes, "no heading standard deviations in summary")
+        _note(axes, "no robots in the result")
         return _save(figure, path)
 
-    use_time = all(r.stamps is not None and r.stamps.size for r in robots)
+    use_time = all(r.stamps.size for r in robots)
     t0 = min(float(np.min(r.stamps)) for r in robots) if use_time else 0.0
     if use_time:
         axes.set_xlabel("time [s]" if t0 == 0.0 else f"time since {t0:.3f} s [s]")
@@ -660,7 +569,7 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
                 axes.axvline(edge, color="0.35", lw=0.7, ls=":", zorder=1)
         handles.append(Patch(color="0.5", alpha=0.3, label=f"rendezvous ({len(intervals)}×)"))
     else:
-        reason = "poses have no stamps" if stamps else "no rendezvous_stamps in summary"
+        reason = "poses have no stamps" if stamps else "no rendezvous in the result"
         handles.append(_key(f"rendezvous not marked:\n{reason}"))
 
     scale, limits = value_axis_scale(np.concatenate(plotted) if plotted else np.empty(0))
@@ -674,15 +583,20 @@ def draw_heading_sigma(summary: Mapping[str, Any] | str | Path, path: str | Path
 
 
 def draw_joined_map(
-    summary: Mapping[str, Any] | str | Path, path: str | Path, truth: ArrayLike | None = None
+    result: CsamResult,
+    path: str | Path,
+    truth: ArrayLike | None = None,
+    scenario: str | None = None,
 ) -> Path:
     """Paper fig. 5/6 (d): the joined map in the reference frame.
 
     ``truth``: true feature positions ``(F, 2)`` already in the reference frame, drawn as
     grey crosses underneath.
     """
-    parsed = _parse(summary)
-    truth_xy = _array(truth, (2,), "truth") if truth is not None else None
+    truth_xy = None if truth is None else np.asarray(truth, dtype=float)
+    if truth_xy is not None and (truth_xy.ndim != 2 or truth_xy.shape[1] != 2):
+        raise ValueError(f"truth: expected shape (N, 2), got {truth_xy.shape}")
+    parsed = _view(result, scenario)
     frame = parsed.reference_frame
     aligned = [r for r in parsed.robots if r.aligned]
     bases = [r.base_node[None] for r in aligned if r.base_node is not None]
@@ -831,15 +745,17 @@ def _draw_base_node(axes: Axes, robot: _Robot, length: float, magnification: flo
 
 
 def draw_all(
-    summary: Mapping[str, Any] | str | Path, out_dir: str | Path, truth: ArrayLike | None = None
+    result: CsamResult,
+    out_dir: str | Path,
+    truth: ArrayLike | None = None,
+    scenario: str | None = None,
 ) -> list[Path]:
     """Write ``local_maps.png``, ``heading_sigma.png`` and ``joined_map.png`` into ``out_dir``."""
-    document = load_summary(summary)
     out = Path(out_dir)
     return [
-        draw_local_maps(document, out / "local_maps.png"),
-        draw_heading_sigma(document, out / "heading_sigma.png"),
-        draw_joined_map(document, out / "joined_map.png", truth=truth),
+        draw_local_maps(result, out / "local_maps.png", scenario),
+        draw_heading_sigma(result, out / "heading_sigma.png", scenario),
+        draw_joined_map(result, out / "joined_map.png", truth=truth, scenario=scenario),
     ]
 
 
@@ -851,7 +767,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("summary", type=Path)
     parser.add_argument("out_dir", type=Path, nargs="?")
     args = parser.parse_args(argv)
-    for path in draw_all(args.summary, args.out_dir or args.summary.parent):
+    summary = RunSummary.read(args.summary)
+    out = args.out_dir or args.summary.parent
+    for path in draw_all(summary.result, out, scenario=summary.scenario):
         print(path)
     return 0
 

@@ -12,6 +12,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from csam_ros.bag import MessageTypes
+from csam_ros.core.result import RunSummary
 from csam_ros.datasets.mrclam import default_dataset_dir
 
 MRCLAM = default_dataset_dir()
@@ -45,10 +46,13 @@ def demo_run(tmp_path_factory) -> Path:
 
 
 def test_demo_writes_bag_summary_and_figures(demo_run: Path) -> None:
-    summary = json.loads((demo_run / "summary.json").read_text())
-    assert summary["reference_frame"] == "robot1/map"
-    assert summary["robots"]["robot1"]["alignment"] == "reference"
-    assert summary["robots"]["robot2"]["alignment"] == "aligned"
+    summary = RunSummary.read(demo_run / "summary.json")
+    assert summary.scenario == "map_joining"
+    assert summary.merger is not None and summary.merger.solves >= 1
+    result = summary.result
+    assert result.reference_frame == "robot1/map"
+    assert result.robots["robot1"].alignment == "reference"
+    assert result.robots["robot2"].alignment == "aligned"
     for name in ("local_maps.png", "heading_sigma.png", "joined_map.png"):
         assert (demo_run / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # the bag, read by rosbags alone
@@ -67,11 +71,11 @@ def test_demo_writes_bag_summary_and_figures(demo_run: Path) -> None:
     ):
         assert topics.get(topic, 0) > 0, topic
     joined = _last_joined_map(demo_run / "bag")
-    assert len(joined.features) == len(summary["features"])
+    assert len(joined.features) == len(result.features)
 
 
 def test_offline_replay_reproduces_the_live_run(demo_run: Path, tmp_path: Path) -> None:
-    live = json.loads((demo_run / "summary.json").read_text())
+    live = RunSummary.read(demo_run / "summary.json").result
     first, second = tmp_path / "a", tmp_path / "b"
     for out in (first, second):
         result = csam("replay", demo_run / "bag", "--offline", "--out", out)
@@ -81,12 +85,14 @@ def test_offline_replay_reproduces_the_live_run(demo_run: Path, tmp_path: Path) 
     a.pop("timing_s"), b.pop("timing_s")
     a.pop("source"), b.pop("source")
     assert a == b  # offline replay is deterministic
-    for name, robot in live["robots"].items():
+    offline = RunSummary.read(first / "summary.json")
+    assert offline.merger is None and offline.dropped == {"robot1": {}, "robot2": {}}
+    for name, robot in live.robots.items():
         np.testing.assert_allclose(
-            a["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-6
+            offline.result.robots[name].poses_joined, robot.poses_joined, atol=1e-6
         )
-    assert {(x["a"], x["b"]) for x in a["associations"]} == {
-        (x["a"], x["b"]) for x in live["associations"]
+    assert {(x.a, x.b) for x in offline.result.associations} == {
+        (x.a, x.b) for x in live.associations
     }
 
 
@@ -99,19 +105,28 @@ def test_evaluate_scores_the_demo(demo_run: Path) -> None:
     assert metrics["landmark_error"]["rmse_m"] < 0.1
 
 
+def test_evaluate_names_what_is_wrong_in_a_summary(tmp_path: Path) -> None:
+    (tmp_path / "summary.json").write_text(json.dumps({"reference_frame": "robot1/map"}))
+    bad = csam("evaluate", tmp_path)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert "summary.json: summary: no 'robots' entry" in bad.stderr
+    assert not (tmp_path / "metrics.json").exists()
+
+
 @pytest.mark.parametrize("scenario", ["map_joining", "sensor_extension"])
 def test_recorded_bags_replay_to_their_recorded_joined_map(scenario: str, tmp_path: Path) -> None:
     bag = REPO / "bags" / scenario
     result = csam("replay", bag, "--offline", "--out", tmp_path / "out")
     assert result.returncode == 0, result.stderr
-    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    summary = RunSummary.read(tmp_path / "out" / "summary.json")
+    assert (summary.source, summary.scenario) == (str(bag), scenario)
     recorded = _last_joined_map(bag)
     for trajectory in recorded.trajectories:
         poses = np.array([[p.x, p.y, p.theta] for p in trajectory.poses])
         np.testing.assert_allclose(
-            summary["robots"][trajectory.robot]["poses_joined"], poses, atol=1e-6
+            summary.result.robots[trajectory.robot].poses_joined, poses, atol=1e-6
         )
-    assert len(summary["associations"]) == len(recorded.associations)
+    assert len(summary.result.associations) == len(recorded.associations)
 
 
 def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
@@ -143,14 +158,12 @@ def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
     assert live.returncode == 0, live.stdout + live.stderr
     offline = csam("replay", bag, "--offline", "--out", tmp_path / "offline")
     assert offline.returncode == 0, offline.stderr
-    a = json.loads((tmp_path / "live" / "summary.json").read_text())
-    b = json.loads((tmp_path / "offline" / "summary.json").read_text())
-    for name, robot in b["robots"].items():
-        assert a["robots"][name]["alignment"] == robot["alignment"]
-        np.testing.assert_allclose(
-            a["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-6
-        )
-    assert len(a["associations"]) == len(b["associations"])
+    a = RunSummary.read(tmp_path / "live" / "summary.json").result
+    b = RunSummary.read(tmp_path / "offline" / "summary.json").result
+    for name, robot in b.robots.items():
+        assert a.robots[name].alignment == robot.alignment
+        np.testing.assert_allclose(a.robots[name].poses_joined, robot.poses_joined, atol=1e-6)
+    assert len(a.associations) == len(b.associations)
 
 
 @pytest.mark.skipif(MRCLAM is None or not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
@@ -169,8 +182,8 @@ def test_mrclam_window_imports_replays_and_evaluates(tmp_path: Path) -> None:
     assert all(robot["joined"] for robot in metrics["robots"].values())
     assert metrics["association"]["precision"] == 1.0
     assert metrics["landmark_error"]["rmse_m"] < 0.15
-    summary = json.loads((run / "summary.json").read_text())
-    assert "consistency" in summary["rendezvous_filter"]
+    summary = RunSummary.read(run / "summary.json")
+    assert "consistency" in summary.result.rendezvous_filter
     assert (run / "joined_map.png").stat().st_size > 0
 
 

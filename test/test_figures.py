@@ -1,26 +1,33 @@
-"""Figures drawn from summary.json: geometry helpers, and drawing synthetic summaries."""
+"""Figures of a C-SAM result: geometry helpers, and drawing synthetic and real results."""
 
 from __future__ import annotations
 
-import copy
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
 from csam_ros import figures
 from csam_ros.core import se2
+from csam_ros.core.result import (
+    AssociationRecord,
+    CsamResult,
+    FeatureResult,
+    RobotResult,
+    RunSummary,
+    SummaryError,
+)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def synthetic_summary(
     poses_per_robot: int = 80, feature_spacing: float = 1.0, seed: int = 0
-) -> dict[str, Any]:
-    """A map-joining-like summary: robot1 (reference) and robot2 (aligned) cross between two
+) -> CsamResult:
+    """A map-joining-like result: robot1 (reference) and robot2 (aligned) cross between two
     feature areas, robot3 is pending. Local quantities are in each robot's first-pose frame."""
     rng = np.random.default_rng(seed)
     sample_time = 0.5
@@ -38,14 +45,13 @@ def synthetic_summary(
     world += rng.uniform(-0.2, 0.2, world.shape)
 
     distance = np.linalg.norm(true_poses["robot1"][:, :2] - true_poses["robot2"][:, :2], axis=1)
-    rendezvous = stamps[distance < 4.0].tolist()
-    robots: dict[str, Any] = {}
+    rendezvous = stamps[distance < 4.0]
+    robots: dict[str, RobotResult] = {}
     seen_by: dict[int, list[str]] = {}
     for name, poses in true_poses.items():
         base = starts[name]
         near = np.linalg.norm(world[None] - poses[::10, None, :2], axis=2).min(axis=0) < 4.0
         ids = np.flatnonzero(near)
-        local_xy = se2.inverse_transform_point(base, world[ids])
         steps = np.cumsum(
             rng.uniform(0.0, 0.01, poses_per_robot) + (np.arange(poses_per_robot) > 40) * 0.02
         )
@@ -53,60 +59,49 @@ def synthetic_summary(
         sigma_local[0] = 0.0 if name == "robot1" else sigma_local[0]
         for index, feature in enumerate(ids):
             seen_by.setdefault(int(feature), []).append(f"{name}/{index}")
-        robots[name] = {
-            "base_node": base - starts["robot1"] if name == "robot2" else [0.0, 0.0, 0.0],
-            "base_node_cov": (
-                np.diag([0.01, 0.02, 1e-4]) if name == "robot2" else np.zeros((3, 3))
-            ).tolist(),
-            "alignment": "reference" if name == "robot1" else "aligned",
-            "stamps": stamps.tolist(),
-            "poses_local": se2.between(base, poses).tolist(),
-            "poses_joined": se2.between(starts["robot1"], poses).tolist(),
-            "sigma_phi_local": sigma_local.tolist(),
-            "sigma_phi_joined": (0.6 * sigma_local).tolist(),
-            "features_local": [
-                {"label": f"{name}/{i}", "xy": xy.tolist(), "cov": _feature_cov(rng, 1e-4).tolist()}
-                for i, xy in enumerate(local_xy)
-            ],
-            "rendezvous_stamps": rendezvous,
-        }
-    robots["robot2"]["base_node"] = se2.between(starts["robot1"], starts["robot2"]).tolist()
-    robots["robot3"] = {
-        "base_node": None,
-        "base_node_cov": None,
-        "alignment": "pending: no rendezvous yet",
-        "stamps": stamps[:20].tolist(),
-        "poses_local": np.column_stack(
-            (0.3 * stamps[:20], 0 * stamps[:20], 0 * stamps[:20])
-        ).tolist(),
-        "poses_joined": None,
-        "sigma_phi_local": np.radians(0.1 * np.arange(20)).tolist(),
-        "sigma_phi_joined": None,
-        "features_local": [],
-        "rendezvous_stamps": [],
-    }
+        robots[name] = RobotResult(
+            name=name,
+            alignment="reference" if name == "robot1" else "aligned",
+            stamps=stamps,
+            poses_local=se2.between(base, poses),
+            sigma_phi_local=sigma_local,
+            base_node=se2.between(starts["robot1"], base),
+            base_node_cov=np.diag([0.01, 0.02, 1e-4]) if name == "robot2" else np.zeros((3, 3)),
+            poses_joined=se2.between(starts["robot1"], poses),
+            sigma_phi_joined=0.6 * sigma_local,
+            rendezvous_stamps=rendezvous,
+            feature_labels_local=np.arange(len(ids)),
+            features_local=se2.inverse_transform_point(base, world[ids]),
+            feature_covariances_local=np.array([_feature_cov(rng, 1e-4) for _ in ids]),
+        )
+    robots["robot3"] = RobotResult(
+        name="robot3",
+        alignment="pending: no rendezvous yet",
+        stamps=stamps[:20],
+        poses_local=np.column_stack((0.3 * stamps[:20], 0 * stamps[:20], 0 * stamps[:20])),
+        sigma_phi_local=np.radians(0.1 * np.arange(20)),
+    )
     reference = starts["robot1"]
     features = [
-        {
-            "members": members,
-            "xy": se2.inverse_transform_point(reference, world[feature]).tolist(),
-            "cov": _feature_cov(rng, 4e-4 if len(members) == 1 else 2e-4).tolist(),
-        }
+        FeatureResult(
+            members,
+            se2.inverse_transform_point(reference, world[feature]),
+            _feature_cov(rng, 4e-4 if len(members) == 1 else 2e-4),
+        )
         for feature, members in sorted(seen_by.items())
     ]
     associations = [
-        {"a": m[0], "b": m[1], "mahalanobis": float(rng.uniform(0, 5))}
+        AssociationRecord(m[0], m[1], float(rng.uniform(0, 5)))
         for m in seen_by.values()
         if len(m) > 1
     ]
-    return {
-        "scenario": "map_joining",
-        "reference_frame": "robot1/map",
-        "robots": robots,
-        "features": features,
-        "associations": associations,
-        "timing_s": {"joint_solve": 0.1},
-    }
+    return CsamResult(
+        reference_frame="robot1/map",
+        robots=robots,
+        features=features,
+        associations=associations,
+        timing_s={"joint_solve": 0.1},
+    )
 
 
 def _feature_cov(rng: np.random.Generator, variance: float) -> np.ndarray:
@@ -201,73 +196,91 @@ def test_robot_colours_are_stable_and_distinct() -> None:
 
 
 def test_draw_all_writes_three_pngs(tmp_path: Path) -> None:
-    summary = synthetic_summary()
-    truth = np.array([f["xy"] for f in summary["features"]])
-    paths = figures.draw_all(summary, tmp_path / "out", truth=truth)
+    result = synthetic_summary()
+    truth = np.array([f.xy for f in result.features])
+    paths = figures.draw_all(result, tmp_path / "out", truth=truth, scenario="map_joining")
     assert [p.name for p in paths] == ["local_maps.png", "heading_sigma.png", "joined_map.png"]
     for path in paths:
         assert_png(path)
 
 
-def test_draw_all_reads_summary_json_path(tmp_path: Path) -> None:
+def test_main_draws_a_summary_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "summary.json"
-    path.write_text(json.dumps(synthetic_summary(poses_per_robot=30)))
-    for png in figures.draw_all(path, tmp_path):
-        assert_png(png)
+    RunSummary(synthetic_summary(poses_per_robot=30), scenario="map_joining").write(path)
+    assert figures.main([str(path)]) == 0
+    printed = capsys.readouterr().out.split()
+    assert [Path(p).name for p in printed] == [
+        "local_maps.png",
+        "heading_sigma.png",
+        "joined_map.png",
+    ]
+    for png in printed:
+        assert_png(Path(png))
+
+
+def _without_features(result: CsamResult) -> CsamResult:
+    return replace(result, features=[], associations=[])
+
+
+def _without_local_features_or_rendezvous(result: CsamResult) -> CsamResult:
+    robots = {
+        name: replace(
+            r,
+            rendezvous_stamps=np.zeros(0),
+            feature_labels_local=np.zeros(0, dtype=np.int64),
+            features_local=np.zeros((0, 2)),
+            feature_covariances_local=np.zeros((0, 2, 2)),
+        )
+        for name, r in result.robots.items()
+    }
+    return replace(result, robots=robots)
+
+
+def _all_pending(result: CsamResult) -> CsamResult:
+    robots = {
+        name: RobotResult(name, "pending: lost", r.stamps, r.poses_local, r.sigma_phi_local)
+        for name, r in result.robots.items()
+    }
+    return replace(result, robots=robots, features=[], associations=[])
+
+
+def _only_the_pending_robot(result: CsamResult) -> CsamResult:
+    return replace(result, robots={"robot3": result.robots["robot3"]}, features=[])
+
+
+def _no_robots(result: CsamResult) -> CsamResult:
+    return replace(result, robots={}, features=[], associations=[])
 
 
 @pytest.mark.parametrize(
-    "drop",
+    "change",
     [
-        ("scenario", "reference_frame", "associations", "timing_s"),
-        ("features",),
-        ("robots.*.features_local", "robots.*.rendezvous_stamps"),
-        ("robots.*.sigma_phi_joined", "robots.*.base_node_cov", "robots.*.base_node"),
-        ("robots.*.stamps",),
-        ("features.*.cov", "robots.*.alignment"),
+        _without_features,
+        _without_local_features_or_rendezvous,
+        _all_pending,
+        _only_the_pending_robot,
+        _no_robots,
     ],
 )
-def test_missing_optional_keys_do_not_crash(tmp_path: Path, drop: tuple[str, ...]) -> None:
-    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
-    for path in drop:
-        head, _, key = path.partition(".*.")
-        if not key:
-            del summary[head]
-            continue
-        entries = summary[head].values() if head == "robots" else summary[head]
-        for entry in entries:
-            entry.pop(key, None)
-    for png in figures.draw_all(summary, tmp_path):
+def test_what_a_result_lacks_is_left_out(tmp_path: Path, change) -> None:
+    for png in figures.draw_all(change(synthetic_summary(poses_per_robot=30)), tmp_path):
         assert_png(png, min_bytes=5_000)
 
 
-def test_only_pending_and_empty_summaries_draw(tmp_path: Path) -> None:
-    summary = synthetic_summary(poses_per_robot=30)
-    pending_only = {"robots": {"robot3": summary["robots"]["robot3"]}}
-    for png in figures.draw_all(pending_only, tmp_path / "pending"):
-        assert_png(png, min_bytes=5_000)
-    for png in figures.draw_all({}, tmp_path / "empty"):
-        assert_png(png, min_bytes=5_000)
+def test_bad_covariance_and_truth_are_named(tmp_path: Path) -> None:
+    result = synthetic_summary(poses_per_robot=30)
+    bad = result.features[3]
+    result.features[3] = replace(bad, cov=np.array([[1.0, 0.0], [0.0, -2.0]]))
+    label = "+".join(bad.members)
+    with pytest.raises(SummaryError, match=rf"features: covariance of '{label}'"):
+        figures.draw_joined_map(result, tmp_path / "c.png")
 
+    result = synthetic_summary(poses_per_robot=30)
+    result.robots["robot2"].feature_covariances_local[1] = [[1.0, 0.5], [0.0, 1.0]]
+    with pytest.raises(SummaryError, match=r"robots\.robot2\.features_local: .*'robot2/1'"):
+        figures.draw_local_maps(result, tmp_path / "a.png")
 
-def test_malformed_values_name_the_key(tmp_path: Path) -> None:
-    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
-    summary["robots"]["robot2"]["poses_local"] = [[0.0, 1.0]]
-    with pytest.raises(figures.SummaryError, match=r"robots\.robot2\.poses_local.*shape"):
-        figures.draw_local_maps(summary, tmp_path / "a.png")
-
-    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
-    summary["robots"]["robot1"]["sigma_phi_local"] = [0.1, 0.2]
-    with pytest.raises(figures.SummaryError, match=r"robot1\.sigma_phi_local: 2 entries but 30"):
-        figures.draw_heading_sigma(summary, tmp_path / "b.png")
-
-    summary = copy.deepcopy(synthetic_summary(poses_per_robot=30))
-    summary["features"][3]["cov"] = [[1.0, 0.0], [0.0, -2.0]]
-    label = "+".join(summary["features"][3]["members"])
-    with pytest.raises(figures.SummaryError, match=rf"features: covariance of '{label}'"):
-        figures.draw_joined_map(summary, tmp_path / "c.png")
-
-    with pytest.raises(figures.SummaryError, match="truth"):
+    with pytest.raises(ValueError, match="truth"):
         figures.draw_joined_map(synthetic_summary(30), tmp_path / "d.png", truth=np.zeros(4))
 
 
@@ -275,10 +288,10 @@ def test_large_summary_draws(tmp_path: Path) -> None:
     """A few thousand poses and features go through the collections (speed is printed)."""
     import time
 
-    summary = synthetic_summary(poses_per_robot=2000, feature_spacing=0.12)
-    count = len(summary["features"])
+    result = synthetic_summary(poses_per_robot=2000, feature_spacing=0.12)
+    count = len(result.features)
     start = time.perf_counter()
-    figures.draw_joined_map(summary, tmp_path / "joined.png")
+    figures.draw_joined_map(result, tmp_path / "joined.png")
     elapsed = time.perf_counter() - start
     print(f"joined map with {count} features and 2 x 2000 poses: {elapsed:.2f} s")
     assert count > 2000
@@ -287,16 +300,16 @@ def test_large_summary_draws(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("scenario", ["map_joining", "sensor_extension"])
 def test_draw_from_a_real_csam_run(tmp_path: Path, scenario: str) -> None:
-    """The summary C-SAM writes (CsamResult.to_dict through JSON) draws, truth included."""
+    """The result C-SAM writes to summary.json and reads back draws, truth included."""
     from csam_ros.core.csam import run_csam
     from csam_ros.core.simulation import simulate
     from csam_ros.datasets.scenario import load_scenario
 
     log = simulate(load_scenario(scenario), seed=1)
-    summary = json.loads(json.dumps(run_csam(log).to_dict()))
-    reference = next(iter(summary["robots"]))
+    result = CsamResult.from_dict(json.loads(json.dumps(run_csam(log).to_dict())))
+    reference = result.reference
     truth = se2.inverse_transform_point(
         log.truth.trajectories[reference][0], log.truth.feature_positions
     )
-    for png in figures.draw_all(summary, tmp_path, truth=truth):
+    for png in figures.draw_all(result, tmp_path, truth=truth, scenario=scenario):
         assert_png(png)

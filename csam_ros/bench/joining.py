@@ -85,7 +85,7 @@ def run(features_per_map: int, seed: int = 0) -> dict[str, float]:
     result = join_maps(maps, {n: r.rendezvous for n, r in log.robots.items()}, CsamConfig())
     t = result.timing_s
     summary = t.get("local_marginals", 0.0) + t.get("joint_marginals", 0.0)
-    association = evaluate(result.to_dict(), log.truth)["association"]
+    association = evaluate(result, log.truth)["association"]
     return {
         "features": float(np.mean([len(m.feature_ids) for m in maps])),
         "poses": float(np.mean([len(m.stamps) for m in maps])),

@@ -268,9 +268,9 @@ def run_mrclam(
     maps = [robot_map_from_local_map(local_maps[name]) for name in names]
     result = join_maps(maps, logs, options.csam)
     timing["csam"] = time.perf_counter() - clock
-    summary = result.to_dict()
     assert full.truth is not None
-    metrics = evaluate(summary, full.truth)
+    metrics = evaluate(result, full.truth)
+    consistency = result.rendezvous_filter.get("consistency")
     return {
         "options": {
             "robots": options.robots,
@@ -285,9 +285,9 @@ def run_mrclam(
             "kept": {n: int(logs[n].stamps.size) for n in names},
             "dropped": {n: prepared["thinning"]["dropped"].get(n, {}) for n in names},
         },
-        "consistency": summary["rendezvous_filter"].get("consistency"),
+        "consistency": consistency.to_dict() if consistency is not None else None,
         "metrics": metrics,
-        "summary": summary,
+        "summary": result.to_dict(),
         "timing_s": timing,
     }
 

@@ -1,4 +1,4 @@
-"""Score a run's result (the ``summary.json`` structure of ARCHITECTURE.md) against ground truth.
+"""Score a C-SAM result (:class:`~csam_ros.core.result.CsamResult`) against ground truth.
 
 Metrics (all JSON-ready):
 
@@ -16,7 +16,7 @@ Metrics (all JSON-ready):
 - ``robots``: per robot alignment status as reported by the run.
 - ``trajectory_error`` (when the truth has trajectories): joined poses, mapped through the
   same rigid alignment, against the true poses interpolated at the pose stamps.
-- ``timing_s``: passed through from the summary.
+- ``timing_s``: passed through from the result.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.log import GroundTruth
+from csam_ros.core.result import CsamResult, FeatureResult, RobotResult
 from csam_ros.core.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -76,14 +77,14 @@ def _subject(truth: GroundTruth, member: str) -> int | None:
 
 
 def _landmark_error(
-    features: list[dict], truth: GroundTruth, positions: dict[int, FloatArray]
+    features: list[FeatureResult], truth: GroundTruth, positions: dict[int, FloatArray]
 ) -> dict:
     """Rigid-align the features onto the truth; RMSE, maximum and per-feature errors."""
     rows = []
     unscored = 0
     impure = 0
     for feature in features:
-        subjects = [_subject(truth, m) for m in feature["members"]]
+        subjects = [_subject(truth, m) for m in feature.members]
         known = [s for s in subjects if s is not None and s in positions]
         if not known:
             unscored += 1
@@ -92,10 +93,10 @@ def _landmark_error(
         best = max(n for _, n in counts)
         subject = min(s for s, n in counts if n == best)
         impure += len(counts) > 1
-        xy = np.asarray(feature["xy"], dtype=float).reshape(2)
+        xy = np.asarray(feature.xy, dtype=float).reshape(2)
         if not np.isfinite(xy).all():
-            raise ValueError(f"feature {feature['members']}: xy {xy.tolist()} is not finite")
-        rows.append((list(feature["members"]), subject, xy))
+            raise ValueError(f"feature {feature.members}: xy {xy.tolist()} is not finite")
+        rows.append((list(feature.members), subject, xy))
     result: dict = {"method": ALIGNMENT_METHOD, "n_features": len(rows)}
     result["unscored_features"] = unscored
     result["impure_features"] = impure
@@ -123,11 +124,11 @@ def _landmark_error(
     return result
 
 
-def _association(features: list[dict], truth: GroundTruth, joined: set[str]) -> dict:
+def _association(features: list[FeatureResult], truth: GroundTruth, joined: set[str]) -> dict:
     """Pairwise precision and recall of the members of features against the truth."""
     true_positives = false_positives = unscored = 0
     for feature in features:
-        for a, b in combinations(feature["members"], 2):
+        for a, b in combinations(feature.members, 2):
             sa, sb = _subject(truth, a), _subject(truth, b)
             if sa is None or sb is None:
                 unscored += 1
@@ -138,12 +139,12 @@ def _association(features: list[dict], truth: GroundTruth, joined: set[str]) -> 
     # Every label of the maps, grouped by the subject it names.
     by_subject: dict[int, list[str]] = {}
     for feature in features:
-        for member in feature["members"]:
+        for member in feature.members:
             subject = _subject(truth, member)
             if subject is not None:
                 by_subject.setdefault(subject, []).append(member)
     predicted = {
-        frozenset(pair) for feature in features for pair in combinations(feature["members"], 2)
+        frozenset(pair) for feature in features for pair in combinations(feature.members, 2)
     }
     true_pairs = found = true_pairs_joined = found_joined = 0
     for members in by_subject.values():
@@ -172,7 +173,10 @@ def _association(features: list[dict], truth: GroundTruth, joined: set[str]) -> 
 
 
 def _trajectory_error(
-    robots: dict[str, dict], truth: GroundTruth, joined: set[str], transform: list[float] | None
+    robots: dict[str, RobotResult],
+    truth: GroundTruth,
+    joined: set[str],
+    transform: list[float] | None,
 ) -> dict | None:
     """Joined poses mapped by the landmark alignment vs the true poses at the same stamps."""
     if transform is None or not truth.trajectories:
@@ -181,11 +185,11 @@ def _trajectory_error(
     rotation = np.array([[c, -s], [s, c]])
     result = {}
     for name in sorted(joined):
-        entry = robots.get(name, {})
-        if name not in truth.trajectories or not entry.get("poses_joined"):
+        robot = robots[name]
+        if name not in truth.trajectories or robot.poses_joined is None:
             continue
-        stamps = np.asarray(entry["stamps"], dtype=float)
-        poses = np.asarray(entry["poses_joined"], dtype=float).reshape(-1, 3)
+        stamps = np.asarray(robot.stamps, dtype=float)
+        poses = np.asarray(robot.poses_joined, dtype=float).reshape(-1, 3)
         true_stamps = np.asarray(truth.trajectory_stamps[name], dtype=float)
         true_poses = np.asarray(truth.trajectories[name], dtype=float)
         inside = (stamps >= true_stamps[0]) & (stamps <= true_stamps[-1])
@@ -206,29 +210,25 @@ def _trajectory_error(
     return result
 
 
-def evaluate(summary: dict, truth: GroundTruth) -> dict:
-    """Metrics of a run's ``summary`` (ARCHITECTURE.md structure) against ``truth``."""
-    for key in ("robots", "features"):
-        if key not in summary:
-            raise ValueError(f"summary has no {key!r} entry (keys: {sorted(summary)})")
-    robots: dict[str, dict] = summary["robots"]
-    features: list[dict] = summary["features"]
+def evaluate(result: CsamResult, truth: GroundTruth) -> dict:
+    """Metrics of a C-SAM ``result`` against ``truth`` (JSON-ready)."""
+    features = result.features
     for i, feature in enumerate(features):
-        if "members" not in feature or "xy" not in feature or not feature["members"]:
-            raise ValueError(f"summary features[{i}] needs non-empty 'members' and 'xy'")
-    status = {name: str(entry.get("alignment", "unknown")) for name, entry in robots.items()}
-    joined = {n for n, s in status.items() if s in ("reference", "aligned")}
+        if not feature.members:
+            raise ValueError(f"features[{i}] has no member")
+    status = {name: robot.alignment for name, robot in result.robots.items()}
+    joined = result.joined_robots()
     positions = {
         int(i): np.asarray(p, dtype=float)
         for i, p in zip(truth.feature_ids, truth.feature_positions, strict=True)
     }
 
-    def robots_of(feature: dict) -> set[str]:
-        return {_split_member(m)[0] for m in feature["members"]}
+    def robots_of(feature: FeatureResult) -> set[str]:
+        return {_split_member(m)[0] for m in feature.members}
 
     joined_features = [f for f in features if robots_of(f) & joined]
     landmark = _landmark_error(joined_features, truth, positions)
-    landmark["frame"] = summary.get("reference_frame")
+    landmark["frame"] = result.reference_frame
     pending = {}
     for name in sorted(set(status) - joined):
         own = [f for f in features if robots_of(f) == {name}]
@@ -243,6 +243,8 @@ def evaluate(summary: dict, truth: GroundTruth) -> dict:
             name: {"alignment": status[name], "joined": name in joined} for name in sorted(status)
         },
         "n_joined": len(joined),
-        "trajectory_error": _trajectory_error(robots, truth, joined, landmark.get("transform")),
-        "timing_s": summary.get("timing_s", {}),
+        "trajectory_error": _trajectory_error(
+            result.robots, truth, joined, landmark.get("transform")
+        ),
+        "timing_s": dict(result.timing_s),
     }

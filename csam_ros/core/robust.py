@@ -56,6 +56,33 @@ class FilterReport:
     def to_dict(self) -> dict:
         return {"kept": dict(self.kept), "dropped": dict(self.dropped), "pairs": dict(self.pairs)}
 
+    @classmethod
+    def from_dict(cls, node: object, where: str = "report") -> FilterReport:
+        """The inverse of :meth:`to_dict`; a malformed ``node`` is a ValueError naming it."""
+        if not isinstance(node, Mapping) or sorted(node) != ["dropped", "kept", "pairs"]:
+            raise ValueError(f"{where}: expected an object of 'kept', 'dropped' and 'pairs'")
+
+        def counts(value: object, at: str) -> dict[str, int]:
+            if not isinstance(value, Mapping) or not all(
+                isinstance(n, int) and not isinstance(n, bool) for n in value.values()
+            ):
+                raise ValueError(f"{at}: expected an object of counts, got {value!r:.80}")
+            return dict(value)
+
+        pairs = node["pairs"]
+        if not isinstance(pairs, Mapping) or not all(
+            isinstance(p, Mapping) for p in pairs.values()
+        ):
+            raise ValueError(f"{where}.pairs: expected an object of objects, got {pairs!r:.80}")
+        dropped = node["dropped"]
+        if not isinstance(dropped, Mapping):
+            raise ValueError(f"{where}.dropped: expected an object, got {dropped!r:.80}")
+        return cls(
+            kept=counts(node["kept"], f"{where}.kept"),
+            dropped={r: counts(d, f"{where}.dropped.{r}") for r, d in dropped.items()},
+            pairs={k: dict(p) for k, p in pairs.items()},
+        )
+
 
 def select_rendezvous(log: RendezvousLog, keep: BoolArray) -> RendezvousLog:
     """The measurements of ``log`` where ``keep`` is true."""

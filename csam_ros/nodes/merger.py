@@ -9,8 +9,6 @@ changes it re-solves (at most every ``solve_period`` wall-clock seconds) with th
 
 from __future__ import annotations
 
-import json
-import os
 import sys
 import time
 from dataclasses import fields
@@ -18,13 +16,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from csam_msgs.msg import LocalMap, RendezvousPoses
+from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
+from visualization_msgs.msg import MarkerArray
 
 from csam_ros.core.csam import CsamConfig, join_maps
+from csam_ros.core.result import CsamResult, MergerStats, RunSummary
 from csam_ros.core.validation import DropCounter
-from csam_ros.nodes.common import declare, publisher, run_node, steady_clock, subscribe
+from csam_ros.nodes.common import LATCHED, declare, run_node, steady_clock
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
     LocalMapError,
@@ -33,15 +33,8 @@ from csam_ros.ros.map_messages import (
     robot_map_from_message,
 )
 from csam_ros.ros.markers import joined_map_markers
-from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS
 
-
-def write_json_atomically(path: Path, document: dict) -> None:
-    """Write JSON next to ``path`` and rename it over ``path`` (readers never see half)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(document, indent=1))
-    os.replace(tmp, path)
+STATUS_TOPIC = "/csam/status"
 
 
 class Merger(Node):
@@ -69,16 +62,18 @@ class Merger(Node):
         self.rendezvous: dict[str, RendezvousPoses] = {}
         self.drops = DropCounter()
         self.dirty = False
-        self.last_summary: dict | None = None
+        self.last_result: CsamResult | None = None
         self.solves = 0
         self.solve_seconds = 0.0
         self.last_error = ""
         for robot in self.robots:
-            subscribe(self, LOCAL_MAP, self.on_local_map, LOCAL_MAP.of(robot))
-            subscribe(self, RENDEZVOUS_POSES, self.on_rendezvous_poses, RENDEZVOUS_POSES.of(robot))
-        self.joined_pub = publisher(self, JOINED_MAP)
-        self.markers_pub = publisher(self, MARKERS)
-        self.status_pub = publisher(self, STATUS)
+            self.create_subscription(LocalMap, f"/{robot}/local_map", self.on_local_map, LATCHED)
+            self.create_subscription(
+                RendezvousPoses, f"/{robot}/rendezvous_poses", self.on_rendezvous_poses, LATCHED
+            )
+        self.joined_pub = self.create_publisher(JoinedMap, "/csam/joined_map", LATCHED)
+        self.markers_pub = self.create_publisher(MarkerArray, "/csam/markers", LATCHED)
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
         self.create_timer(max(period, 0.01), self.on_timer, clock=steady_clock())
 
     def _known(self, robot: str) -> bool:
@@ -132,35 +127,34 @@ class Merger(Node):
             self.get_logger().error(f"C-SAM failed: {err}")
             return
         self.last_error = ""
-        summary = result.to_dict()
         self.solve_seconds = time.perf_counter() - start
         self.solves += 1
-        summary["timing_s"]["merger_solve"] = self.solve_seconds
-        summary["merger"] = {"dropped": self.drops.as_dict(), "solves": self.solves}
-        self.last_summary = summary
+        result.timing_s["merger_solve"] = self.solve_seconds
+        self.last_result = result
         stamps = {r: time_to_ns(m.header.stamp) for r, m in self.local_maps.items()}
         if self.summary_path is not None:
-            write_json_atomically(self.summary_path, summary)
+            merger = MergerStats(dropped=self.drops.as_dict(), solves=self.solves)
+            RunSummary(result, merger=merger).write(self.summary_path)
         newest = max(stamps.values())
-        self.joined_pub.publish(joined_map_message(summary, newest, stamps, self.robots))
-        self.markers_pub.publish(joined_map_markers(summary, self.get_clock().now().to_msg()))
+        self.joined_pub.publish(joined_map_message(result, newest, stamps, self.robots))
+        self.markers_pub.publish(joined_map_markers(result, self.get_clock().now().to_msg()))
 
     def publish_status(self) -> None:
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        robots = (self.last_summary or {}).get("robots", {})
+        result = self.last_result
         for robot in self.robots:
-            r = robots.get(robot)
+            r = result.robots.get(robot) if result is not None else None
             if robot not in self.local_maps:
                 alignment = "pending: no local map received"
             elif r is None:
                 alignment = "pending: not solved yet"
             else:
-                alignment = r["alignment"]
+                alignment = r.alignment
             ok = alignment in ("reference", "aligned")
             values = {
                 "alignment": alignment,
-                "poses": len(r["stamps"]) if r else 0,
+                "poses": len(r.stamps) if r is not None else 0,
                 "solve_seconds": round(self.solve_seconds, 4),
             }
             array.status.append(
@@ -172,11 +166,10 @@ class Merger(Node):
                     values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
                 )
             )
-        summary = self.last_summary or {}
         values = {
             "solves": self.solves,
-            "features": len(summary.get("features", [])),
-            "associations": len(summary.get("associations", [])),
+            "features": len(result.features) if result is not None else 0,
+            "associations": len(result.associations) if result is not None else 0,
             "solve_seconds": round(self.solve_seconds, 4),
             "dropped": self.drops.total,
             "last_error": self.last_error,

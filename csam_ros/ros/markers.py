@@ -8,6 +8,8 @@ from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
+from csam_ros.core.result import CsamResult
+
 CHI2_2DOF_95 = 5.991  # ellipses enclose 95 % of a 2D Gaussian
 ELLIPSE_SEGMENTS = 24
 PALETTE = [  # tab10
@@ -52,16 +54,16 @@ def _points(xy: np.ndarray) -> list[Point]:
     return [Point(x=float(x), y=float(y), z=0.0) for x, y in xy]
 
 
-def joined_map_markers(summary: dict, stamp: Time) -> MarkerArray:
-    """Markers of a C-SAM summary dict in its reference frame."""
-    frame = summary["reference_frame"]
+def joined_map_markers(result: CsamResult, stamp: Time) -> MarkerArray:
+    """Markers of a C-SAM result in its reference frame."""
+    frame = result.reference_frame
     array = MarkerArray()
     clear = Marker()
     clear.action = Marker.DELETEALL
     array.markers.append(clear)
-    for i, (name, robot) in enumerate(summary["robots"].items()):
-        poses = np.asarray(robot.get("poses_joined") or [], dtype=float).reshape(-1, 3)
-        if len(poses) < 2:
+    for i, (name, robot) in enumerate(result.robots.items()):
+        poses = robot.poses_joined
+        if poses is None or len(poses) < 2:
             continue
         m = _marker(frame, stamp, "trajectories", i, Marker.LINE_STRIP)
         m.scale.x = 0.05
@@ -69,11 +71,11 @@ def joined_map_markers(summary: dict, stamp: Time) -> MarkerArray:
         m.points = _points(poses[:, :2])
         m.text = name
         array.markers.append(m)
-    features = summary["features"]
+    features = result.features
     if features:
-        xy = np.array([f["xy"] for f in features], dtype=float)
-        cov = np.array([f["cov"] for f in features], dtype=float)
-        shared = np.array([len(f["members"]) > 1 for f in features])
+        xy = np.array([f.xy for f in features], dtype=float)
+        cov = np.array([f.cov for f in features], dtype=float)
+        shared = np.array([len(f.members) > 1 for f in features])
         for k, (ns, mask, color) in enumerate(
             (
                 ("features/shared", shared, ColorRGBA(r=0.9, g=0.1, b=0.1, a=1.0)),

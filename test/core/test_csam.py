@@ -43,7 +43,7 @@ def test_map_joining_lowers_heading_uncertainty_everywhere(map_joining) -> None:
 
 def test_map_joining_associations_are_right(map_joining) -> None:
     log, result = map_joining
-    metrics = evaluate(result.to_dict(), log.truth)["association"]
+    metrics = evaluate(result, log.truth)["association"]
     assert metrics["true_pairs"] > 30
     assert metrics["precision"] == 1.0
     assert metrics["recall"] >= 0.9
@@ -162,7 +162,7 @@ def test_chain_of_four_and_a_robot_that_never_meets() -> None:
         err = _base_error(log, result, f"robot{k}")
         cov = result.robots[f"robot{k}"].base_node_cov
         assert err @ np.linalg.solve(cov, err) < chi2.ppf(0.999, 3)
-    metrics = evaluate(result.to_dict(), log.truth)["association"]
+    metrics = evaluate(result, log.truth)["association"]
     assert metrics["precision"] == 1.0 and metrics["recall_aligned"] >= 0.9
     # clusters over three and four robots
     assert max(len(f.members) for f in result.features) >= 3
@@ -245,8 +245,8 @@ def test_rendezvous_filters_drop_a_wrong_measurement_and_thin_the_rest() -> None
 
     trusting = run_csam(wrong)
     checked = run_csam(wrong, CsamConfig(rendezvous_consistency=True, consistency_drift=0.2))
-    report = checked.to_dict()["rendezvous_filter"]["consistency"]
-    assert report["dropped"] == {"robot1": {"inconsistent": 1}}
+    report = checked.rendezvous_filter["consistency"]
+    assert report.dropped == {"robot1": {"inconsistent": 1}}
     assert checked.statistics["rendezvous_measurements"] == n_measured - 1
     assert nees(checked) < chi2.ppf(0.999, 3) < nees(trusting)
 
@@ -254,8 +254,8 @@ def test_rendezvous_filters_drop_a_wrong_measurement_and_thin_the_rest() -> None
     kept = thinned.statistics["rendezvous_measurements"]
     assert 2 <= kept <= 8 < n_measured  # two ordered pairs, at most 4 each
     report = thinned.rendezvous_filter["thinning"]
-    assert sum(report["kept"].values()) == kept
-    assert kept + sum(sum(d.values()) for d in report["dropped"].values()) == n_measured
+    assert sum(report.kept.values()) == kept
+    assert kept + sum(sum(d.values()) for d in report.dropped.values()) == n_measured
     assert thinned.robots["robot2"].alignment == "aligned"
     assert nees(thinned) < chi2.ppf(0.999, 3)
 

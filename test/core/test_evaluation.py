@@ -1,4 +1,4 @@
-"""Closed-form cases of the run evaluation against ground truth."""
+"""Closed-form cases of the evaluation of a C-SAM result against ground truth."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 
 from csam_ros.core.evaluation import evaluate, kabsch_2d
 from csam_ros.core.log import GroundTruth
+from csam_ros.core.result import CsamResult, FeatureResult, RobotResult
 from csam_ros.core.se2 import rotation
 
 IDS = np.array([10, 11, 12, 13, 14])
@@ -33,22 +34,32 @@ def rigid(points: np.ndarray, phi: float, t: tuple[float, float]) -> np.ndarray:
     return points @ rotation(phi).T + np.array(t)
 
 
-def summary(features: list[dict], status: dict[str, str] | None = None) -> dict:
+def robot(name: str, alignment: str, stamps: np.ndarray | None = None, poses=None) -> RobotResult:
+    """A robot of ``len(stamps)`` poses (none by default), joined ``poses`` when given."""
+    stamps = np.zeros(0) if stamps is None else stamps
+    n = len(stamps)
+    return RobotResult(name, alignment, stamps, np.zeros((n, 3)), np.zeros(n), poses_joined=poses)
+
+
+def summary(features: list[FeatureResult], status: dict[str, str] | None = None) -> CsamResult:
     status = status or {"robot1": "reference", "robot2": "aligned"}
-    return {
-        "reference_frame": "robot1/map",
-        "robots": {name: {"alignment": s} for name, s in status.items()},
-        "features": features,
-        "associations": [],
-        "timing_s": {"total": 1.5},
-    }
+    return CsamResult(
+        reference_frame="robot1/map",
+        robots={name: robot(name, s) for name, s in status.items()},
+        features=features,
+        associations=[],
+        timing_s={"total": 1.5},
+    )
 
 
-def joined_features(xy: np.ndarray) -> list[dict]:
+def feature(members: list[str], xy) -> FeatureResult:
+    return FeatureResult(members, np.asarray(xy, dtype=float), np.eye(2))
+
+
+def joined_features(xy: np.ndarray) -> list[FeatureResult]:
     """Each subject one feature with both robots' labels."""
     return [
-        {"members": [f"robot1/{s - 9}", f"robot2/{15 - s}"], "xy": p.tolist(), "cov": np.eye(2)}
-        for s, p in zip(IDS, xy, strict=True)
+        feature([f"robot1/{s - 9}", f"robot2/{15 - s}"], p) for s, p in zip(IDS, xy, strict=True)
     ]
 
 
@@ -104,16 +115,16 @@ def test_precision_recall_hand_made() -> None:
     xy = POSITIONS
     features = [
         # 10 correct pair
-        {"members": ["robot1/1", "robot2/5"], "xy": xy[0].tolist()},
+        feature(["robot1/1", "robot2/5"], xy[0]),
         # wrong: robot1's 11 with robot2's 12
-        {"members": ["robot1/2", "robot2/3"], "xy": xy[1].tolist()},
+        feature(["robot1/2", "robot2/3"], xy[1]),
         # 12 and 11 left unassociated on their other side
-        {"members": ["robot1/3"], "xy": xy[2].tolist()},
-        {"members": ["robot2/4"], "xy": xy[1].tolist()},
+        feature(["robot1/3"], xy[2]),
+        feature(["robot2/4"], xy[1]),
         # 13 correct pair
-        {"members": ["robot1/4", "robot2/2"], "xy": xy[3].tolist()},
+        feature(["robot1/4", "robot2/2"], xy[3]),
         # 14 only seen by robot1
-        {"members": ["robot1/5"], "xy": xy[4].tolist()},
+        feature(["robot1/5"], xy[4]),
     ]
     association = evaluate(summary(features), truth())["association"]
     # predicted pairs: 3, true positives 2; true pairs: subjects 10, 11, 12, 13 = 4
@@ -129,7 +140,7 @@ def test_precision_recall_hand_made() -> None:
 def test_three_member_feature_counts_all_pairs() -> None:
     gt = truth()
     gt.label_to_feature["robot3"] = {7: 10}
-    features = [{"members": ["robot1/1", "robot2/5", "robot3/7"], "xy": [0.0, 0.0]}]
+    features = [feature(["robot1/1", "robot2/5", "robot3/7"], [0.0, 0.0])]
     status = {"robot1": "reference", "robot2": "aligned", "robot3": "aligned"}
     association = evaluate(summary(features, status), gt)["association"]
     assert association["true_positives"] == 3
@@ -139,12 +150,12 @@ def test_three_member_feature_counts_all_pairs() -> None:
 
 def test_pending_robot_scored_in_its_own_frame() -> None:
     features = [
-        {"members": [f"robot1/{s - 9}"], "xy": p.tolist()}
+        feature([f"robot1/{s - 9}"], p)
         for s, p in zip(IDS, rigid(POSITIONS, 0.3, (1.0, 0.0)), strict=True)
     ]
     # robot2's map is in its own frame, far away and rotated: it must not spoil robot1's score
     features += [
-        {"members": [f"robot2/{15 - s}"], "xy": p.tolist()}
+        feature([f"robot2/{15 - s}"], p)
         for s, p in zip(IDS[:3], rigid(POSITIONS[:3], 2.0, (50.0, 50.0)), strict=True)
     ]
     status = {"robot1": "reference", "robot2": "pending: one rendezvous measurement"}
@@ -165,8 +176,8 @@ def test_pending_robot_scored_in_its_own_frame() -> None:
 
 def test_impure_and_unknown_features() -> None:
     features = joined_features(POSITIONS)
-    features[0]["members"].append("robot1/2")  # robot1's subject 11 wrongly merged into 10
-    features.append({"members": ["robot1/99"], "xy": [0.0, 0.0]})  # no truth for label 99
+    features[0].members.append("robot1/2")  # robot1's subject 11 wrongly merged into 10
+    features.append(feature(["robot1/99"], [0.0, 0.0]))  # no truth for label 99
     landmark = evaluate(summary(features), truth())["landmark_error"]
     assert landmark["impure_features"] == 1
     assert landmark["unscored_features"] == 1
@@ -183,17 +194,19 @@ def test_trajectory_error_uses_the_landmark_alignment() -> None:
     local_xy = (true_poses[:, :2] - np.array(t)) @ rotation(phi)
     poses = np.column_stack([local_xy, true_poses[:, 2] - phi]) + np.array([0.1, 0.0, 0.0])
     s = summary(features)
-    s["robots"]["robot1"].update(stamps=stamps.tolist(), poses_joined=poses.tolist())
+    s.robots["robot1"] = robot("robot1", "reference", stamps, poses)
     error = evaluate(s, gt)["trajectory_error"]["robot1"]
     assert error["n_poses"] == 3
     assert error["position_rmse_m"] == pytest.approx(0.1)
     assert error["heading_rmse_rad"] == pytest.approx(0.0, abs=1e-12)
 
 
-def test_bad_summary_gives_clear_errors() -> None:
-    with pytest.raises(ValueError, match="'features'"):
-        evaluate({"robots": {}}, truth())
+def test_bad_results_give_clear_errors() -> None:
     with pytest.raises(ValueError, match="not '<robot>/<label>'"):
-        evaluate(summary([{"members": ["seven"], "xy": [0, 0]}]), truth())
-    with pytest.raises(ValueError, match="features\\[0\\]"):
-        evaluate(summary([{"members": [], "xy": [0, 0]}]), truth())
+        evaluate(summary([feature(["seven"], [0, 0])]), truth())
+    with pytest.raises(ValueError, match="label 'x' is not an integer"):
+        evaluate(summary([feature(["robot1/x"], [0, 0])]), truth())
+    with pytest.raises(ValueError, match=r"features\[0\] has no member"):
+        evaluate(summary([feature([], [0, 0])]), truth())
+    with pytest.raises(ValueError, match="not finite"):
+        evaluate(summary([feature(["robot1/1"], [np.nan, 0])]), truth())

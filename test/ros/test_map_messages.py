@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from visualization_msgs.msg import Marker
 
 from csam_ros.core.csam import join_maps, robot_map_from_local_map
 from csam_ros.core.factors import Cauchy, Huber
@@ -11,12 +12,15 @@ from csam_ros.core.local_map import LocalMapOptions, build_local_map
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
+    joined_map_message,
     rendezvous_log_from_message,
     rendezvous_poses_message,
     robot_map_from_message,
     robot_map_to_message,
 )
+from csam_ros.ros.markers import joined_map_markers
 
 
 @pytest.fixture(scope="module")
@@ -51,18 +55,59 @@ def test_robust_kernels_survive_the_message(kernel) -> None:
 
 def test_join_from_messages_equals_join_in_process(maps_and_logs) -> None:
     maps, logs = maps_and_logs
-    direct = join_maps(maps, logs).to_dict()
+    direct = join_maps(maps, logs)
     rebuilt = [robot_map_from_message(robot_map_to_message(m, 1)) for m in maps]
     logs_back = {}
     for m in maps:
         msg = rendezvous_poses_message(m, 1, np.arange(2), logs[m.name])
         logs_back[m.name] = rendezvous_log_from_message(msg)
         assert logs_back[m.name].observed == list(logs[m.name].observed)
-    via = join_maps(rebuilt, logs_back).to_dict()
-    for name, robot in direct["robots"].items():
-        assert via["robots"][name]["alignment"] == robot["alignment"]
-        if robot["poses_joined"]:
-            np.testing.assert_allclose(
-                via["robots"][name]["poses_joined"], robot["poses_joined"], atol=1e-9
-            )
-    assert [a["a"] for a in via["associations"]] == [a["a"] for a in direct["associations"]]
+    via = join_maps(rebuilt, logs_back)
+    for name, robot in direct.robots.items():
+        assert via.robots[name].alignment == robot.alignment
+        if robot.poses_joined is not None:
+            np.testing.assert_allclose(via.robots[name].poses_joined, robot.poses_joined, atol=1e-9)
+    assert [a.a for a in via.associations] == [a.a for a in direct.associations]
+
+
+def test_joined_map_message_and_markers_carry_the_result(maps_and_logs) -> None:
+    maps, logs = maps_and_logs
+    result = join_maps(maps, logs)
+    stamps = {"robot1": 5_000_000_000}
+    msg = joined_map_message(result, 7_000_000_000, stamps, ["robot1", "robot2", "robot3"])
+    assert msg.header.frame_id == "robot1/map" and msg.reference_robot == "robot1"
+    assert time_to_ns(msg.header.stamp) == 7_000_000_000
+    nodes = {n.robot: n for n in msg.base_nodes}
+    assert time_to_ns(nodes["robot1"].local_map_stamp) == 5_000_000_000
+    assert nodes["robot3"].alignment == "pending: no local map yet"
+    robot2 = result.robots["robot2"]
+    assert nodes["robot2"].alignment == "aligned"
+    assert robot2.base_node is not None and robot2.base_node_cov is not None
+    pose = nodes["robot2"].pose
+    np.testing.assert_array_equal([pose.x, pose.y, pose.theta], robot2.base_node)
+    np.testing.assert_array_equal(nodes["robot2"].covariance, robot2.base_node_cov.ravel())
+    trajectory = {t.robot: t for t in msg.trajectories}["robot2"]
+    assert robot2.poses_joined is not None and robot2.sigma_phi_joined is not None
+    np.testing.assert_array_equal(
+        [[p.x, p.y, p.theta] for p in trajectory.poses], robot2.poses_joined
+    )
+    np.testing.assert_array_equal(trajectory.sigma_phi, robot2.sigma_phi_joined)
+    np.testing.assert_allclose(
+        [time_to_ns(t) * 1e-9 for t in trajectory.stamps], robot2.stamps, atol=1e-9
+    )
+    assert [f.members for f in msg.features] == [f.members for f in result.features]
+    feature = result.features[0]
+    assert (msg.features[0].x, msg.features[0].y) == tuple(feature.xy)
+    np.testing.assert_array_equal(msg.features[0].covariance, feature.cov[np.triu_indices(2)])
+    assert [(a.a, a.b, a.mahalanobis) for a in msg.associations] == [
+        (a.a, a.b, a.mahalanobis) for a in result.associations
+    ]
+
+    markers = {(m.ns, m.id): m for m in joined_map_markers(result, msg.header.stamp).markers}
+    assert markers[("", 0)].action == Marker.DELETEALL
+    lines = [m for m in markers.values() if m.ns == "trajectories"]
+    assert {m.text for m in lines} == {"robot1", "robot2"}
+    shared = sum(len(f.members) > 1 for f in result.features)
+    assert len(markers[("features/shared", 0)].points) == shared > 0
+    assert len(markers[("features/single", 1)].points) == len(result.features) - shared
+    assert all(m.header.frame_id == "robot1/map" for m in lines)
