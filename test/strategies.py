@@ -35,6 +35,16 @@ def points(bound: float = 10.0) -> st.SearchStrategy[Array]:
     return st.tuples(coordinates(bound), coordinates(bound)).map(np.array)
 
 
+def covariances(dim: int) -> st.SearchStrategy[Array]:
+    """A symmetric positive definite ``(dim, dim)`` matrix, condition number below about 1e3."""
+    entries = st.lists(coordinates(1.0), min_size=dim * dim, max_size=dim * dim)
+    return entries.map(lambda m: _spd(np.reshape(m, (dim, dim))))
+
+
+def _spd(m: Array) -> Array:
+    return m @ m.T + 0.01 * np.eye(len(m))
+
+
 def batches(item: st.SearchStrategy[Array], size: int) -> st.SearchStrategy[Array]:
     """``size`` items stacked into one array ``(size, ...)``."""
     return st.lists(item, min_size=size, max_size=size).map(np.array)

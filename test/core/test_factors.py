@@ -1,8 +1,12 @@
-"""Jacobians of every factor kind against central finite differences; input checks."""
+"""Jacobians of every factor kind against central finite differences; input checks; residuals,
+Jacobians, whitening and robust kernels as properties (hypothesis)."""
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from jacobians import numeric_block_jacobians, numeric_jacobian
+from strategies import batches, covariances, points, poses
 
 from csam_ros.core import se2
 from csam_ros.core.factors import (
@@ -164,3 +168,117 @@ def test_singular_sqrt_information_is_rejected():
     w = np.array([[[1.0, 2.0], [0.5, 1.0]]])
     with pytest.raises(ValueError, match="sqrt_information of factor 0 is singular"):
         PointPrior([0], [[0.0, 0.0]], w)
+
+
+# -- properties ------------------------------------------------------------------------------
+
+K = 3  # factors per drawn example
+pose_batches = batches(poses(), K)
+point_batches = batches(points(), K)
+
+
+def ids(offset=0):
+    return np.arange(K) + offset
+
+
+def assert_zero_errors(factor, blocks):
+    e, _ = factor.evaluate(blocks, False)
+    np.testing.assert_allclose(e, 0.0, atol=1e-9)
+
+
+@given(pose_batches, pose_batches)
+def test_pose_prior_properties(x, prior):
+    assert_zero_errors(PosePrior(ids(), x, unit_w(K, 3)), [x])
+    f = PosePrior(ids(), prior, unit_w(K, 3))
+    check_jacobians(f, [x], angles=[2])
+    assert np.all(np.abs(f.evaluate([x], False)[0][:, 2]) <= np.pi)
+
+
+@given(point_batches, point_batches)
+def test_point_prior_properties(x, prior):
+    assert_zero_errors(PointPrior(ids(), x, unit_w(K, 2)), [x])
+    check_jacobians(PointPrior(ids(), prior, unit_w(K, 2)), [x])
+
+
+@given(pose_batches, pose_batches, pose_batches)
+def test_relative_pose_properties(a, b, z):
+    exact = RelativePose(ids(), ids(K), se2.between(a, b), unit_w(K, 3))
+    assert_zero_errors(exact, [a, b])
+    check_jacobians(RelativePose(ids(), ids(K), z, unit_w(K, 3)), [a, b], angles=[2])
+
+
+@given(pose_batches, point_batches, point_batches)
+def test_point_observation_properties(x, landmarks, z):
+    exact = PointObservation(ids(), ids(K), se2.inverse_transform_point(x, landmarks), unit_w(K, 2))
+    assert_zero_errors(exact, [x, landmarks])
+    check_jacobians(PointObservation(ids(), ids(K), z, unit_w(K, 2)), [x, landmarks])
+
+
+@given(pose_batches, pose_batches, point_batches)
+def test_relative_position_properties(a, b, z):
+    exact = RelativePosition(ids(), ids(K), se2.between(a, b)[:, :2], unit_w(K, 2))
+    assert_zero_errors(exact, [a, b])
+    check_jacobians(RelativePosition(ids(), ids(K), z, unit_w(K, 2)), [a, b])
+
+
+@given(poses(), points(), st.integers(-3, 3), covariances(5))
+def test_linear_prior_is_zero_at_its_mean_modulo_full_turns(pose, point, turns, covariance):
+    mean = np.concatenate([pose, point])
+    mean[2] += 2 * np.pi * turns
+    rmat = np.linalg.cholesky(np.linalg.inv(covariance)).T
+    f = LinearPrior([0, 1], [POSE, POINT], mean, rmat)
+    r, jac, cost = f.whitened([pose[None], point[None]])
+    np.testing.assert_allclose(r, 0.0, atol=1e-8)
+    np.testing.assert_allclose(jac[0], rmat)
+    assert cost[0] == pytest.approx(0.0, abs=1e-12)
+
+
+@given(pose_batches, pose_batches, pose_batches, batches(covariances(3), K))
+def test_whitened_cost_is_the_mahalanobis_norm(a, b, z, covariance):
+    f = RelativePose(ids(), ids(K), z, covariance=covariance)
+    e, _ = f.evaluate([a, b], False)
+    r, jac, cost = f.whitened([a, b])
+    expected = 0.5 * np.einsum("ki,kij,kj->k", e, np.linalg.inv(covariance), e)
+    np.testing.assert_allclose(cost, expected, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(cost, 0.5 * np.einsum("ki,ki->k", r, r), rtol=1e-12)
+    _, raw = f.evaluate([a, b])
+    np.testing.assert_allclose(jac, f.sqrt_information @ np.concatenate(raw, axis=2), atol=1e-12)
+
+
+kernels = st.one_of(
+    st.floats(0.1, 10.0).map(Huber),
+    st.floats(0.1, 10.0).map(Cauchy),
+)
+squared_norms = st.floats(0.0, 1e6, allow_nan=False)
+
+
+@given(kernels, squared_norms, squared_norms)
+def test_robust_kernel_cost_and_weight_bounds(kernel, s, t):
+    s, t = sorted((s, t))
+    pair = np.array([s, t])
+    rho, weight = kernel.rho(pair), kernel.weight(pair)
+    assert kernel.rho(np.array([0.0]))[0] == 0.0 and kernel.weight(np.array([0.0]))[0] == 1.0
+    assert np.all(rho <= pair * (1 + 1e-12))  # never costs more than least squares
+    assert np.all((weight > 0) & (weight <= 1))
+    assert rho[0] <= rho[1] * (1 + 1e-12)  # cost non-decreasing
+    assert weight[0] >= weight[1] * (1 - 1e-12)  # weight non-increasing
+
+
+@given(kernels, st.floats(1e-3, 1e3))
+def test_robust_kernel_weight_is_the_cost_derivative(kernel, s):
+    numeric = numeric_jacobian(lambda v: kernel.rho(v[:, 0]), np.array([[s]]))[0, 0]
+    np.testing.assert_allclose(kernel.weight(np.array([s]))[0], numeric, rtol=1e-5, atol=1e-9)
+
+
+@given(kernels, pose_batches, pose_batches)
+def test_robust_kernel_scales_rows_by_the_square_root_of_the_weight(kernel, x, prior):
+    plain = PosePrior(ids(), prior, unit_w(K, 3))
+    robust = PosePrior(ids(), prior, unit_w(K, 3), robust=kernel)
+    r0, j0, c0 = plain.whitened([x])
+    r, j, c = robust.whitened([x])
+    s = 2 * c0
+    scale = np.sqrt(kernel.weight(s))
+    np.testing.assert_allclose(r, r0 * scale[:, None], atol=1e-12)
+    np.testing.assert_allclose(j, j0 * scale[:, None, None], atol=1e-12)
+    np.testing.assert_allclose(c, 0.5 * kernel.rho(s), rtol=1e-12)
+    assert np.all(c <= c0 * (1 + 1e-12))

@@ -1,0 +1,150 @@
+"""Every topic of a run, declared once: name, message type, QoS, and whether a live run records it.
+
+A topic is global (``/csam/status``) or a robot's (``odom`` is ``/<robot>/odom``; a smoother in
+the robot's namespace uses the relative name). Nodes, the importers' bag writer and the live run
+take names, types and QoS from here; a new topic is one more declaration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from csam_msgs.msg import (
+    FeatureObservations,
+    FeaturesTruth,
+    JoinedMap,
+    LocalMap,
+    RendezvousObservations,
+    RendezvousPoses,
+)
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry, Path
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rosgraph_msgs.msg import Clock
+from visualization_msgs.msg import MarkerArray
+
+SENSOR_DATA = qos_profile_sensor_data
+# Subscribing to sensor data: best effort like its publishers, but a deep queue so that a burst
+# (a bag played as fast as possible) is buffered rather than overwritten.
+SENSOR_DATA_BUFFERED = QoSProfile(
+    depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST
+)
+RELIABLE = QoSProfile(
+    depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+)
+LATCHED = QoSProfile(
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
+SHALLOW = QoSProfile(depth=10)  # reliable, volatile: only the latest values matter
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One topic: ``name`` is absolute (global) or a robot's relative suffix (per robot)."""
+
+    name: str
+    msgtype: type
+    qos: QoSProfile  # what its publishers offer
+    subscription: QoSProfile | None = None  # what its subscribers ask for, where different
+    recorded: bool = True  # a live run records it
+    sensor: bool = False  # a measurement stream the smoothers read (and a replay plays)
+
+    @property
+    def per_robot(self) -> bool:
+        return not self.name.startswith("/")
+
+    @property
+    def subscription_qos(self) -> QoSProfile:
+        return self.subscription or self.qos
+
+    def of(self, robot: str | None = None) -> str:
+        """The absolute name: of ``robot`` for a per-robot topic, else the global name."""
+        if self.per_robot:
+            if not robot:
+                raise ValueError(f"topic {self.name!r} is per robot: name the robot")
+            return f"/{robot}/{self.name}"
+        if robot:
+            raise ValueError(f"topic {self.name} is global, not of robot {robot!r}")
+        return self.name
+
+
+ODOM = Topic("odom", Odometry, SENSOR_DATA, SENSOR_DATA_BUFFERED, sensor=True)
+FEATURES = Topic("features", FeatureObservations, RELIABLE, sensor=True)
+RENDEZVOUS = Topic("rendezvous", RendezvousObservations, RELIABLE, sensor=True)
+GROUND_TRUTH = Topic("ground_truth", Odometry, SENSOR_DATA)
+FEATURES_TRUTH = Topic("/sim/features_truth", FeaturesTruth, LATCHED)
+LOCAL_MAP = Topic("local_map", LocalMap, LATCHED)
+RENDEZVOUS_POSES = Topic("rendezvous_poses", RendezvousPoses, LATCHED)
+PATH = Topic("path", Path, LATCHED)
+JOINED_MAP = Topic("/csam/joined_map", JoinedMap, LATCHED)
+MARKERS = Topic("/csam/markers", MarkerArray, LATCHED)
+STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
+CLOCK = Topic("/clock", Clock, SHALLOW)
+
+TOPICS: tuple[Topic, ...] = (
+    ODOM,
+    FEATURES,
+    RENDEZVOUS,
+    GROUND_TRUTH,
+    FEATURES_TRUTH,
+    LOCAL_MAP,
+    RENDEZVOUS_POSES,
+    PATH,
+    JOINED_MAP,
+    MARKERS,
+    STATUS,
+    CLOCK,
+)
+_GLOBAL = {t.name: t for t in TOPICS if not t.per_robot}
+_PER_ROBOT = {t.name: t for t in TOPICS if t.per_robot}
+
+
+def parse(name: str) -> tuple[Topic, str | None] | None:
+    """The declaration of an absolute topic name and its robot (None for a global topic);
+    None when no declaration matches."""
+    if name in _GLOBAL:
+        return _GLOBAL[name], None
+    robot, _, suffix = name.removeprefix("/").rpartition("/")
+    if name.startswith("/") and robot and "/" not in robot and suffix in _PER_ROBOT:
+        return _PER_ROBOT[suffix], robot
+    return None
+
+
+def declaration(name: str) -> Topic:
+    """The declaration of an absolute topic name; ValueError naming it when there is none."""
+    found = parse(name)
+    if found is None:
+        raise ValueError(f"{name!r} is not a declared topic (csam_ros/ros/topics.py)")
+    return found[0]
+
+
+def qos_of(name: str) -> QoSProfile:
+    """The QoS a topic is published with in a live run."""
+    return declaration(name).qos
+
+
+def robot_topics(robots: Iterable[str], topics: Iterable[Topic]) -> list[str]:
+    """The absolute names of per-robot ``topics`` for each robot, robot by robot."""
+    topics = [t for t in topics if t.per_robot]
+    return [t.of(r) for r in robots for t in topics]
+
+
+def sensor_topics(robots: Iterable[str]) -> list[str]:
+    """The measurement topics of the robots: what smoothers read and a replay plays."""
+    return robot_topics(robots, (t for t in TOPICS if t.sensor))
+
+
+def recorded_topics(robots: Iterable[str]) -> list[str]:
+    """Every topic a live run of these robots records."""
+    recorded = [t for t in TOPICS if t.recorded]
+    return robot_topics(robots, recorded) + [t.name for t in recorded if not t.per_robot]
