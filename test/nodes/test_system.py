@@ -11,6 +11,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from csam_ros.core.csam import run_csam
+from csam_ros.core.result import CsamResult, MergerStats, RunSummary
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 
@@ -25,7 +27,12 @@ SCENARIO = "map_joining"
 SEED = 4
 
 
-def _nodes(context, robots: list[str], extra_smoother: list[Parameter] | None = None):
+def _nodes(
+    context,
+    robots: list[str],
+    extra_smoother: list[Parameter] | None = None,
+    summary_path: Path | None = None,
+):
     from csam_ros.nodes.merger import Merger
     from csam_ros.nodes.simulator import Simulator
     from csam_ros.nodes.smoother import Smoother
@@ -47,6 +54,7 @@ def _nodes(context, robots: list[str], extra_smoother: list[Parameter] | None = 
         parameter_overrides=[
             Parameter("robots", value=robots),
             Parameter("solve_period", value=0.05),
+            *([Parameter("summary_path", value=str(summary_path))] if summary_path else []),
         ],
     )
     simulator = Simulator(
@@ -61,7 +69,7 @@ def _nodes(context, robots: list[str], extra_smoother: list[Parameter] | None = 
     return simulator, smoothers, merger
 
 
-def _run_to_the_end(executor, spin, simulator, smoothers, merger) -> dict:
+def _run_to_the_end(executor, spin, simulator, smoothers, merger) -> CsamResult:
     assert spin(executor, lambda: simulator.next_index == len(simulator.messages), 60)
     # let reliable messages in flight arrive, then flush every smoother like `csam demo` does
     spin(executor, lambda: False, 1.0)
@@ -70,45 +78,51 @@ def _run_to_the_end(executor, spin, simulator, smoothers, merger) -> dict:
     final = {r: s.published_ns for r, s in smoothers.items()}
 
     def merged_final() -> bool:
-        summary = merger.last_summary
-        if summary is None:
+        result = merger.last_result
+        if result is None:
             return False
         return all(
-            len(summary["robots"].get(r, {}).get("stamps", [])) == len(s.map.stamps)
+            r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
             for r, s in smoothers.items()
         ) and set(merger.local_maps) == set(final)
 
     assert spin(executor, merged_final, 60)
     spin(executor, lambda: False, 0.3)
-    return merger.last_summary
+    assert merger.last_result is not None
+    return merger.last_result
 
 
 @pytest.fixture(scope="module")
-def core_result() -> dict:
-    return run_csam(simulate(load_scenario(SCENARIO), seed=SEED)).to_dict()
+def core_result() -> CsamResult:
+    return run_csam(simulate(load_scenario(SCENARIO), seed=SEED))
 
 
 def test_nodes_in_one_process_give_the_core_result(
     ros_context, spin, core_result, tmp_path
 ) -> None:
     robots = [r.name for r in load_scenario(SCENARIO).robots]
-    simulator, smoothers, merger = _nodes(ros_context, robots)
+    summary_path = tmp_path / "summary.json"
+    simulator, smoothers, merger = _nodes(ros_context, robots, summary_path=summary_path)
     executor = SingleThreadedExecutor(context=ros_context)
     for n in (simulator, merger, *smoothers.values()):
         executor.add_node(n)
     try:
-        summary = _run_to_the_end(executor, spin, simulator, smoothers, merger)
-        for name, expected in core_result["robots"].items():
-            got = summary["robots"][name]
-            assert got["alignment"] == expected["alignment"]
-            np.testing.assert_allclose(got["stamps"], expected["stamps"], atol=1e-9)
-            np.testing.assert_allclose(got["poses_local"], expected["poses_local"], atol=1e-6)
-            np.testing.assert_allclose(got["poses_joined"], expected["poses_joined"], atol=1e-6)
+        result = _run_to_the_end(executor, spin, simulator, smoothers, merger)
+        written = RunSummary.read(summary_path)  # the merger's last solve
+        assert written.to_dict() == RunSummary(result, merger=written.merger).to_dict()
+        assert written.merger == MergerStats(merger.drops.as_dict(), merger.solves)
+        assert written.merger.solves >= 1
+        for name, expected in core_result.robots.items():
+            got = result.robots[name]
+            assert got.alignment == expected.alignment
+            np.testing.assert_allclose(got.stamps, expected.stamps, atol=1e-9)
+            np.testing.assert_allclose(got.poses_local, expected.poses_local, atol=1e-6)
+            np.testing.assert_allclose(got.poses_joined, expected.poses_joined, atol=1e-6)
             np.testing.assert_allclose(
-                got["sigma_phi_joined"], expected["sigma_phi_joined"], rtol=1e-5, atol=1e-9
+                got.sigma_phi_joined, expected.sigma_phi_joined, rtol=1e-5, atol=1e-9
             )
-        pairs = {(a["a"], a["b"]) for a in summary["associations"]}
-        assert pairs == {(a["a"], a["b"]) for a in core_result["associations"]}
+        pairs = {(a.a, a.b) for a in result.associations}
+        assert pairs == {(a.a, a.b) for a in core_result.associations}
         assert len(pairs) > 0
 
         # a separate process receives the latched joined map and markers after the fact
@@ -210,7 +224,7 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
         ]
         rendezvous.publish(wrong_robot)
         spin(executor, lambda: False, 0.5)
-        summary = _run_to_the_end(executor, spin, simulator, smoothers, merger)
+        result = _run_to_the_end(executor, spin, simulator, smoothers, merger)
         # stamps going backwards and duplicates: replay the first scan after the run
         first = simulator.messages[[m.topic for m in simulator.messages].index("/robot1/features")]
         features.publish(first.message)
@@ -230,9 +244,9 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
         assert counts["dropped/unknown_robot"] == "1"
         assert int(counts["dropped/stamp_backwards"]) == 2  # the repeated scan twice
         assert counts["dropped/duplicate"] == "1"
-        for name, expected in core_result["robots"].items():
+        for name, expected in core_result.robots.items():
             np.testing.assert_allclose(
-                summary["robots"][name]["poses_joined"], expected["poses_joined"], atol=1e-6
+                result.robots[name].poses_joined, expected.poses_joined, atol=1e-6
             )
     finally:
         for n in (simulator, merger, injector, *smoothers.values()):
