@@ -89,6 +89,37 @@ def covariance_block(system: NormalEquations, scalar_indices: ArrayLike) -> Arra
     return 0.5 * (cov + cov.T)
 
 
+def covariance_columns(system: NormalEquations, scalar_indices: ArrayLike) -> Array:
+    """Columns ``(A^T A)^-1 E_S`` (``(n, |S|)``, rows in the problem's scalar order): the cross
+    covariance of every unknown with the components ``S``.
+
+    ``Y = L^-1 P^T E_S`` on the reached rows, then one backward substitution
+    ``L^-T D^-1 Y``: ``O(nnz(L) |S|)``, linear in the map for a fixed ``S``, where taking the
+    rows of :func:`covariance_block` over ``S`` and all other wanted unknowns would cost their
+    square.
+    """
+    cols = np.asarray(scalar_indices, dtype=np.int64)
+    n = system.n
+    if system.backend != "qdldl":
+        rhs = np.zeros((n, len(cols)))
+        rhs[cols, np.arange(len(cols))] = 1.0
+        return np.column_stack([system.solve(rhs[:, j]) for j in range(len(cols))])
+    strict_lower, d, perm = system._factorization.factors()  # type: ignore[union-attr]
+    strict_lower = sp.csc_matrix(strict_lower)
+    inverse_perm = np.empty(n, dtype=np.int64)
+    inverse_perm[perm] = np.arange(n)
+    rows = _reach(_elimination_tree(strict_lower), inverse_perm[cols])
+    unit_lower = (strict_lower[rows][:, rows] + sp.eye(len(rows), format="csc")).tocsr()
+    rhs = np.zeros((len(rows), len(cols)))
+    rhs[np.searchsorted(rows, inverse_perm[cols]), np.arange(len(cols))] = 1.0
+    y = spsolve_triangular(unit_lower, rhs, lower=True, unit_diagonal=True).reshape(rhs.shape)
+    w = np.zeros((n, len(cols)))
+    w[rows] = y / d[rows, None]
+    unit_upper = (strict_lower.T + sp.eye(n, format="csr")).tocsr()
+    z = spsolve_triangular(unit_upper, w, lower=False, unit_diagonal=True).reshape(w.shape)
+    return z[inverse_perm]
+
+
 def _elimination_tree(strict_lower: sp.csc_matrix) -> NDArray[np.int64]:
     """Parent of each column in the elimination tree of a factor with this strictly lower
     pattern (its first row below the diagonal; -1 for a root)."""

@@ -51,6 +51,7 @@ from csam_ros.core.association import (
 from csam_ros.core.config_file import load_document
 from csam_ros.core.covariance import (
     covariance_block,
+    covariance_columns,
     factorize_at_estimate,
     upper_sqrt_information,
 )
@@ -163,17 +164,17 @@ def _local_inputs(
     m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64]
 ) -> tuple[RendezvousPart | None, Array | None]:
     """A robot's rendezvous part and the cross covariance ``P_l,rho`` (F, 2, k) of its
-    features with its rendezvous poses, both from one joint covariance block."""
+    features with its rendezvous poses, both from the covariance columns of those poses."""
     if len(rendezvous_poses) == 0:
         return None, None
     problem = m.problem
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
     feature_columns = problem.scalar_indices(m.feature_ids)
-    k = len(pose_columns)
-    block = covariance_block(system, np.concatenate([pose_columns, feature_columns]))
-    root = upper_sqrt_information(block[:k, :k])
+    columns = covariance_columns(system, pose_columns)
+    block = columns[pose_columns]
+    root = upper_sqrt_information(0.5 * (block + block.T))
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
-    cross = block[k:, :k].reshape(len(m.feature_ids), 2, k)
+    cross = columns[feature_columns].reshape(len(m.feature_ids), 2, len(pose_columns))
     return part, cross
 
 

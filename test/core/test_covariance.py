@@ -7,6 +7,7 @@ from csam_ros.bench.smoothing import build_problem, simulate_landmark_problem
 from csam_ros.core.covariance import (
     _elimination_tree,
     _reach,
+    covariance_columns,
     factorize_at_estimate,
     marginal_covariance,
     marginal_covariances,
@@ -90,3 +91,13 @@ def test_bad_selection_is_rejected(solved):
         marginal_covariance(problem, [("x", 1), ("x", 1)], system)
     with pytest.raises(KeyError, match="no variable"):
         marginal_covariance(problem, [("x", 1000)], system)
+
+
+@pytest.mark.parametrize("backend", ["qdldl", "splu"])
+def test_covariance_columns_are_the_dense_inverse_columns(solved, backend):
+    problem, _, info = solved
+    system = factorize_at_estimate(problem, backend)
+    cols = problem.scalar_indices(problem.indices([("x", 3), ("l", 7), ("x", 118)]))
+    columns = covariance_columns(system, cols)
+    dense = np.linalg.inv(info)[:, cols]
+    np.testing.assert_allclose(columns, dense, rtol=1e-8, atol=1e-10 * np.abs(dense).max())
