@@ -152,13 +152,13 @@ def _bag_robots(bag: Path) -> list[str]:
 def _bag_contents(bag: Path) -> tuple[list[str], float]:
     """The robots of a bag's sensor topics and the bag's duration [s]."""
     from csam_ros.bag import inspect_bag
+    from csam_ros.ros.topics import parse
 
     info = inspect_bag(bag)
-    robots = sorted(
-        {t.strip("/").split("/")[0] for t in info.topics if t.endswith(("/odom", "/features"))}
-    )
+    declared = [parse(t) for t in info.topics]
+    robots = sorted({d[1] for d in declared if d is not None and d[0].sensor})
     if not robots:
-        raise CliError(f"{bag}: no /<robot>/odom or /<robot>/features topics")
+        raise CliError(f"{bag}: no sensor topics (/<robot>/odom, features or rendezvous)")
     return robots, max(info.end_ns - info.start_ns, 0) * 1e-9
 
 
@@ -170,7 +170,8 @@ def offline_summary(
     from csam_ros.core.csam import CsamConfig, run_csam
     from csam_ros.core.local_map import LocalMapConfig
     from csam_ros.core.result import RunSummary
-    from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, LogBuilder, sensor_topics
+    from csam_ros.ros.conversions import LogBuilder
+    from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
 
     document = config_document or {}
     try:
@@ -180,7 +181,7 @@ def offline_summary(
         raise CliError(str(err)) from None
     robots = _bag_robots(bag)
     builder = LogBuilder(robots)
-    for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]):
+    for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH.name]):
         builder.add(m.topic, m.message)
     log = builder.build()
     dropped = {r: c.as_dict() for r, c in builder.filter.drops.items()}
@@ -207,11 +208,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if args.offline:
             summary, _ = offline_summary(bag, document)
         else:
-            from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, sensor_topics
+            from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
             from csam_ros.run.live import LiveRun, run_live
 
             robots, duration = _bag_contents(bag)
-            topics = [*sensor_topics(robots), FEATURES_TRUTH_TOPIC]
+            topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
             run = LiveRun(
                 out_dir=out,
                 robots=robots,
@@ -292,14 +293,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def _truth_of(run_dir: Path, source: str | None) -> GroundTruth | None:
     """The ground truth in the run's bag, or in the bag it replayed (``source``)."""
     from csam_ros.bag import read_bag_messages
-    from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, truth_from_message
+    from csam_ros.ros.conversions import truth_from_message
+    from csam_ros.ros.topics import FEATURES_TRUTH
 
     candidates = [run_dir / "bag"]
     if source:
         candidates.append(Path(source))
     for bag in candidates:
         if bag.exists():
-            for m in read_bag_messages(bag, [FEATURES_TRUTH_TOPIC]):
+            for m in read_bag_messages(bag, [FEATURES_TRUTH.name]):
                 return truth_from_message(m.message)
     return None
 

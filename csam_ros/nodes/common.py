@@ -1,4 +1,7 @@
-"""Small pieces every csam_ros node shares: QoS profiles, parameter declaration, main()."""
+"""Small pieces every csam_ros node shares: parameter declaration, signals, main().
+
+Topics and their QoS are declared in :mod:`csam_ros.ros.topics`.
+"""
 
 from __future__ import annotations
 
@@ -13,29 +16,10 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import (
-    DurabilityPolicy,
-    HistoryPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-    qos_profile_sensor_data,
-)
+from rclpy.publisher import Publisher
+from rclpy.subscription import Subscription
 
-SENSOR_DATA = qos_profile_sensor_data
-# Subscribing to sensor data: best effort like its publishers, but a deep queue so that a burst
-# (a bag played as fast as possible) is buffered rather than overwritten.
-SENSOR_DATA_BUFFERED = QoSProfile(
-    depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST
-)
-RELIABLE = QoSProfile(
-    depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
-)
-LATCHED = QoSProfile(
-    depth=1,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    history=HistoryPolicy.KEEP_LAST,
-)
+from csam_ros.ros.topics import Topic
 
 
 def stop_on_signals() -> threading.Event:
@@ -72,6 +56,22 @@ def declare(
                 FloatingPointRange(from_value=float(minimum), to_value=float(maximum), step=0.0)
             ]
     return node.declare_parameter(name, default, descriptor).value
+
+
+def publisher(node: Node, topic: Topic, name: str | None = None) -> Publisher:
+    """A publisher of a declared topic with its type and QoS. ``name`` defaults to the
+    declared one: relative, so in the node's namespace, for a per-robot topic."""
+    return node.create_publisher(topic.msgtype, name or topic.name, topic.qos)
+
+
+def subscribe(
+    node: Node, topic: Topic, callback: Callable[[Any], None], name: str | None = None
+) -> Subscription:
+    """A subscription to a declared topic with its type and subscription QoS (``name`` as in
+    :func:`publisher`)."""
+    return node.create_subscription(
+        topic.msgtype, name or topic.name, callback, topic.subscription_qos
+    )
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None, doc: str = "") -> int:

@@ -16,15 +16,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
+from csam_msgs.msg import LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
-from visualization_msgs.msg import MarkerArray
 
 from csam_ros.core.csam import CsamConfig, join_maps
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
 from csam_ros.core.validation import DropCounter
-from csam_ros.nodes.common import LATCHED, declare, run_node, steady_clock
+from csam_ros.nodes.common import declare, publisher, run_node, steady_clock, subscribe
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
     LocalMapError,
@@ -33,8 +32,7 @@ from csam_ros.ros.map_messages import (
     robot_map_from_message,
 )
 from csam_ros.ros.markers import joined_map_markers
-
-STATUS_TOPIC = "/csam/status"
+from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS
 
 
 class Merger(Node):
@@ -67,13 +65,11 @@ class Merger(Node):
         self.solve_seconds = 0.0
         self.last_error = ""
         for robot in self.robots:
-            self.create_subscription(LocalMap, f"/{robot}/local_map", self.on_local_map, LATCHED)
-            self.create_subscription(
-                RendezvousPoses, f"/{robot}/rendezvous_poses", self.on_rendezvous_poses, LATCHED
-            )
-        self.joined_pub = self.create_publisher(JoinedMap, "/csam/joined_map", LATCHED)
-        self.markers_pub = self.create_publisher(MarkerArray, "/csam/markers", LATCHED)
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+            subscribe(self, LOCAL_MAP, self.on_local_map, LOCAL_MAP.of(robot))
+            subscribe(self, RENDEZVOUS_POSES, self.on_rendezvous_poses, RENDEZVOUS_POSES.of(robot))
+        self.joined_pub = publisher(self, JOINED_MAP)
+        self.markers_pub = publisher(self, MARKERS)
+        self.status_pub = publisher(self, STATUS)
         self.create_timer(max(period, 0.01), self.on_timer, clock=steady_clock())
 
     def _known(self, robot: str) -> bool:

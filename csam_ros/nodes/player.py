@@ -28,7 +28,7 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
@@ -36,8 +36,7 @@ from rosgraph_msgs.msg import Clock
 from csam_ros.bag import BagError, BagInfo, BagMessage, inspect_bag, publisher_qos, read_bag
 from csam_ros.bag.types import UnknownMessageTypeError, message_class
 from csam_ros.nodes.common import stop_on_signals
-
-CLOCK_TOPIC = "/clock"
+from csam_ros.ros.topics import CLOCK
 
 
 class PlayerNode(Node):
@@ -67,11 +66,7 @@ class PlayerNode(Node):
             qos = publisher_qos(info.offered_qos_profiles)
             self._topic_publishers[topic] = self.create_publisher(cls, topic, qos)
         self._clock_publisher = (
-            self.create_publisher(
-                Clock, CLOCK_TOPIC, QoSProfile(depth=10, durability=DurabilityPolicy.VOLATILE)
-            )
-            if publish_clock
-            else None
+            self.create_publisher(CLOCK.msgtype, CLOCK.name, CLOCK.qos) if publish_clock else None
         )
         self._last_clock = -1
 
@@ -87,7 +82,7 @@ class PlayerNode(Node):
         subscriptions; returns those short of it when ``timeout_s`` ran out."""
         publishers = dict(self._topic_publishers)
         if self._clock_publisher is not None:
-            publishers[CLOCK_TOPIC] = self._clock_publisher
+            publishers[CLOCK.name] = self._clock_publisher
         waiting = [topic for topic in topics if topic in publishers]
         deadline = time.monotonic() + timeout_s
         while not self.stop.is_set():
@@ -225,7 +220,7 @@ def select_topics(bag: BagInfo, requested: Sequence[str] | None, publish_clock: 
     else:
         topics = list(bag.topics)
     if publish_clock:
-        topics = [topic for topic in topics if topic != CLOCK_TOPIC]
+        topics = [topic for topic in topics if topic != CLOCK.name]
     if not any(bag.topics[topic].message_count for topic in topics):
         raise BagError(f"{bag.path} holds no messages to play")
     return topics
@@ -238,7 +233,7 @@ def main(args: Sequence[str] | None = None) -> int:
     try:
         bag = inspect_bag(options.bag)
         topics = select_topics(bag, options.topics, publish_clock)
-        unknown = set(options.wait_for_subscribers or ()) - {*topics, CLOCK_TOPIC}
+        unknown = set(options.wait_for_subscribers or ()) - {*topics, CLOCK.name}
         if unknown:
             raise BagError(f"--wait-for-subscribers names unplayed topic(s) {sorted(unknown)}")
     except BagError as error:

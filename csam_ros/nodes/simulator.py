@@ -17,9 +17,9 @@ from rosgraph_msgs.msg import Clock
 
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
-from csam_ros.nodes.common import declare, run_node, steady_clock
+from csam_ros.nodes.common import declare, publisher, run_node, steady_clock
 from csam_ros.ros.conversions import log_to_messages, ns_to_time
-from csam_ros.run.bag_io import topic_qos
+from csam_ros.ros.topics import CLOCK, declaration, sensor_topics
 
 
 class Simulator(Node):
@@ -81,10 +81,8 @@ class Simulator(Node):
         self.topic_publishers: dict[str, Publisher] = {}
         for m in self.messages:
             if m.topic not in self.topic_publishers:
-                self.topic_publishers[m.topic] = self.create_publisher(
-                    type(m.message), m.topic, topic_qos(m.topic)
-                )
-        self.clock = self.create_publisher(Clock, "/clock", 10)
+                self.topic_publishers[m.topic] = publisher(self, declaration(m.topic), m.topic)
+        self.clock = publisher(self, CLOCK)
         self.next_index = 0
         self.start_stamp_ns = self.messages[0].stamp_ns if self.messages else 0
         self.end_stamp_ns = self.messages[-1].stamp_ns if self.messages else 0
@@ -99,7 +97,7 @@ class Simulator(Node):
     def _subscribers_ready(self) -> bool:
         # matched subscriptions of this node's publishers, not the graph's count (which can
         # list a subscription before the middleware has matched it)
-        sensors = [f"/{r}/{s}" for r in self.robots for s in ("odom", "features", "rendezvous")]
+        sensors = sensor_topics(self.robots)
         if any(
             self.topic_publishers[t].get_subscription_count() < self.min_subscribers
             for t in sensors

@@ -16,7 +16,7 @@ import time
 from typing import Any
 
 import numpy as np
-from csam_msgs.msg import FeatureObservations, LocalMap, RendezvousObservations, RendezvousPoses
+from csam_msgs.msg import FeatureObservations, RendezvousObservations, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
@@ -30,7 +30,7 @@ from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.robust import RendezvousThinning, select_rendezvous
 from csam_ros.core.validation import MeasurementFilter
-from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA_BUFFERED, declare, run_node
+from csam_ros.nodes.common import declare, publisher, run_node, subscribe
 from csam_ros.ros.conversions import (
     features_from_message,
     ns_to_time,
@@ -42,8 +42,15 @@ from csam_ros.ros.conversions import (
     yaw_quaternion,
 )
 from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
-
-STATUS_TOPIC = "/csam/status"
+from csam_ros.ros.topics import (
+    FEATURES,
+    LOCAL_MAP,
+    ODOM,
+    PATH,
+    RENDEZVOUS,
+    RENDEZVOUS_POSES,
+    STATUS,
+)
 
 
 class Smoother(Node):
@@ -119,23 +126,22 @@ class Smoother(Node):
         self.solve_seconds = 0.0
         self.errors = 0
 
-        self.create_subscription(Odometry, "odom", self.on_odometry, SENSOR_DATA_BUFFERED)
-        self.create_subscription(FeatureObservations, "features", self.on_features, RELIABLE)
-        self.create_subscription(
-            RendezvousObservations, "rendezvous", self.on_own_rendezvous, RELIABLE
-        )
+        # this robot's topics by relative name (the node runs in the robot's namespace)
+        subscribe(self, ODOM, self.on_odometry)
+        subscribe(self, FEATURES, self.on_features)
+        subscribe(self, RENDEZVOUS, self.on_own_rendezvous)
         for peer in self.robots:
             if peer != self.robot:
-                self.create_subscription(
-                    RendezvousObservations,
-                    f"/{peer}/rendezvous",
+                subscribe(
+                    self,
+                    RENDEZVOUS,
                     lambda msg, peer=peer: self.on_peer_rendezvous(peer, msg),
-                    RELIABLE,
+                    RENDEZVOUS.of(peer),
                 )
-        self.local_map_pub = self.create_publisher(LocalMap, "local_map", LATCHED)
-        self.rendezvous_pub = self.create_publisher(RendezvousPoses, "rendezvous_poses", LATCHED)
-        self.path_pub = self.create_publisher(Path, "path", LATCHED)
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        self.local_map_pub = publisher(self, LOCAL_MAP)
+        self.rendezvous_pub = publisher(self, RENDEZVOUS_POSES)
+        self.path_pub = publisher(self, PATH)
+        self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
         self.create_timer(self.publish_period, self.on_timer)
 

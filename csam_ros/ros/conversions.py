@@ -12,7 +12,7 @@ omega in the body frame with their variances), ``/<robot>/features``, ``/<robot>
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,9 +37,14 @@ from csam_ros.core.log import (
     RobotLog,
 )
 from csam_ros.core.validation import MeasurementFilter
-
-FEATURES_TRUTH_TOPIC = "/sim/features_truth"
-SENSOR_SUFFIXES = ("odom", "features", "rendezvous")
+from csam_ros.ros.topics import (
+    FEATURES,
+    FEATURES_TRUTH,
+    GROUND_TRUTH,
+    ODOM,
+    RENDEZVOUS,
+    parse,
+)
 
 # Indices of vx, vy and wz in a row-major 6x6 twist covariance.
 _TWIST_VARIANCE = (0, 7, 35)
@@ -66,10 +71,6 @@ def time_to_seconds(stamp: Time) -> float:
 def yaw_quaternion(yaw: float) -> Quaternion:
     """The orientation of a planar pose: rotation by ``yaw`` [rad] about z."""
     return Quaternion(z=float(np.sin(yaw / 2)), w=float(np.cos(yaw / 2)))
-
-
-def topic(robot: str, suffix: str) -> str:
-    return f"/{robot}/{suffix}"
 
 
 def odometry_message(robot: str, stamp_ns: int, inputs: np.ndarray, sigmas: np.ndarray) -> Odometry:
@@ -241,13 +242,11 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
             )
         for t, u, s in zip(odo.stamps, odo.inputs, odo.sigmas, strict=True):
             ns = stamp_to_ns(t)
-            out.append(StampedMessage(ns, topic(name, "odom"), odometry_message(name, ns, u, s)))
+            out.append(StampedMessage(ns, ODOM.of(name), odometry_message(name, ns, u, s)))
             if truth_poses is not None and float(t) in truth_poses:
                 pose = truth_poses[float(t)]
                 out.append(
-                    StampedMessage(
-                        ns, topic(name, "ground_truth"), ground_truth_message(name, ns, pose)
-                    )
+                    StampedMessage(ns, GROUND_TRUTH.of(name), ground_truth_message(name, ns, pose))
                 )
         f = robot.features
         for t, g in _groups(f.stamps):
@@ -261,7 +260,7 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
                 f.sigma_range[g],
                 f.sigma_bearing[g],
             )
-            out.append(StampedMessage(ns, topic(name, "features"), msg))
+            out.append(StampedMessage(ns, FEATURES.of(name), msg))
         rv = robot.rendezvous
         for t, g in _groups(rv.stamps):
             ns = stamp_to_ns(t)
@@ -274,13 +273,13 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
                 rv.sigma_range[g],
                 rv.sigma_bearing[g],
             )
-            out.append(StampedMessage(ns, topic(name, "rendezvous"), msg))
+            out.append(StampedMessage(ns, RENDEZVOUS.of(name), msg))
     out.sort(key=lambda m: m.stamp_ns)  # stable: per stamp, robots and topics keep their order
     if with_truth and log.truth is not None:
         first = out[0].stamp_ns if out else 0
         truth_msg = features_truth_message(log.truth)
         truth_msg.header.stamp = ns_to_time(first)
-        out.insert(0, StampedMessage(first, FEATURES_TRUTH_TOPIC, truth_msg))
+        out.insert(0, StampedMessage(first, FEATURES_TRUTH.name, truth_msg))
     return out
 
 
@@ -305,16 +304,18 @@ class LogBuilder:
 
     def add(self, topic_name: str, msg: object) -> None:
         """Add one message of any sensor or truth topic; other topics are ignored."""
-        if topic_name == FEATURES_TRUTH_TOPIC:
-            self.truth = truth_from_message(msg)  # type: ignore[arg-type]
+        declared = parse(topic_name)
+        if declared is None:
             return
-        robot, _, suffix = topic_name.strip("/").rpartition("/")
-        if suffix == "odom":
+        topic, robot = declared
+        if topic is FEATURES_TRUTH:
+            self.truth = truth_from_message(msg)  # type: ignore[arg-type]
+        elif topic is ODOM:
             stamp, u, s = odometry_from_message(msg)  # type: ignore[arg-type]
             if self.filter.odometry(robot, stamp, u, s):
                 self._robot(robot)
                 self._odometry.setdefault(robot, []).append((stamp, u, s))
-        elif suffix == "features":
+        elif topic is FEATURES:
             stamp, a = features_from_message(msg)  # type: ignore[arg-type]
             keep = self.filter.features(
                 robot, stamp, a["ranges"], a["bearings"], a["sigma_range"], a["sigma_bearing"]
@@ -324,7 +325,7 @@ class LogBuilder:
                 self._features.setdefault(robot, []).append(
                     (stamp, {k: v[keep] for k, v in a.items()})
                 )
-        elif suffix == "rendezvous":
+        elif topic is RENDEZVOUS:
             stamp, a = rendezvous_from_message(msg)  # type: ignore[arg-type]
             keep = self.filter.rendezvous(
                 robot,
@@ -396,8 +397,3 @@ def rendezvous_log_from_chunks(chunks: list[tuple[float, dict[str, object]]]) ->
         _stacked(chunks, "sigma_range", float),
         _stacked(chunks, "sigma_bearing", float),
     )
-
-
-def sensor_topics(robots: Iterable[str]) -> list[str]:
-    """The sensor topics of the given robots, as replay plays them."""
-    return [topic(r, s) for r in robots for s in SENSOR_SUFFIXES]

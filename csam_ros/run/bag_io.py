@@ -7,17 +7,8 @@ from pathlib import Path
 from csam_ros.bag import BagWriter
 from csam_ros.bag.types import msgtype_of
 from csam_ros.core.log import MultiRobotLog
-from csam_ros.nodes.common import LATCHED, RELIABLE, SENSOR_DATA
-from csam_ros.ros.conversions import FEATURES_TRUTH_TOPIC, log_to_messages
-
-
-def topic_qos(topic: str):
-    """The QoS a topic is offered with in a live run (docs/ARCHITECTURE.md)."""
-    if topic == FEATURES_TRUTH_TOPIC:
-        return LATCHED
-    if topic.endswith(("/odom", "/ground_truth")):
-        return SENSOR_DATA
-    return RELIABLE
+from csam_ros.ros.conversions import log_to_messages
+from csam_ros.ros.topics import qos_of
 
 
 def write_log_bag(log: MultiRobotLog, path: Path) -> int:
@@ -26,6 +17,6 @@ def write_log_bag(log: MultiRobotLog, path: Path) -> int:
     with BagWriter(path) as bag:
         for m in messages:
             if m.topic not in bag.topics:
-                bag.add_topic(m.topic, msgtype_of(m.message), topic_qos(m.topic))
+                bag.add_topic(m.topic, msgtype_of(m.message), qos_of(m.topic))
             bag.write(m.topic, m.stamp_ns, m.message)
     return len(messages)

@@ -49,26 +49,6 @@ def _param(name: str, value: object) -> list[str]:
     return ["-p", f"{name}:={text}"]
 
 
-def recorded_topics(robots: list[str]) -> list[str]:
-    """Every topic of a run (ARCHITECTURE.md)."""
-    per_robot = (
-        "odom",
-        "features",
-        "rendezvous",
-        "ground_truth",
-        "local_map",
-        "rendezvous_poses",
-        "path",
-    )
-    return [f"/{r}/{s}" for r in robots for s in per_robot] + [
-        "/sim/features_truth",
-        "/csam/joined_map",
-        "/csam/markers",
-        "/csam/status",
-        "/clock",
-    ]
-
-
 def run_live(run: LiveRun, progress=print) -> RunSummary:
     """Run the nodes; returns the merger's final summary (``out_dir/summary.json``)."""
     run.out_dir.mkdir(parents=True, exist_ok=True)
@@ -85,13 +65,12 @@ def run_live(run: LiveRun, progress=print) -> RunSummary:
 
 def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> RunSummary:
     import rclpy
-    from csam_msgs.msg import JoinedMap
     from rclpy.executors import SingleThreadedExecutor
-    from rosgraph_msgs.msg import Clock
     from std_srvs.srv import Trigger
 
-    from csam_ros.nodes.common import LATCHED
+    from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
+    from csam_ros.ros.topics import CLOCK, JOINED_MAP, MARKERS, recorded_topics
 
     sim_time = _param("use_sim_time", True)
     topics = recorded_topics(run.robots) + run.extra_topics
@@ -127,10 +106,8 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> Run
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     latest: dict[str, object] = {"clock": None, "joined": None}
-    node.create_subscription(Clock, "/clock", lambda m: latest.__setitem__("clock", m), 10)
-    node.create_subscription(
-        JoinedMap, "/csam/joined_map", lambda m: latest.__setitem__("joined", m), LATCHED
-    )
+    subscribe(node, CLOCK, lambda m: latest.__setitem__("clock", m))
+    subscribe(node, JOINED_MAP, lambda m: latest.__setitem__("joined", m))
     clients = {r: node.create_client(Trigger, f"/{r}/smoother/flush") for r in run.robots}
     try:
         deadline = time.monotonic() + 60
@@ -208,7 +185,7 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> Run
             # the recorder must hold the final (latched) results before it is stopped
             return all(
                 any(i.node_name == "recorder" for i in node.get_subscriptions_info_by_topic(t))
-                for t in ("/csam/joined_map", "/csam/markers")
+                for t in (JOINED_MAP.name, MARKERS.name)
             )
 
         deadline = time.monotonic() + 15

@@ -131,7 +131,7 @@ def test_nodes_in_one_process_give_the_core_result(
             import sys, time, rclpy
             from csam_msgs.msg import JoinedMap
             from visualization_msgs.msg import MarkerArray
-            from csam_ros.nodes.common import LATCHED
+            from csam_ros.ros.topics import LATCHED
             rclpy.init()
             node = rclpy.create_node("late_listener")
             got = {}
@@ -164,8 +164,8 @@ def test_bad_input_is_dropped_counted_and_changes_nothing(ros_context, spin, cor
     )
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from csam_ros.nodes.common import RELIABLE
     from csam_ros.ros.conversions import ns_to_time
+    from csam_ros.ros.topics import RELIABLE
 
     robots = [r.name for r in load_scenario(SCENARIO).robots]
     simulator, smoothers, merger = _nodes(
