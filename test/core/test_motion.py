@@ -2,7 +2,10 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from jacobians import numeric_jacobian
+from strategies import assert_poses_close, batches, coordinates, poses
 
 from csam_ros.core import motion, se2
 
@@ -164,3 +167,60 @@ def test_odometry_poses_at_split_a_sample_exactly():
     at_middle = motion.odometry_poses_at(stamps, inputs, poses, [middle])[0]
     np.testing.assert_allclose(at_middle[:2], refined[10, :2], atol=1e-12)
     assert abs(se2.wrap_angle(at_middle[2] - refined[10, 2])) < 1e-12
+
+
+# -- properties ------------------------------------------------------------------------------
+
+# turn rates across the series branch (|omega T| < 1e-2), its threshold and fast turns
+turn_rates = st.one_of(st.floats(-1e-2, 1e-2), st.floats(-6.0, 6.0))
+inputs = st.tuples(st.floats(-2.0, 2.0), st.floats(-1.0, 1.0), turn_rates).map(np.array)
+durations = st.floats(0.01, 2.0)
+
+
+@given(inputs, durations)
+def test_input_jacobian_is_the_derivative(u, T):
+    _, G = motion.increment_and_jacobian(u[None], [T])
+    numeric = numeric_jacobian(lambda v: motion.increment(v, [T]), u[None], angles=[2])
+    np.testing.assert_allclose(G, numeric, atol=1e-8)
+
+
+@given(inputs, durations, durations)
+def test_constant_input_increments_compose(u, first, second):
+    whole = motion.increment(u[None], [first + second])[0]
+    parts = motion.increment(np.stack([u, u]), [first, second])
+    assert_poses_close(se2.compose(parts[0], parts[1]), whole, atol=1e-9)
+
+
+@given(inputs, durations, st.tuples(*[st.floats(1e-3, 1.0)] * 3).map(np.array))
+def test_step_covariance_is_symmetric_positive_semidefinite(u, T, sigma):
+    _, cov = motion.step_covariance(u[None], [T], sigma[None])
+    np.testing.assert_allclose(cov[0], cov[0].T, atol=1e-15)
+    assert np.linalg.eigvalsh(cov[0]).min() >= -1e-12 * np.abs(cov[0]).max()
+
+
+@given(batches(poses(), 6))
+def test_dead_reckoning_rebuilds_poses_from_their_relative_poses(path):
+    rebuilt = motion.dead_reckoning(se2.between(path[:-1], path[1:]), path[0])
+    assert_poses_close(rebuilt, path, atol=1e-8)
+
+
+increments = st.tuples(coordinates(1.0), coordinates(1.0), coordinates(1.0)).map(np.array)
+
+
+@given(
+    batches(increments, 8),
+    st.lists(st.integers(1, 7), max_size=4, unique=True).map(sorted),
+    st.lists(coordinates(0.1), min_size=8 * 9, max_size=8 * 9),
+)
+def test_compose_segments_is_sequential_compounding(inc, cuts, noise):
+    m = np.reshape(noise, (8, 3, 3))
+    cov = m @ m.transpose(0, 2, 1)
+    starts = np.array([0, *cuts])
+    total, total_cov = motion.compose_segments(inc, cov, starts)
+    edges = [*starts, 8]
+    for k in range(len(starts)):
+        want, want_cov = sequential_composition(
+            inc[edges[k] : edges[k + 1]], cov[edges[k] : edges[k + 1]]
+        )
+        assert_poses_close(total[k], want, atol=1e-12)
+        np.testing.assert_allclose(total_cov[k], want_cov, atol=1e-13)

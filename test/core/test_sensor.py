@@ -1,8 +1,12 @@
-"""Sensor model: Cartesian observation covariance, prediction Jacobians, input checks."""
+"""Sensor model: Cartesian observation covariance, prediction Jacobians, input checks; the
+same as properties (hypothesis)."""
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from jacobians import numeric_block_jacobians
+from strategies import angles, batches, points, poses
 
 from csam_ros.core import se2, sensor
 
@@ -50,3 +54,34 @@ def test_bad_observations_are_named():
         sensor.polar_to_cartesian([1.0], [np.nan], [0.1], [0.1])
     with pytest.raises(ValueError, match="observation 0: sigma_bearing must be positive"):
         sensor.polar_to_cartesian([1.0], [0.0], [0.1], [0.0])
+
+
+# -- properties ------------------------------------------------------------------------------
+
+
+@given(batches(poses(), 3), batches(points(), 3))
+def test_prediction_and_jacobians_properties(x, landmarks):
+    h, d_pose, d_point = sensor.predict_jacobians(x, landmarks)
+    np.testing.assert_allclose(h, se2.inverse_transform_point(x, landmarks), atol=1e-12)
+    np.testing.assert_allclose(h, sensor.predict(x, landmarks), atol=0)
+    num_x, num_l = numeric_block_jacobians(lambda b: sensor.predict(*b), [x, landmarks])
+    np.testing.assert_allclose(d_pose, num_x, atol=1e-7)
+    np.testing.assert_allclose(d_point, num_l, atol=1e-7)
+
+
+ranges = st.floats(0.01, 50.0)
+sigmas = st.floats(1e-4, 1.0)
+
+
+@given(ranges, angles(), sigmas, sigmas)
+def test_polar_to_cartesian_properties(r, b, sr, sb):
+    z, cov = sensor.polar_to_cartesian([r], [b], [sr], [sb])
+    back_r, back_b = sensor.cartesian_to_polar(z)
+    np.testing.assert_allclose(back_r, [r], rtol=1e-12)
+    np.testing.assert_allclose(se2.wrap_angle(back_b - b), 0.0, atol=1e-12)
+    # first-order propagation of diag(sr^2, sb^2) through (r cos b, r sin b)
+    jac = np.array([[np.cos(b), -r * np.sin(b)], [np.sin(b), r * np.cos(b)]])
+    expected = jac @ np.diag([sr**2, sb**2]) @ jac.T
+    np.testing.assert_allclose(cov[0], expected, rtol=1e-9, atol=1e-15 * np.abs(expected).max())
+    np.testing.assert_array_equal(cov[0], cov[0].T)
+    assert np.linalg.eigvalsh(cov[0]).min() > 0
