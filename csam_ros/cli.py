@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -47,16 +47,29 @@ def _fresh_dir(path: Path | None, name: str) -> Path:
 MERGER_KEYS = {"solve_period"}
 
 
-def _csam_params(document: dict) -> dict:
-    """The merger's parameters: the ``csam:`` section and the ``merger:`` section's
-    ``solve_period`` (validated before any node starts)."""
-    from csam_ros.core.csam import CsamConfig
+def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
+    """The keys given in a file section that ``node`` takes as parameters (the dataclass
+    fields whose Setting names it), checked and typed as declared, before any node starts."""
+    from csam_ros.core.config_file import settings
 
+    given = document.get(section)
     try:
-        config = CsamConfig.from_dict(document.get("csam"), "csam")
+        config = cls.from_dict(given, section)
     except ValueError as err:
         raise CliError(str(err)) from None
-    csam = {k: getattr(config, k) for k in document.get("csam") or {}}  # typed as declared
+    return {
+        name: getattr(config, name)
+        for name, (rule, _) in settings(cls).items()
+        if rule.node == node and name in (given or {})
+    }
+
+
+def _csam_params(document: dict) -> dict:
+    """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
+    section's ``solve_period``."""
+    from csam_ros.core.csam import MERGER, CsamConfig
+
+    csam = _node_params(document, "csam", CsamConfig, MERGER)
     merger = document.get("merger") or {}
     unknown = sorted(set(merger) - MERGER_KEYS) if isinstance(merger, dict) else ["(not a map)"]
     if unknown:
@@ -67,27 +80,16 @@ def _csam_params(document: dict) -> dict:
     return {**csam, **merger, "solve_period": float(period)}
 
 
-THINNING_KEYS = ("rendezvous_min_interval", "rendezvous_max_per_pair")
-
-
 def _smoother_params(document: dict) -> dict:
-    """The smoothers' parameters: the ``local_map:`` section (but the offline-only
-    ``batch_window``) and the rendezvous thinning of the ``csam:`` section."""
-    from csam_ros.core.local_map import LocalMapConfig
+    """The smoothers' parameters: their fields of the ``local_map:`` section (all but the
+    offline-only ``batch_window``) and of the ``csam:`` section (the rendezvous thinning)."""
+    from csam_ros.core.csam import CsamConfig
+    from csam_ros.core.local_map import SMOOTHER, LocalMapConfig
 
-    try:
-        config = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
-    except ValueError as err:
-        raise CliError(str(err)) from None
-    given = document.get("local_map") or {}
-    params: dict = {
-        k: v if isinstance(v, str) else float(v)
-        for k, v in asdict(config).items()
-        if k in given and k != "batch_window"
+    return {
+        **_node_params(document, "local_map", LocalMapConfig, SMOOTHER),
+        **_node_params(document, "csam", CsamConfig, SMOOTHER),
     }
-    csam = _csam_params(document)
-    params.update({k: csam[k] for k in THINNING_KEYS if k in csam})
-    return params
 
 
 def _finish(out: Path, summary: RunSummary) -> None:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +48,7 @@ from csam_ros.core.association import (
     MapFeatures,
     associate,
 )
-from csam_ros.core.config_file import load_document
+from csam_ros.core.config_file import from_mapping, load_document, setting
 from csam_ros.core.covariance import (
     covariance_block,
     covariance_columns,
@@ -62,7 +62,7 @@ from csam_ros.core.joining import (
     heading_sigmas,
     joint_solve,
 )
-from csam_ros.core.local_map import LocalMap, LocalMapConfig, build_local_map
+from csam_ros.core.local_map import SMOOTHER, LocalMap, LocalMapConfig, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
 from csam_ros.core.result import AssociationRecord, CsamResult, FeatureResult, RobotResult
@@ -77,59 +77,72 @@ from csam_ros.core.solver import NormalEquations, SolverOptions
 Array = NDArray[np.float64]
 
 
-_ZERO_ALLOWED = {"rendezvous_min_interval", "rendezvous_max_per_pair"}
+MERGER = "merger"  # the node that takes most CsamConfig fields as parameters
+_POSITIVE = {"minimum": 0.0, "exclusive": True, "node": MERGER}
 
 
 @dataclass
 class CsamConfig:
-    """Parameters of C-SAM (the ``csam:`` section of a scenario or merger parameter file)."""
+    """Parameters of C-SAM (the ``csam:`` section of a scenario or merger parameter file).
 
-    chi2_gate: float = CHI2_2DOF_99  # association gate on D (2 dof)
-    max_heading_sigma_deg: float = 5.0  # pending if the rendezvous fix the heading worse
-    mutual_time_tolerance: float = 1e-3  # s: two measurements this close are "mutual"
-    stamp_tolerance: float = 1e-6  # s: matching rendezvous stamps to local-map poses
-    skip_missing_poses: bool = False  # True (online): leave out measurements without a pose
-    max_iterations: int = 100  # of Algorithm 1 and of the joint solve
-    step_tolerance: float = 1e-9  # m, rad: stop when the largest step component is below
-    relative_tolerance: float = 1e-12  # stop when the relative cost decrease is below
-    # joint solve: stretch a robust (reweighted) step by up to this factor while the cost
-    # falls (SolverOptions.max_step_scale; 1: off). MR.CLAM: 100+ -> 68 iterations
-    max_step_scale: float = 64.0
-    associate: bool = True  # False: join through rendezvous rows only
-    # rendezvous filters for real data (csam_ros.core.robust; defaults keep everything): the
-    # thinning acts where poses are chosen (smoothers, run_csam), the check in join_maps
-    rendezvous_min_interval: float = 0.0  # s between kept measurements of one ordered pair
-    rendezvous_max_per_pair: int = 0  # kept per ordered pair, spread over time; 0: no cap
-    rendezvous_consistency: bool = False  # RANSAC check of rendezvous against the local maps
-    consistency_drift: float = 0.3  # m allowed for local-map errors in that check
+    The merger takes each field as a ROS parameter, but the rendezvous thinning, which decides
+    where the local maps hold poses and so belongs to the smoothers (online) and
+    :func:`run_csam` (offline)."""
+
+    chi2_gate: float = setting(
+        CHI2_2DOF_99, "association gate on the Mahalanobis distance (2 dof)", **_POSITIVE
+    )
+    max_heading_sigma_deg: float = setting(
+        5.0, "deg: a robot stays pending if the rendezvous fix its heading worse", **_POSITIVE
+    )
+    mutual_time_tolerance: float = setting(
+        1e-3, "s: two measurements this close are mutual", **_POSITIVE
+    )
+    stamp_tolerance: float = setting(
+        1e-6, "s: matching rendezvous stamps to local-map poses", **_POSITIVE
+    )
+    skip_missing_poses: bool = setting(
+        False, "leave out rendezvous measurements without a local-map pose", node=MERGER
+    )
+    max_iterations: int = setting(
+        100, "iterations of Algorithm 1 and of the joint solve", **_POSITIVE
+    )
+    step_tolerance: float = setting(
+        1e-9, "m, rad: stop when the largest step component is below", **_POSITIVE
+    )
+    relative_tolerance: float = setting(
+        1e-12, "stop when the relative cost decrease is below", **_POSITIVE
+    )
+    # SolverOptions.max_step_scale; MR.CLAM: 100+ -> 68 iterations
+    max_step_scale: float = setting(
+        64.0,
+        "joint solve: stretch a robust (reweighted) step by up to this factor while the cost "
+        "falls (1: off)",
+        minimum=1.0,
+        node=MERGER,
+    )
+    associate: bool = setting(True, "false: join through rendezvous rows only", node=MERGER)
+    # rendezvous filters for real data (csam_ros.core.robust; defaults keep everything)
+    rendezvous_min_interval: float = setting(
+        0.0, "s between kept rendezvous of one ordered robot pair", minimum=0.0, node=SMOOTHER
+    )
+    rendezvous_max_per_pair: int = setting(
+        0,
+        "rendezvous kept per ordered robot pair, spread over time (0: no cap)",
+        minimum=0,
+        node=SMOOTHER,
+    )
+    rendezvous_consistency: bool = setting(
+        False, "RANSAC check of rendezvous against the local maps", node=MERGER
+    )
+    consistency_drift: float = setting(
+        0.3, "m allowed for local-map errors in that check", **_POSITIVE
+    )
 
     @classmethod
     def from_dict(cls, node: Mapping[str, Any] | None, source: str = "csam") -> CsamConfig:
-        """Build from a mapping; unknown keys are errors naming them."""
-        if node is None:
-            return cls()
-        if not isinstance(node, Mapping):
-            raise ValueError(f"{source}: expected a mapping, got {type(node).__name__}")
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(node) - set(known))
-        if unknown:
-            raise ValueError(f"{source}: unknown key(s) {unknown}; allowed: {sorted(known)}")
-        values: dict[str, Any] = {}
-        for key, value in node.items():
-            default = getattr(cls(), key)
-            if isinstance(default, bool):
-                if not isinstance(value, bool):
-                    raise ValueError(f"{source}.{key}: expected true/false, got {value!r}")
-            elif isinstance(value, bool) or not isinstance(value, int | float):
-                raise ValueError(f"{source}.{key}: expected a number, got {value!r}")
-            elif key in _ZERO_ALLOWED and value == 0:
-                pass
-            elif not np.isfinite(value) or value <= 0:
-                raise ValueError(f"{source}.{key}: must be a positive number, got {value!r}")
-            elif key == "max_step_scale" and value < 1:
-                raise ValueError(f"{source}.{key}: must be at least 1 (1: off), got {value!r}")
-            values[key] = type(default)(value)
-        return cls(**values)
+        """Build from a mapping; unknown keys and bad values are errors naming them."""
+        return from_mapping(cls, node, source)
 
     @classmethod
     def from_file(cls, name_or_path: str | Path) -> CsamConfig:

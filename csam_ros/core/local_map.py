@@ -40,13 +40,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core import motion, se2, sensor
+from csam_ros.core.config_file import from_mapping, setting
 from csam_ros.core.covariance import (
     factorize_at_estimate,
     marginal_covariance,
@@ -95,6 +96,7 @@ class LocalMapOptions:
 
 
 ROBUST_KERNELS: dict[str, type[RobustKernel]] = {"huber": Huber, "cauchy": Cauchy}
+SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
 
 
 @dataclass
@@ -102,36 +104,36 @@ class LocalMapConfig:
     """The ``local_map:`` section of a parameter file; the smoother node's parameters of the
     same names (``batch_window`` is for offline builds only, ``publish_period`` for nodes)."""
 
-    key_interval: float = 1.0  # s between regular key poses; 0: off
-    robust_kernel: str = ""  # on feature observations: "" (none), "huber" or "cauchy"
-    robust_threshold: float = 0.0  # the kernel's threshold or scale (whitened); 0: its default
-    batch_window: float = 60.0  # offline: s of odometry per warm-started solve; 0: one batch
-    publish_period: float = 1.0  # online: s (node clock) between the smoother's updates
+    key_interval: float = setting(
+        1.0, "s between regular key poses (0: off)", minimum=0.0, node=SMOOTHER
+    )
+    robust_kernel: str = setting(
+        "",
+        "kernel on feature observations ('': none)",
+        choices=("", *ROBUST_KERNELS),
+        node=SMOOTHER,
+    )
+    robust_threshold: float = setting(
+        0.0,
+        "the kernel's threshold or scale, whitened (0: its default)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+    batch_window: float = setting(
+        60.0, "offline: s of odometry per warm-started solve (0: one batch)", minimum=0.0
+    )
+    publish_period: float = setting(
+        1.0,
+        "s (node clock) between a smoother's updates when data arrived",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
 
     @classmethod
     def from_dict(cls, node: Mapping[str, Any] | None, source: str = "local_map") -> LocalMapConfig:
         """Build from a mapping; unknown keys and bad values are errors naming them."""
-        if node is None:
-            return cls()
-        if not isinstance(node, Mapping):
-            raise ValueError(f"{source}: expected a mapping, got {type(node).__name__}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(node) - known)
-        if unknown:
-            raise ValueError(f"{source}: unknown key(s) {unknown}; allowed: {sorted(known)}")
-        config = cls(**{k: v for k, v in node.items()})
-        if config.robust_kernel not in ("", *ROBUST_KERNELS):
-            raise ValueError(
-                f"{source}.robust_kernel: {config.robust_kernel!r} is not one of "
-                f"'', {', '.join(repr(k) for k in ROBUST_KERNELS)}"
-            )
-        for key in ("key_interval", "robust_threshold", "batch_window", "publish_period"):
-            value = getattr(config, key)
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ValueError(f"{source}.{key}: expected a number, got {value!r}")
-            if not (np.isfinite(value) and value >= 0) or (key == "publish_period" and value == 0):
-                raise ValueError(f"{source}.{key}: must be >= 0 (period > 0), got {value!r}")
-        return config
+        return from_mapping(cls, node, source)
 
     def options(self) -> LocalMapOptions:
         kernel = ROBUST_KERNELS.get(self.robust_kernel)

@@ -5,11 +5,13 @@ Topics and their QoS are declared in :mod:`csam_ros.ros.topics`.
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from dataclasses import replace
+from typing import Any, TypeVar
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -19,7 +21,11 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
+from csam_ros.core.config_file import settings
 from csam_ros.ros.topics import Topic
+
+T = TypeVar("T")
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 
 
 def stop_on_signals() -> threading.Event:
@@ -43,19 +49,46 @@ def declare(
     description: str,
     minimum: float | None = None,
     maximum: float | None = None,
+    constraints: str = "",
 ) -> Any:
-    """Declare a parameter with a description (and a range for numbers); return its value."""
-    descriptor = ParameterDescriptor(description=description)
+    """Declare a parameter with a description (and a range for numbers, open-ended where a
+    bound is None; ``constraints`` in words); return its value."""
+    descriptor = ParameterDescriptor(description=description, additional_constraints=constraints)
     if minimum is not None or maximum is not None:
         if isinstance(default, int) and not isinstance(default, bool):
-            descriptor.integer_range = [
-                IntegerRange(from_value=int(minimum), to_value=int(maximum), step=0)
-            ]
+            low = _INT64_MIN if minimum is None else int(minimum)
+            high = _INT64_MAX if maximum is None else int(maximum)
+            descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=0)]
         elif isinstance(default, float):
+            low = -math.inf if minimum is None else float(minimum)
+            high = math.inf if maximum is None else float(maximum)
             descriptor.floating_point_range = [
-                FloatingPointRange(from_value=float(minimum), to_value=float(maximum), step=0.0)
+                FloatingPointRange(from_value=low, to_value=high, step=0.0)
             ]
     return node.declare_parameter(name, default, descriptor).value
+
+
+def declare_settings(node: Node, cls: type[T], defaults: T | None = None) -> T:
+    """Declare as ROS parameters the fields of a parameter dataclass that this node takes
+    (their :class:`~csam_ros.core.config_file.Setting` names the node), with descriptions and
+    ranges; return the dataclass built back from the values, checked (other fields keep
+    ``defaults``)."""
+    base = defaults if defaults is not None else cls()
+    values = {
+        name: declare(
+            node,
+            name,
+            getattr(base, name),
+            rule.description,
+            rule.minimum,
+            None,
+            rule.constraint,
+        )
+        for name, (rule, _) in settings(cls).items()
+        if rule.node == node.get_name()
+    }
+    checked = cls.from_dict(values, f"{node.get_name()} parameters")  # type: ignore[attr-defined]
+    return replace(base, **{name: getattr(checked, name) for name in values})
 
 
 def publisher(node: Node, topic: Topic, name: str | None = None) -> Publisher:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,14 @@ from rclpy.node import Node
 from csam_ros.core.csam import CsamConfig, join_maps
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
 from csam_ros.core.validation import DropCounter
-from csam_ros.nodes.common import declare, publisher, run_node, steady_clock, subscribe
+from csam_ros.nodes.common import (
+    declare,
+    declare_settings,
+    publisher,
+    run_node,
+    steady_clock,
+    subscribe,
+)
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
     LocalMapError,
@@ -50,12 +56,7 @@ class Merger(Node):
         )
         # online, a rendezvous stamp may reach the merger before the observed robot's map has
         # its pose: leave such a measurement out until the next solve instead of failing
-        defaults = CsamConfig(skip_missing_poses=True)
-        config = {
-            f.name: declare(self, f.name, getattr(defaults, f.name), f"C-SAM: {f.name}")
-            for f in fields(CsamConfig)
-        }
-        self.config = CsamConfig.from_dict(config, "merger parameters")
+        self.config = declare_settings(self, CsamConfig, CsamConfig(skip_missing_poses=True))
         self.local_maps: dict[str, LocalMap] = {}
         self.rendezvous: dict[str, RendezvousPoses] = {}
         self.drops = DropCounter()

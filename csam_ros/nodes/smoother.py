@@ -23,14 +23,14 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from csam_ros.core.csam import robot_map_from_local_map
+from csam_ros.core.csam import CsamConfig, robot_map_from_local_map
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
-from csam_ros.core.robust import RendezvousThinning, select_rendezvous
+from csam_ros.core.robust import select_rendezvous
 from csam_ros.core.validation import MeasurementFilter
-from csam_ros.nodes.common import declare, publisher, run_node, subscribe
+from csam_ros.nodes.common import declare, declare_settings, publisher, run_node, subscribe
 from csam_ros.ros.conversions import (
     features_from_message,
     ns_to_time,
@@ -71,48 +71,10 @@ class Smoother(Node):
             0.0,
             360.0,
         )
-        self.publish_period = declare(
-            self,
-            "publish_period",
-            1.0,
-            "seconds between publications when data arrived",
-            0.01,
-            3600.0,
-        )
-        local_map = LocalMapConfig.from_dict(
-            {
-                "key_interval": declare(
-                    self, "key_interval", 1.0, "s between regular key poses (0: off)", 0.0, 3600.0
-                ),
-                "robust_kernel": declare(
-                    self, "robust_kernel", "", "'' (none), 'huber' or 'cauchy' on features"
-                ),
-                "robust_threshold": declare(
-                    self, "robust_threshold", 0.0, "kernel threshold (0: its default)", 0.0, 100.0
-                ),
-            },
-            "smoother parameters",
-        )
+        local_map = declare_settings(self, LocalMapConfig)
+        self.publish_period = local_map.publish_period
         self.map = CoreLocalMap(self.robot, local_map.options())
-        self.thinning = RendezvousThinning(
-            declare(
-                self,
-                "rendezvous_min_interval",
-                0.0,
-                "seconds between kept rendezvous of one ordered robot pair",
-                0.0,
-                3600.0,
-            ),
-            declare(
-                self,
-                "rendezvous_max_per_pair",
-                0,
-                "rendezvous kept per ordered robot pair, spread over time (0: no cap)",
-                0,
-                100000,
-            )
-            or None,
-        )
+        self.thinning = declare_settings(self, CsamConfig).thinning()
         self.robots = list(dict.fromkeys([self.robot, *peers]))
         self.filter = MeasurementFilter(self.robots, np.deg2rad(fov))
         # the peers' own checks, repeated on their rendezvous streams so that this node keeps
