@@ -94,6 +94,9 @@ def _array(value: Any, shape: tuple[int | None, ...], where: str) -> Array:
         array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise SummaryError(f"{where}: expected numbers, got {str(value)[:80]!r}") from None
+    # numpy reads null as NaN; to_dict writes NaN as NaN, so a null is a broken entry
+    if np.isnan(array).any() and any(v is None for v in np.asarray(value, dtype=object).flat):
+        raise SummaryError(f"{where}: null among the numbers")
     if array.size == 0 and shape and shape[0] is None:
         array = array.reshape(0, *(n or 0 for n in shape[1:]))
     if array.ndim != len(shape) or any(

@@ -134,6 +134,7 @@ def _broken(document: dict, path: str, value: Any) -> dict:
             [1.0, "x", 2.0],
             r"robots\.robot2\.base_node: expected numbers",
         ),
+        ("robots.robot2.stamps.3", None, r"robots\.robot2\.stamps: null among the numbers"),
         (
             "robots.robot2.base_node_cov",
             [1.0, 2.0, 3.0],
