@@ -1,7 +1,8 @@
 """Benchmark of single-robot square-root smoothing against GTSAM (run as a module).
 
 ``python -m csam_ros.bench.smoothing [--poses 7000 --landmarks 150 --observations 3600]
-[--victoria PATH | --no-victoria] [--no-identical] [--tolerance 1e-8] [--chunk 1000]``
+[--victoria PATH | --no-victoria] [--no-identical] [--tolerance 1e-8] [--chunk 1000]
+[--no-online | --mrclam DIR | --online-duration 1500]``
 
 Problems: (1) a simulated landmark SLAM problem generated with a fixed seed; (2) the public
 Victoria Park data set in the ``ODOMETRY``/``LANDMARK`` text format (the copy shipped in
@@ -28,8 +29,9 @@ Printed side by side: problem size, iterations, seconds per Gauss-Newton iterati
 only; problem construction listed separately), final cost on its own objective and on this
 project's objective, peak memory. For this project also where the time goes (structure,
 ordering with the first factorisation, and each part of an iteration) and the share of
-GTSAM's time its factorisations alone take. The problem builders are also used by the tests
-(GTSAM as an oracle).
+GTSAM's time its factorisations alone take. The problem generators and builders are shared
+with the tests: :mod:`csam_ros.core.landmark_problem` (simulated problem, this project's
+problem, the incremental policy) and :mod:`csam_ros.core.gtsam_oracle` (the same in GTSAM).
 
 Online (``--no-online`` skips it): a robot log fed to a local map one second at a time, a
 simulated one or, with ``--mrclam DIR``, each MR.CLAM robot as ``csam replay --config
@@ -47,87 +49,31 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core import motion, se2, sensor
-from csam_ros.core.factors import POINT, POSE, Cauchy, PointObservation, PosePrior, RelativePose
+from csam_ros.core import se2
+from csam_ros.core.factors import Cauchy
+from csam_ros.core.gtsam_oracle import build_gtsam, gtsam_estimate
+from csam_ros.core.landmark_problem import (
+    GraphData,
+    build_problem,
+    read_graph,
+    save_graph,
+    simulate_landmark_problem,
+    solve_incremental,
+)
 from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
-from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
-from csam_ros.core.solver import GAUGE_SIGMA, NormalEquations, Problem, SolverOptions
+from csam_ros.core.log import RobotLog
+from csam_ros.core.simulation import simulate_robot_log
+from csam_ros.core.solver import NormalEquations, Problem, SolverOptions
 from csam_ros.datasets.slam2d import Slam2dData, initial_values, read_slam2d
 
 Array = NDArray[np.float64]
-
-
-@dataclass
-class LandmarkProblem:
-    """A simulated single-robot landmark SLAM problem."""
-
-    truth_poses: Array  # (N, 3)
-    truth_landmarks: Array  # (L, 2)
-    odometry: Array  # (N-1, 3) measured relative poses
-    odometry_covariance: Array  # (N-1, 3, 3)
-    obs_pose: NDArray[np.int64]  # (K,)
-    obs_landmark: NDArray[np.int64]  # (K,)
-    obs_range: Array  # (K,)
-    obs_bearing: Array  # (K,)
-    sigma_range: float
-    sigma_bearing: float
-    initial_poses: Array  # (N, 3) dead reckoning
-    initial_landmarks: Array  # (L, 2) from the first observation
-
-    @property
-    def obs_xy(self) -> Array:
-        return sensor.polar_to_cartesian(
-            self.obs_range, self.obs_bearing, self.sigma_range, self.sigma_bearing
-        )[0]
-
-    @property
-    def obs_covariance(self) -> Array:
-        return sensor.polar_to_cartesian(
-            self.obs_range, self.obs_bearing, self.sigma_range, self.sigma_bearing
-        )[1]
-
-    def graph(self) -> GraphData:
-        n = len(self.initial_poses)
-        z, cov = sensor.polar_to_cartesian(
-            self.obs_range, self.obs_bearing, self.sigma_range, self.sigma_bearing
-        )
-        return GraphData(
-            name="simulated",
-            initial_poses=self.initial_poses,
-            initial_landmarks=self.initial_landmarks,
-            odometry_first=np.arange(n - 1),
-            odometry_second=np.arange(1, n),
-            odometry=self.odometry,
-            odometry_covariance=self.odometry_covariance,
-            obs_pose=self.obs_pose,
-            obs_landmark=self.obs_landmark,
-            obs_xy=z,
-            obs_covariance=cov,
-        )
-
-
-@dataclass
-class GraphData:
-    """A landmark SLAM problem as index arrays (poses and landmarks numbered from 0)."""
-
-    name: str
-    initial_poses: Array  # (N, 3)
-    initial_landmarks: Array  # (L, 2)
-    odometry_first: NDArray[np.int64]  # (E,)
-    odometry_second: NDArray[np.int64]  # (E,)
-    odometry: Array  # (E, 3) pose of second in the frame of first
-    odometry_covariance: Array  # (E, 3, 3)
-    obs_pose: NDArray[np.int64]  # (K,)
-    obs_landmark: NDArray[np.int64]  # (K,)
-    obs_xy: Array  # (K, 2) in the pose frame
-    obs_covariance: Array  # (K, 2, 2)
 
 
 def graph_from_slam2d(data: Slam2dData, name: str = "file") -> GraphData:
@@ -149,397 +95,8 @@ def graph_from_slam2d(data: Slam2dData, name: str = "file") -> GraphData:
     )
 
 
-def as_graph(problem: LandmarkProblem | GraphData) -> GraphData:
-    return problem.graph() if isinstance(problem, LandmarkProblem) else problem
-
-
-def simulate_landmark_problem(
-    num_poses: int = 7000,
-    num_landmarks: int = 150,
-    num_observations: int = 3600,
-    seed: int = 7,
-    area: float = 30.0,
-    sample_time: float = 0.25,
-    speed: float = 0.8,
-    sigma_input: tuple[float, float, float] = (0.05, 0.02, 0.03),
-    sensor_range: float = 5.0,
-    sigma_range: float = 0.05,
-    sigma_bearing: float = 0.02,
-) -> LandmarkProblem:
-    """Robot wandering in a square ``area`` among random landmarks, range-bearing sensor.
-
-    Observations are drawn uniformly (fixed seed) among all pose-landmark pairs within
-    ``sensor_range`` and +-120 degrees, so that exactly ``num_observations`` remain.
-    """
-    rng = np.random.default_rng(seed)
-    landmarks = rng.uniform(0.0, area, (num_landmarks, 2))
-    poses = np.zeros((num_poses, 3))
-    poses[0] = [area / 2, area / 2, 0.0]
-    inputs = np.zeros((num_poses - 1, 3))
-    turn = 0.0
-    for i in range(1, num_poses):
-        x = poses[i - 1]
-        to_centre = np.arctan2(area / 2 - x[1], area / 2 - x[0])
-        dist = np.hypot(area / 2 - x[0], area / 2 - x[1])
-        turn = 0.9 * turn + rng.normal(0.0, 0.15)
-        if dist > 0.4 * area:
-            turn = 1.5 * se2.wrap_angle(to_centre - x[2])
-        inputs[i - 1] = [speed, 0.0, np.clip(turn, -1.2, 1.2)]
-        poses[i] = se2.compose(x, motion.increment(inputs[i - 1], sample_time))
-    dt = np.full(num_poses - 1, sample_time)
-    sig = np.tile(sigma_input, (num_poses - 1, 1))
-    measured_inputs = inputs + rng.normal(size=inputs.shape) * sig
-    odometry, odometry_cov = motion.step_covariance(measured_inputs, dt, sig)
-
-    def visibility(lms: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
-        local = se2.inverse_transform_point(poses[:, None, :], lms[None, :, :])
-        r, b = sensor.cartesian_to_polar(local)
-        return r, b, (r < sensor_range) & (np.abs(b) < np.radians(120)) & (r > 0.1)
-
-    rng_all, bearing_all, visible = visibility(landmarks)
-    unseen = np.flatnonzero(~visible.any(axis=0))
-    if unseen.size:  # move never-visible landmarks in front of random poses
-        hosts = poses[rng.integers(0, num_poses, unseen.size)]
-        dist = rng.uniform(0.5, 0.8 * sensor_range, unseen.size)
-        ang = rng.uniform(-1.0, 1.0, unseen.size)
-        local_xy = np.stack([dist * np.cos(ang), dist * np.sin(ang)], axis=1)
-        landmarks[unseen] = se2.transform_point(hosts, local_xy)
-        rng_all, bearing_all, visible = visibility(landmarks)
-    pi, li = np.nonzero(visible)
-    if len(pi) < num_observations:
-        raise ValueError(f"only {len(pi)} visible pairs for {num_observations} observations")
-    # one observation of every landmark, the rest drawn uniformly among visible pairs
-    first_of_each = np.unique(li, return_index=True)[1]
-    if num_observations < len(first_of_each):
-        raise ValueError(f"{num_observations} observations cannot see {num_landmarks} landmarks")
-    others = np.setdiff1d(np.arange(len(pi)), first_of_each)
-    extra = rng.choice(others, num_observations - len(first_of_each), replace=False)
-    keep = np.sort(np.concatenate([first_of_each, extra]))
-    pi, li = pi[keep], li[keep]
-    obs_r = rng_all[pi, li] + rng.normal(0.0, sigma_range, len(pi))
-    obs_b = se2.wrap_angle(bearing_all[pi, li] + rng.normal(0.0, sigma_bearing, len(pi)))
-
-    initial = motion.dead_reckoning(odometry, poses[0])
-    first = np.unique(li, return_index=True)[1]
-    z, _ = sensor.polar_to_cartesian(obs_r, obs_b, sigma_range, sigma_bearing)
-    initial_landmarks = se2.transform_point(initial[pi[first]], z[first])
-    return LandmarkProblem(
-        truth_poses=poses,
-        truth_landmarks=landmarks,
-        odometry=odometry,
-        odometry_covariance=odometry_cov,
-        obs_pose=pi.astype(np.int64),
-        obs_landmark=li.astype(np.int64),
-        obs_range=obs_r,
-        obs_bearing=obs_b,
-        sigma_range=sigma_range,
-        sigma_bearing=sigma_bearing,
-        initial_poses=initial,
-        initial_landmarks=initial_landmarks,
-    )
-
-
-def simulate_robot_log(
-    duration: float = 40.0,
-    rate: float = 67.0,
-    seed: int = 0,
-    landmarks: int = 12,
-    scan_rate: float = 2.0,
-) -> tuple[RobotLog, Array, Array, Array]:
-    """A robot log at MR.CLAM-like rates: odometry at ``rate`` Hz (jittered stamps), feature
-    scans at their own stamps (``scan_rate`` per second, between odometry samples), a
-    stretch of exactly zero turn rate, two rendezvous stamps.
-
-    Returns ``(log, true poses at the odometry stamps, odometry stamps, landmarks)``.
-    """
-    rng = np.random.default_rng(seed)
-    stamps = 100.0 + np.cumsum(rng.uniform(0.9, 1.1, int(duration * rate)) / rate)
-    n = len(stamps)
-    true_u = np.column_stack(
-        [0.3 + 0.1 * np.sin(stamps / 5), np.zeros(n), 0.25 * np.sin(stamps / 3)]
-    )
-    true_u[n // 3 : n // 3 + 80, 2] = 0.0
-    truth = motion.dead_reckoning(motion.increment(true_u[1:], np.diff(stamps)))
-    sig = np.tile([0.03, 0.01, 0.04], (n, 1))
-    meas_u = true_u + rng.normal(size=(n, 3)) * sig
-    lm = rng.uniform(-3, 8, (landmarks, 2))
-    scan_t = np.sort(rng.uniform(stamps[0] + 0.05, stamps[-1] - 0.05, int(duration * scan_rate)))
-    i = np.searchsorted(stamps, scan_t)
-    at_scan = se2.compose(truth[i - 1], motion.increment(true_u[i], scan_t - stamps[i - 1]))
-    r, b = sensor.cartesian_to_polar(se2.inverse_transform_point(at_scan[:, None], lm[None]))
-    seen_scan, seen_lm = np.nonzero(r < 6.0)
-    k = len(seen_scan)
-    features = FeatureLog(
-        stamps=scan_t[seen_scan],
-        labels=(seen_lm + 10).astype(np.int64),
-        ranges=r[seen_scan, seen_lm] + rng.normal(0, 0.02, k),
-        bearings=b[seen_scan, seen_lm] + rng.normal(0, 0.01, k),
-        sigma_range=np.full(k, 0.02),
-        sigma_bearing=np.full(k, 0.01),
-    )
-    rdv_t = np.array([stamps[0] + 7.31, stamps[0] + 21.005])
-    rendezvous = RendezvousLog(
-        rdv_t, ["other", "other"], np.ones(2), np.zeros(2), np.full(2, 0.1), np.full(2, 0.1)
-    )
-    log = RobotLog("robot1", OdometryLog(stamps, meas_u, sig), features, rendezvous)
-    return log, truth, stamps, lm
-
-
-def build_problem(source: LandmarkProblem | GraphData) -> Problem:
-    """This project's problem: gauge prior, odometry and Cartesian landmark observations."""
-    g = as_graph(source)
-    problem = Problem()
-    n = len(g.initial_poses)
-    pose_ids = problem.add_variables(POSE, [("x", i) for i in range(n)], g.initial_poses)
-    lm_ids = problem.add_variables(
-        POINT, [("l", j) for j in range(len(g.initial_landmarks))], g.initial_landmarks
-    )
-    problem.add_factor(
-        PosePrior(pose_ids[:1], g.initial_poses[:1], np.eye(3) / GAUGE_SIGMA, name="gauge")
-    )
-    problem.add_factor(
-        RelativePose(
-            pose_ids[g.odometry_first],
-            pose_ids[g.odometry_second],
-            g.odometry,
-            covariance=g.odometry_covariance,
-        )
-    )
-    problem.add_factor(
-        PointObservation(
-            pose_ids[g.obs_pose], lm_ids[g.obs_landmark], g.obs_xy, covariance=g.obs_covariance
-        )
-    )
-    return problem
-
-
-def _local_to_global(phi: float) -> Array:
-    """``d(global pose)/d(GTSAM tangent)`` at a pose with heading ``phi``: blkdiag(R, 1)."""
-    m = np.eye(3)
-    m[:2, :2] = se2.rotation(phi)
-    return m
-
-
-def polar_sigmas(xy: Array, covariance: Array) -> tuple[Array, Array, Array, Array]:
-    """Range, bearing and their sigmas of Cartesian observations (first-order projection)."""
-    r, b = sensor.cartesian_to_polar(xy)
-    radial = np.stack([np.cos(b), np.sin(b)], axis=1)
-    tangential = np.stack([-np.sin(b), np.cos(b)], axis=1)
-    s_r = np.sqrt(np.einsum("ki,kij,kj->k", radial, covariance, radial))
-    s_b = np.sqrt(np.einsum("ki,kij,kj->k", tangential, covariance, tangential)) / r
-    return r, b, s_r, s_b
-
-
-def build_gtsam(source: LandmarkProblem | GraphData, identical: bool) -> tuple[Any, Any]:
-    """GTSAM graph and initial values.
-
-    ``identical=True`` writes exactly this project's errors as ``CustomFactor`` (Jacobians
-    chained to GTSAM's tangent space); ``False`` uses GTSAM's native Pose2 between and
-    bearing-range factors with the covariances mapped to their errors at first order
-    (between: ``blkdiag(R(z_phi)^T, 1)``; Cartesian to polar at the measurement).
-    """
-    import gtsam
-
-    g = as_graph(source)
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-
-    def pose_key(i: int) -> int:
-        return gtsam.symbol("x", i)
-
-    def lm_key(j: int) -> int:
-        return gtsam.symbol("l", j)
-
-    for i, p in enumerate(g.initial_poses):
-        values.insert(pose_key(i), gtsam.Pose2(*p))
-    for j, p in enumerate(g.initial_landmarks):
-        values.insert(lm_key(j), np.asarray(p, dtype=float))
-    graph.add(
-        gtsam.PriorFactorPose2(
-            pose_key(0),
-            gtsam.Pose2(*g.initial_poses[0]),
-            gtsam.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA),
-        )
-    )
-    edges = zip(g.odometry_first, g.odometry_second, g.odometry, g.odometry_covariance, strict=True)
-    if not identical:
-        for a, b, z, cov in edges:
-            m = np.eye(3)
-            m[:2, :2] = se2.rotation(z[2]).T
-            graph.add(
-                gtsam.BetweenFactorPose2(
-                    pose_key(int(a)),
-                    pose_key(int(b)),
-                    gtsam.Pose2(*z),
-                    gtsam.noiseModel.Gaussian.Covariance(m @ cov @ m.T),
-                )
-            )
-        r, bearing, s_r, s_b = polar_sigmas(g.obs_xy, g.obs_covariance)
-        for k in range(len(g.obs_pose)):
-            graph.add(
-                gtsam.BearingRangeFactor2D(
-                    pose_key(int(g.obs_pose[k])),
-                    lm_key(int(g.obs_landmark[k])),
-                    gtsam.Rot2(float(bearing[k])),
-                    float(r[k]),
-                    gtsam.noiseModel.Diagonal.Sigmas(np.array([s_b[k], s_r[k]])),
-                )
-            )
-        return graph, values
-
-    def between_error(z: Array) -> Any:
-        def error(this: Any, v: Any, H: Any) -> Array:
-            a = v.atPose2(this.keys()[0])
-            b = v.atPose2(this.keys()[1])
-            xa = np.array([a.x(), a.y(), a.theta()])
-            xb = np.array([b.x(), b.y(), b.theta()])
-            f = RelativePose([0], [1], z[None], np.eye(3)[None])
-            e, jac = f.evaluate([xa[None], xb[None]])
-            if H is not None:
-                H[0] = jac[0][0] @ _local_to_global(xa[2])
-                H[1] = jac[1][0] @ _local_to_global(xb[2])
-            return e[0]
-
-        return error
-
-    def observation_error(z: Array) -> Any:
-        def error(this: Any, v: Any, H: Any) -> Array:
-            a = v.atPose2(this.keys()[0])
-            xa = np.array([a.x(), a.y(), a.theta()])
-            lm = np.asarray(v.atPoint2(this.keys()[1]), dtype=float)
-            f = PointObservation([0], [1], z[None], np.eye(2)[None])
-            e, jac = f.evaluate([xa[None], lm[None]])
-            if H is not None:
-                H[0] = jac[0][0] @ _local_to_global(xa[2])
-                H[1] = jac[1][0]
-            return e[0]
-
-        return error
-
-    for a, b, z, cov in edges:
-        graph.add(
-            gtsam.CustomFactor(
-                gtsam.noiseModel.Gaussian.Covariance(cov),
-                [pose_key(int(a)), pose_key(int(b))],
-                between_error(z),
-            )
-        )
-    for k in range(len(g.obs_pose)):
-        graph.add(
-            gtsam.CustomFactor(
-                gtsam.noiseModel.Gaussian.Covariance(g.obs_covariance[k]),
-                [pose_key(int(g.obs_pose[k])), lm_key(int(g.obs_landmark[k]))],
-                observation_error(g.obs_xy[k]),
-            )
-        )
-    return graph, values
-
-
-def gtsam_estimate(source: LandmarkProblem | GraphData, result: Any) -> tuple[Array, Array]:
-    """Poses ``(N, 3)`` and landmarks ``(L, 2)`` from GTSAM values."""
-    import gtsam
-
-    g = as_graph(source)
-    poses = np.array(
-        [
-            [p.x(), p.y(), p.theta()]
-            for p in (result.atPose2(gtsam.symbol("x", i)) for i in range(len(g.initial_poses)))
-        ]
-    )
-    lms = np.array(
-        [result.atPoint2(gtsam.symbol("l", j)) for j in range(len(g.initial_landmarks))]
-    ).reshape(-1, 2)
-    return poses, lms
-
-
-def gtsam_marginal_covariance(
-    source: LandmarkProblem | GraphData, graph: Any, result: Any, keys: list
-) -> Array:
-    """GTSAM's joint marginal of ``keys`` (("x", i) or ("l", j)) in global parametrisation."""
-    import gtsam
-
-    marginals = gtsam.Marginals(graph, result)
-    gkeys = [gtsam.symbol(kind, idx) for kind, idx in keys]
-    joint = marginals.jointMarginalCovariance(gkeys)
-    transforms = []
-    dims = []
-    for (kind, _), gk in zip(keys, gkeys, strict=True):
-        if kind == "x":
-            transforms.append(_local_to_global(result.atPose2(gk).theta()))
-        else:
-            transforms.append(np.eye(2))
-        dims.append(joint.at(gk, gk).shape[0])
-    edges = np.cumsum([0, *dims])
-    m = np.zeros((edges[-1], edges[-1]))
-    full = np.zeros((edges[-1], edges[-1]))
-    for a, ka in enumerate(gkeys):
-        m[edges[a] : edges[a + 1], edges[a] : edges[a + 1]] = transforms[a]
-        for b, kb in enumerate(gkeys):
-            full[edges[a] : edges[a + 1], edges[b] : edges[b + 1]] = joint.at(ka, kb)
-    return m @ full @ m.T
-
-
 # ---------------------------------------------------------------------------------------------
 # benchmark: one solver per process
-
-
-def solve_incremental(
-    g: GraphData,
-    chunk: int,
-    tolerance: float,
-    max_iterations: int,
-    chunk_tolerance: float = 1e-6,
-) -> tuple[Problem, int, float]:
-    """The local map's policy on a whole problem: add ``chunk`` poses at a time (in index
-    order) with the observations they make, initialise them by composing odometry from the
-    current estimate, and solve warm-started to ``chunk_tolerance`` (or ``tolerance`` if
-    tighter); the last solve to ``tolerance``.
-
-    Returns the final problem, the total number of iterations and seconds.
-    """
-    start = time.perf_counter()
-    n = len(g.initial_poses)
-    poses = g.initial_poses.copy()
-    lms = np.full(g.initial_landmarks.shape, np.nan)
-    first_obs = np.unique(g.obs_landmark, return_index=True)[1]
-    iterations = 0
-    done = 1
-    problem = Problem()
-    while done < n:
-        k = min(n, done + chunk)
-        rel = se2.between(g.initial_poses[done - 1], g.initial_poses[done:k])
-        poses[done:k] = se2.compose(poses[done - 1], rel)
-        obs = g.obs_pose < k
-        new = first_obs[(g.obs_pose[first_obs] < k) & np.isnan(lms[g.obs_landmark[first_obs], 0])]
-        lms[g.obs_landmark[new]] = se2.transform_point(poses[g.obs_pose[new]], g.obs_xy[new])
-        seen = np.flatnonzero(~np.isnan(lms[:, 0]))
-        edges = (g.odometry_first < k) & (g.odometry_second < k)
-        sub = GraphData(
-            g.name,
-            poses[:k],
-            lms[seen],
-            g.odometry_first[edges],
-            g.odometry_second[edges],
-            g.odometry[edges],
-            g.odometry_covariance[edges],
-            g.obs_pose[obs],
-            np.searchsorted(seen, g.obs_landmark[obs]),
-            g.obs_xy[obs],
-            g.obs_covariance[obs],
-        )
-        problem = build_problem(sub)
-        last = k == n
-        report = problem.solve(
-            SolverOptions(
-                relative_tolerance=tolerance if last else max(tolerance, chunk_tolerance),
-                max_iterations=max_iterations,
-            )
-        )
-        iterations += report.iterations
-        poses[:k] = problem.values[: 3 * k].reshape(-1, 3)
-        lms[seen] = problem.values[3 * k :].reshape(-1, 2)
-        done = k
-    return problem, iterations, time.perf_counter() - start
 
 
 def victoria_park_path() -> Path | None:
@@ -558,17 +115,6 @@ def load_graph(spec: str, args: argparse.Namespace) -> GraphData:
             args.poses, args.landmarks, args.observations, args.seed
         ).graph()
     return graph_from_slam2d(read_slam2d(spec), name=Path(spec).stem)
-
-
-def save_graph(g: GraphData, path: Path) -> None:
-    np.savez(path, **{k: v for k, v in vars(g).items() if k != "name"}, name=np.array(g.name))
-
-
-def read_graph(path: Path) -> GraphData:
-    with np.load(path) as data:
-        fields = {k: data[k] for k in data.files}
-    fields["name"] = str(fields["name"])
-    return GraphData(**fields)
 
 
 def peak_rss_mb() -> float:
@@ -895,6 +441,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-identical", action="store_true", help="skip GTSAM CustomFactor")
     parser.add_argument("--mrclam", default=None, help="MR.CLAM data set directory (online test)")
     parser.add_argument("--no-online", action="store_true", help="skip the online local map test")
+    parser.add_argument(
+        "--online-duration", type=float, default=1500.0, help="s of the simulated online log"
+    )
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--problem", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--out", default=None, help=argparse.SUPPRESS)
@@ -952,7 +501,7 @@ def main(argv: list[str] | None = None) -> None:
             rate = online_rate(log, options, run.local_map.window)
             print_online(f"MR.CLAM {name} ({CONFIG.name})", rate)
     else:
-        log = simulate_robot_log(duration=1500.0, landmarks=40, scan_rate=5.0)[0]
+        log = simulate_robot_log(duration=args.online_duration, landmarks=40, scan_rate=5.0)[0]
         print_online("simulated MR.CLAM-rate robot (Cauchy kernel)", online_rate(log, options))
         print("   (give --mrclam DIR for the real data set)")
 

@@ -33,6 +33,7 @@ from csam_ros.core.log import (
     RobotLog,
     empty_rendezvous,
 )
+from csam_ros.core.sensor import cartesian_to_polar
 
 FloatArray = NDArray[np.float64]
 
@@ -273,3 +274,49 @@ def _rendezvous(
         sigma_range=np.full(len(r), sensor.sigma_range if sensor else 0.0),
         sigma_bearing=np.full(len(r), sensor.sigma_bearing if sensor else 0.0),
     )
+
+
+def simulate_robot_log(
+    duration: float = 40.0,
+    rate: float = 67.0,
+    seed: int = 0,
+    landmarks: int = 12,
+    scan_rate: float = 2.0,
+) -> tuple[RobotLog, FloatArray, FloatArray, FloatArray]:
+    """A robot log at MR.CLAM-like rates: odometry at ``rate`` Hz (jittered stamps), feature
+    scans at their own stamps (``scan_rate`` per second, between odometry samples), a
+    stretch of exactly zero turn rate, two rendezvous stamps.
+
+    Returns ``(log, true poses at the odometry stamps, odometry stamps, landmarks)``.
+    """
+    rng = np.random.default_rng(seed)
+    stamps = 100.0 + np.cumsum(rng.uniform(0.9, 1.1, int(duration * rate)) / rate)
+    n = len(stamps)
+    true_u = np.column_stack(
+        [0.3 + 0.1 * np.sin(stamps / 5), np.zeros(n), 0.25 * np.sin(stamps / 3)]
+    )
+    true_u[n // 3 : n // 3 + 80, 2] = 0.0
+    truth = motion.dead_reckoning(motion.increment(true_u[1:], np.diff(stamps)))
+    sig = np.tile([0.03, 0.01, 0.04], (n, 1))
+    meas_u = true_u + rng.normal(size=(n, 3)) * sig
+    lm = rng.uniform(-3, 8, (landmarks, 2))
+    scan_t = np.sort(rng.uniform(stamps[0] + 0.05, stamps[-1] - 0.05, int(duration * scan_rate)))
+    i = np.searchsorted(stamps, scan_t)
+    at_scan = se2.compose(truth[i - 1], motion.increment(true_u[i], scan_t - stamps[i - 1]))
+    r, b = cartesian_to_polar(se2.inverse_transform_point(at_scan[:, None], lm[None]))
+    seen_scan, seen_lm = np.nonzero(r < 6.0)
+    k = len(seen_scan)
+    features = FeatureLog(
+        stamps=scan_t[seen_scan],
+        labels=(seen_lm + 10).astype(np.int64),
+        ranges=r[seen_scan, seen_lm] + rng.normal(0, 0.02, k),
+        bearings=b[seen_scan, seen_lm] + rng.normal(0, 0.01, k),
+        sigma_range=np.full(k, 0.02),
+        sigma_bearing=np.full(k, 0.01),
+    )
+    rdv_t = np.array([stamps[0] + 7.31, stamps[0] + 21.005])
+    rendezvous = RendezvousLog(
+        rdv_t, ["other", "other"], np.ones(2), np.zeros(2), np.full(2, 0.1), np.full(2, 0.1)
+    )
+    log = RobotLog("robot1", OdometryLog(stamps, meas_u, sig), features, rendezvous)
+    return log, truth, stamps, lm

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from csam_ros.bench.smoothing import build_problem, simulate_landmark_problem
 from csam_ros.core.covariance import (
     _elimination_tree,
     _reach,
@@ -13,6 +12,7 @@ from csam_ros.core.covariance import (
     marginal_covariances,
     marginal_sqrt_information,
 )
+from csam_ros.core.landmark_problem import build_problem, simulate_landmark_problem
 
 
 @pytest.fixture(scope="module")

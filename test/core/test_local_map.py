@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from csam_ros.bench.smoothing import simulate_robot_log
 from csam_ros.core import se2
 from csam_ros.core.csam import CsamConfig
 from csam_ros.core.local_map import LocalMap, LocalMapConfig, LocalMapOptions, build_local_map
+from csam_ros.core.simulation import simulate_robot_log
 
 
 def make_log(duration=40.0, rate=67.0, seed=0, landmarks=12, scan_rate=2.0):

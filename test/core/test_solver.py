@@ -3,13 +3,6 @@
 import numpy as np
 import pytest
 
-from csam_ros.bench.smoothing import (
-    build_gtsam,
-    build_problem,
-    gtsam_estimate,
-    gtsam_marginal_covariance,
-    simulate_landmark_problem,
-)
 from csam_ros.core import se2
 from csam_ros.core.covariance import marginal_covariance
 from csam_ros.core.factors import (
@@ -25,6 +18,8 @@ from csam_ros.core.factors import (
     RelativePosition,
     VariableKind,
 )
+from csam_ros.core.gtsam_oracle import build_gtsam, gtsam_estimate, gtsam_marginal_covariance
+from csam_ros.core.landmark_problem import build_problem, simulate_landmark_problem
 from csam_ros.core.solver import WIDE_FACTOR_ROWS, Problem, SingularProblemError, SolverOptions
 
 
