@@ -248,11 +248,28 @@ class LocalMap:
 
     def add_log(self, log: RobotLog, extra_pose_stamps: ArrayLike = ()) -> None:
         """Feed a whole robot log; its own rendezvous stamps are requested as poses."""
-        self.add_odometry(log.odometry.stamps, log.odometry.inputs, log.odometry.sigmas)
-        f = log.features
-        self.add_features(f.stamps, f.labels, f.ranges, f.bearings, f.sigma_range, f.sigma_bearing)
+        self.add_log_part(log)
         self.request_poses(log.rendezvous.stamps)
         self.request_poses(extra_pose_stamps)
+
+    def add_log_part(
+        self,
+        log: RobotLog,
+        odometry: slice | ArrayLike = slice(None),
+        features: slice | ArrayLike = slice(None),
+    ) -> None:
+        """Add the odometry samples and feature observations of ``log`` that ``odometry`` and
+        ``features`` select (slices, boolean masks or index arrays); no pose is requested."""
+        o, f = log.odometry, log.features
+        self.add_odometry(o.stamps[odometry], o.inputs[odometry], o.sigmas[odometry])
+        self.add_features(
+            f.stamps[features],
+            f.labels[features],
+            f.ranges[features],
+            f.bearings[features],
+            f.sigma_range[features],
+            f.sigma_bearing[features],
+        )
 
     # -- updating -----------------------------------------------------------------------------
 
@@ -587,16 +604,7 @@ def build_local_map(
     for oc, fc in zip(
         [*o_cut.tolist(), len(odo.stamps)], [*f_cut.tolist(), len(f_sorted)], strict=True
     ):
-        local.add_odometry(odo.stamps[o_start:oc], odo.inputs[o_start:oc], odo.sigmas[o_start:oc])
-        sel = f_order[f_start:fc]
-        local.add_features(
-            f.stamps[sel],
-            f.labels[sel],
-            f.ranges[sel],
-            f.bearings[sel],
-            f.sigma_range[sel],
-            f.sigma_bearing[sel],
-        )
+        local.add_log_part(log, slice(o_start, oc), f_order[f_start:fc])
         o_start, f_start = oc, fc
         last = oc == len(odo.stamps) and fc == len(f_sorted)
         if not last:

@@ -22,16 +22,7 @@ def feed_online(log, late_stamps=(), chunk=1.0, options=None):
     edges = np.arange(t0, t1 + chunk, chunk)
     for a, b in zip(edges[:-1], edges[1:], strict=True):
         o = (odo.stamps >= a) & (odo.stamps < b) if a > t0 else odo.stamps < b
-        local.add_odometry(odo.stamps[o], odo.inputs[o], odo.sigmas[o])
-        m = (f.stamps >= a) & (f.stamps < b)
-        local.add_features(
-            f.stamps[m],
-            f.labels[m],
-            f.ranges[m],
-            f.bearings[m],
-            f.sigma_range[m],
-            f.sigma_bearing[m],
-        )
+        local.add_log_part(log, o, (f.stamps >= a) & (f.stamps < b))
         local.request_poses(
             log.rendezvous.stamps[(log.rendezvous.stamps >= a) & (log.rendezvous.stamps < b)]
         )
@@ -40,13 +31,28 @@ def feed_online(log, late_stamps=(), chunk=1.0, options=None):
             local.request_poses([s for s in late_stamps])
             late_stamps = ()
         local.inserted += local.update().inserted_poses
-    local.add_odometry(
-        odo.stamps[odo.stamps >= edges[-1]],
-        odo.inputs[odo.stamps >= edges[-1]],
-        odo.sigmas[odo.stamps >= edges[-1]],
-    )
+    local.add_log_part(log, odo.stamps >= edges[-1], [])
     local.update(converge=True)
     return local
+
+
+def test_log_parts_in_any_order_and_selection_give_the_whole_log():
+    log, _, _, _ = make_log(duration=10.0, seed=3)
+    whole = LocalMap("r")
+    whole.add_log(log)
+    whole.update(converge=True)
+    parts = LocalMap("r")
+    n, k = len(log.odometry.stamps), len(log.features.stamps)
+    first_features = np.zeros(k, dtype=bool)
+    first_features[: k // 2] = True
+    parts.add_log_part(log, slice(0, n // 2), first_features)
+    parts.add_log_part(log, np.arange(n // 2, n), np.flatnonzero(~first_features)[::-1])
+    parts.request_poses(log.rendezvous.stamps)
+    parts.update(converge=True)
+    np.testing.assert_array_equal(parts.stamps, whole.stamps)
+    np.testing.assert_array_equal(parts.landmark_labels, whole.landmark_labels)
+    np.testing.assert_allclose(parts.poses, whole.poses, atol=1e-9)
+    np.testing.assert_allclose(parts.landmarks, whole.landmarks, atol=1e-9)
 
 
 def test_online_equals_offline_batch_with_late_pose_insertion():
@@ -84,16 +90,7 @@ def test_online_updates_stay_near_the_optimum_of_the_data_so_far():
     worst = 0.0
     for end in stamps[0] + np.arange(2.0, 40.0, 2.0):
         o = (odo.stamps > end - 2.0) & (odo.stamps <= end)
-        local.add_odometry(odo.stamps[o], odo.inputs[o], odo.sigmas[o])
-        m = (f.stamps > end - 2.0) & (f.stamps <= end)
-        local.add_features(
-            f.stamps[m],
-            f.labels[m],
-            f.ranges[m],
-            f.bearings[m],
-            f.sigma_range[m],
-            f.sigma_bearing[m],
-        )
+        local.add_log_part(log, o, (f.stamps > end - 2.0) & (f.stamps <= end))
         local.update()
         converged = local._build_problem()
         converged.solve()
