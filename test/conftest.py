@@ -4,9 +4,9 @@ The session fixture ``ros_domain`` reserves a ROS_DOMAIN_ID and limits discovery
 in os.environ before any test initialises rclpy; every subprocess inherits it, so parallel
 test runs and anything else on the machine cannot cross-talk.
 
-This folder is put on ``sys.path``, so that tests import shared plain modules (``jacobians``)
-under ``--import-mode=importlib``; property-based tests run under one fixed hypothesis
-profile (derandomised, so every run draws the same examples).
+This folder is put on ``sys.path``, so that tests import shared plain modules (``jacobians``,
+``strategies``, ``waiting``) under ``--import-mode=importlib``; property-based tests run
+under one fixed hypothesis profile (derandomised, so every run draws the same examples).
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import importlib
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -61,12 +60,9 @@ def ros_context(ros_domain: int) -> Iterator[Any]:
 
 def spin_until(executor: Any, condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
     """Spin ``executor`` until ``condition()`` holds or ``timeout_s`` passes."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        executor.spin_once(timeout_sec=0.02)
-    return True
+    from waiting import wait_until  # this folder is on sys.path once conftest has run
+
+    return wait_until(condition, timeout_s, lambda: executor.spin_once(timeout_sec=0.02))
 
 
 @pytest.fixture

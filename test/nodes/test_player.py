@@ -11,21 +11,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from waiting import wait_until
 
 from csam_ros.bag import BagWriter, inspect_bag, read_bag
 
 SECOND = 1_000_000_000
 FEATURES = "/play/features"
 LATCHED = "/play/local_map"
-
-
-def _wait_until(condition: Any, timeout_s: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 def _features(label: int) -> Any:
@@ -154,7 +146,7 @@ def test_record_play_record_gives_the_same_messages(
     topics = [p.topic_name for p in publishers.values()]
     first, second = tmp_path / "first", tmp_path / "second"
     recorder = nodes.start("recorder", "-o", first, "--topics", *topics)
-    assert _wait_until(lambda: all(p.get_subscription_count() for p in publishers.values()))
+    assert wait_until(lambda: all(p.get_subscription_count() for p in publishers.values()))
     for _ in range(2):
         for msgtype, publisher in publishers.items():
             publisher.publish(sample_messages[msgtype])

@@ -11,19 +11,11 @@ from typing import Any
 
 import pytest
 import yaml
+from waiting import wait_until
 
 from csam_ros.bag import MessageTypes, inspect_bag, read_bag
 
 LATCHED = "/rec/latched_map"
-
-
-def _wait_until(condition: Any, timeout_s: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 def _node(context: Any, name: str) -> Any:
@@ -59,14 +51,14 @@ def test_records_every_field_and_offered_qos(
     recorder = nodes.start(
         "recorder", "-o", bag, "--all", "--exclude", "^/(rosout|parameter_events)$"
     )
-    assert _wait_until(lambda: (bag / "metadata.yaml").exists())
+    assert wait_until(lambda: (bag / "metadata.yaml").exists())
     # topics that appear after the recorder started
     publishers = {
         msgtype: node.create_publisher(type(m), f"/rec/{msgtype.split('/')[-1]}", 10)
         for msgtype, m in sample_messages.items()
     }
     everything = [*publishers.values(), latched]
-    assert _wait_until(lambda: all(p.get_subscription_count() > 0 for p in everything)), (
+    assert wait_until(lambda: all(p.get_subscription_count() > 0 for p in everything)), (
         nodes.output(recorder) if recorder.poll() is not None else "recorder did not subscribe"
     )
     for msgtype, publisher in publishers.items():
@@ -127,7 +119,7 @@ def test_sigterm_finishes_and_sigkill_leaves_a_readable_bag(
         )
         for name, bag in bags.items()
     }
-    assert _wait_until(lambda: publisher.get_subscription_count() == 2)
+    assert wait_until(lambda: publisher.get_subscription_count() == 2)
     for label in range(60):
         publisher.publish(FeatureObservations(observations=[FeatureObservation(label=label)]))
         time.sleep(0.02)
@@ -140,7 +132,7 @@ def test_sigterm_finishes_and_sigkill_leaves_a_readable_bag(
         text = (bag / "metadata.yaml").read_text()
         return yaml.safe_load(text)["rosbag2_bagfile_information"]["message_count"]
 
-    assert _wait_until(lambda: flushed(bags["terminated"]) == 70)
+    assert wait_until(lambda: flushed(bags["terminated"]) == 70)
     assert nodes.stop(recorders["terminated"], signal.SIGTERM) == 0
 
     def labels(bag: Path) -> list[int]:
@@ -202,7 +194,7 @@ def test_log_time_is_the_clock_time_under_sim_time(
         "recorder", "-o", bag, "--topics", "/sim/features",
         "--ros-args", "-p", "use_sim_time:=true",
     )  # fmt: skip
-    assert _wait_until(lambda: clock.get_subscription_count() and features.get_subscription_count())
+    assert wait_until(lambda: clock.get_subscription_count() and features.get_subscription_count())
 
     def send(label: int | None = None, clock_s: int | None = None) -> None:
         if clock_s is not None:
