@@ -48,6 +48,8 @@ def test_built_problem_holds_every_measurement_and_improves_on_the_start(sim):
     problem = build_problem(sim)
     g = sim.graph()
     assert len(problem.values) == 3 * 200 + 2 * 10
+    assert [len(f) for f in problem.factors] == [1, 199, 300]  # gauge, odometry, observations
+    np.testing.assert_array_equal(problem.factors[2].measured, g.obs_xy)
     np.testing.assert_array_equal(problem.values[: 3 * 200].reshape(-1, 3), g.initial_poses)
     start = problem.cost()
     report = problem.solve()
