@@ -1,4 +1,4 @@
-"""The ``csam`` command: demo, replay, import and evaluate (ARCHITECTURE.md, "Command line")."""
+"""The ``csam`` command: demo, replay, import and evaluate (docs/ARCHITECTURE.md)."""
 
 from __future__ import annotations
 

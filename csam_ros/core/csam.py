@@ -3,7 +3,7 @@
 :func:`join_maps` takes the robots' solved local maps (:class:`~csam_ros.core.joining.
 RobotMap`, in the robots' order; the first is the reference) and their rendezvous logs;
 :func:`run_csam` first builds the local maps from a :class:`~csam_ros.core.log.MultiRobotLog`
-with a pose at every rendezvous stamp. Steps (paper section IV, METHOD 5-7):
+with a pose at every rendezvous stamp. Steps (paper section IV, docs/METHOD.md sections 5-7):
 
 1. From each local map only its rendezvous part: the marginal square-root information of its
    rendezvous poses (and, for association, the gains ``K = P_l,rho P_rho,rho^-1`` of its
