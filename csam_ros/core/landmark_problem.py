@@ -4,7 +4,7 @@ map's incremental way, and their files.
 
 Poses and landmarks are numbered from 0; odometry joins two poses, an observation a pose and a
 landmark (Cartesian, in the pose frame). The benchmark (``csam_ros.bench.smoothing``) and the
-tests (GTSAM as an oracle, :mod:`csam_ros.core.gtsam_oracle`) share these generators.
+tests (GTSAM as an oracle, :mod:`csam_ros.testing.gtsam_oracle`) share these generators.
 """
 
 from __future__ import annotations

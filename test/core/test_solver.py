@@ -18,9 +18,9 @@ from csam_ros.core.factors import (
     RelativePosition,
     VariableKind,
 )
-from csam_ros.core.gtsam_oracle import build_gtsam, gtsam_estimate, gtsam_marginal_covariance
 from csam_ros.core.landmark_problem import build_problem, simulate_landmark_problem
 from csam_ros.core.solver import WIDE_FACTOR_ROWS, Problem, SingularProblemError, SolverOptions
+from csam_ros.testing.gtsam_oracle import build_gtsam, gtsam_estimate, gtsam_marginal_covariance
 
 
 def mixed_problem(seed=0):

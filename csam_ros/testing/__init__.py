@@ -1,0 +1,1 @@
+"""Independent references for tests and benchmarks (GTSAM, imported only where used)."""
