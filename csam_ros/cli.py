@@ -314,10 +314,13 @@ def cmd_import(args: argparse.Namespace) -> int:
     if args.out.exists():
         raise CliError(f"{args.out} exists: an import never overwrites a bag")
     if args.format == "mrclam":
-        from csam_ros.core.config_file import resolve_config_path
+        from csam_ros.core.config_file import ConfigFileError, resolve_config_path
         from csam_ros.datasets.mrclam import MrclamFormatError, import_mrclam, load_config
 
-        config = load_config(resolve_config_path("mrclam"))
+        try:
+            config = load_config(resolve_config_path(args.config or "mrclam"))
+        except (ConfigFileError, OSError, ValueError) as err:
+            raise CliError(f"--config: {err}") from None
         robots = [int(r) for r in args.robots.split(",")] if args.robots else None
         try:
             log, report = import_mrclam(
@@ -446,6 +449,12 @@ def parser() -> argparse.ArgumentParser:
     imp.add_argument("--robots", help="MR.CLAM robots, e.g. 1,2,3")
     imp.add_argument("--start", type=float, default=0.0, help="MR.CLAM: seconds after start")
     imp.add_argument("--duration", type=float, help="MR.CLAM: seconds to import")
+    imp.add_argument(
+        "--config",
+        type=Path,
+        help="MR.CLAM: config with the noise model, range scales and truth swaps "
+        "(default: the installed mrclam.yaml; see csam calibrate)",
+    )
     imp.set_defaults(func=cmd_import)
 
     ev = sub.add_parser("evaluate", help="compare a run with its ground truth: metrics.json")

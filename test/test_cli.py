@@ -227,5 +227,15 @@ def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) 
         MRCLAM, duration=10.0, noise=config["noise"], range_scale=config["range_scale"]
     )
     assert report.range_scale == {f"robot{k}": v for k, v in config["range_scale"].items()}
+    imported = csam(
+        "import", "mrclam", MRCLAM, "--duration", "10", "--config", out, "--out", tmp_path / "bag"
+    )
+    assert imported.returncode == 0, imported.stderr
+    scales = " ".join(f"{config['range_scale'][r]:>8.4f}" for r in range(1, 6))
+    assert f"{scales}  range scale" in imported.stdout
+    bad = csam(
+        "import", "mrclam", MRCLAM, "--config", tmp_path / "no.yaml", "--out", tmp_path / "b"
+    )
+    assert bad.returncode == 2 and bad.stderr.startswith("csam import: --config:"), bad.stderr
     again = csam("calibrate", "mrclam", MRCLAM, *args)
     assert again.returncode == 2 and "never overwrites" in again.stderr
