@@ -28,7 +28,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
 from .qos import QosDict, parse_qos_profiles
-from .types import message_class
+from .types import MessageTypes, message_class
 from .writer import METADATA_FILE, BagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -61,6 +61,7 @@ class TopicInfo:
     msgtype: str
     offered_qos_profiles: list[QosDict]
     message_count: int
+    type_hash: str = ""  # RIHS01 hash of the recorded definition ("" if the bag has none)
 
 
 @dataclass
@@ -86,6 +87,7 @@ class _FileScan:
     counts: dict[str, int] = field(default_factory=dict)
     types: dict[str, str] = field(default_factory=dict)
     qos: dict[str, list[QosDict]] = field(default_factory=dict)
+    hashes: dict[str, str] = field(default_factory=dict)
 
 
 def _load_metadata(path: Path) -> dict[str, Any] | None:
@@ -212,6 +214,7 @@ def _scan_file(file: Path, complete: bool) -> _FileScan:
     def add(channel: Channel, schema: Schema | None, n: int) -> None:
         scan.types.setdefault(channel.topic, schema.name if schema else "")
         scan.qos.setdefault(channel.topic, _channel_qos(channel))
+        scan.hashes.setdefault(channel.topic, channel.metadata.get("topic_type_hash", ""))
         scan.counts[channel.topic] = scan.counts.get(channel.topic, 0) + n
 
     if complete:
@@ -263,6 +266,7 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
     qos: dict[str, list[QosDict]] = {}
+    hashes: dict[str, str] = {}
     for scan in scans:
         for topic, n in scan.counts.items():
             counts[topic] = counts.get(topic, 0) + n
@@ -270,6 +274,8 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
             types.setdefault(topic, msgtype)
         for topic, profiles in scan.qos.items():
             qos.setdefault(topic, profiles)
+        for topic, type_hash in scan.hashes.items():
+            hashes.setdefault(topic, type_hash)
     if metadata is not None:  # metadata.yaml is authoritative for types and QoS
         for entry in metadata.get("topics_with_message_count") or []:
             try:
@@ -277,12 +283,15 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
                 name = topic_meta["name"]
                 types[name] = topic_meta["type"]
                 qos[name] = parse_qos_profiles(topic_meta.get("offered_qos_profiles"))
+                hashes[name] = str(topic_meta.get("type_description_hash") or hashes.get(name, ""))
             except (KeyError, TypeError, ValueError) as error:
                 warnings.append(f"{path / METADATA_FILE}: ignored a topic entry ({error})")
             else:
                 counts.setdefault(name, 0)
     topics = {
-        name: TopicInfo(name, types.get(name, ""), qos.get(name, []), counts.get(name, 0))
+        name: TopicInfo(
+            name, types.get(name, ""), qos.get(name, []), counts.get(name, 0), hashes.get(name, "")
+        )
         for name in sorted(set(counts) | set(types))
     }
     total = sum(scan.messages for scan in scans)
@@ -324,12 +333,29 @@ def read_bag_messages(
     path: str | os.PathLike[str], topics: Iterable[str] | None = None
 ) -> Iterator[DecodedMessage]:
     """Like :func:`read_bag`, with each message deserialized into its rclpy message class
-    (needs the message packages installed; rclpy is imported on first use)."""
+    (needs the message packages installed; rclpy is imported on first use).
+
+    A topic recorded with another definition of its type than the installed one (its type
+    hash differs) raises BagError when its first message is reached: its bytes would not
+    decode, or decode wrongly. :func:`read_bag` still yields them raw, and readers that take
+    the definition stored in the bag (rosbags, mcap) decode them."""
     from rclpy.serialization import deserialize_message
 
+    recorded = {name: topic.type_hash for name, topic in inspect_bag(path).topics.items()}
+    installed = MessageTypes()
     classes: dict[str, type] = {}
+    checked: set[str] = set()
     decode: Callable[[bytes, type], Any] = deserialize_message
     for message in read_bag(path, topics):
+        if message.topic not in checked:
+            expected = installed.definition(message.msgtype).type_hash
+            if recorded.get(message.topic) not in ("", None, expected):
+                raise BagError(
+                    f"{message.topic}: recorded with another definition of {message.msgtype} "
+                    f"({recorded[message.topic]}) than the installed one ({expected}); "
+                    "it cannot be decoded here"
+                )
+            checked.add(message.topic)
         cls = classes.get(message.msgtype)
         if cls is None:
             cls = classes[message.msgtype] = message_class(message.msgtype)

@@ -353,3 +353,21 @@ def test_files_of_a_bag_are_only_created_inside_it(tmp_path: Path) -> None:
         bag.add_topic("/clock", "rosgraph_msgs/msg/Clock")
         bag.write("/clock", 5, b"\x00\x01\x00\x00" + bytes(8))
     assert sorted(os.listdir(tmp_path / "run" / "bag")) == ["bag_0.mcap", "metadata.yaml"]
+
+
+def test_topic_recorded_with_another_definition_is_a_clear_error(sample_bag: tuple) -> None:
+    """A bag from before a message definition changed: its type hash differs from the
+    installed one, so that topic is refused by name, and every other topic still decodes."""
+    path, written = sample_bag
+    metadata = yaml.safe_load((path / "metadata.yaml").read_text())
+    info = metadata["rosbag2_bagfile_information"]
+    for entry in info["topics_with_message_count"]:
+        if entry["topic_metadata"]["name"] == "/sample/localmap":
+            entry["topic_metadata"]["type_description_hash"] = "RIHS01_" + "0" * 64
+    (path / "metadata.yaml").write_text(yaml.safe_dump(metadata))
+    assert inspect_bag(path).topics["/sample/localmap"].type_hash == "RIHS01_" + "0" * 64
+    others = [w[1] for w in written if w[1] != "/sample/localmap"]
+    assert [m.topic for m in read_bag_messages(path, topics=set(others))] == others
+    with pytest.raises(BagError, match="/sample/localmap: recorded with another definition"):
+        list(read_bag_messages(path))
+    assert len(list(read_bag(path))) == len(written)
