@@ -23,6 +23,7 @@ SELF_OBSERVATION = "self_observation"
 STAMP_BACKWARDS = "stamp_backwards"
 DUPLICATE = "duplicate"
 EMPTY = "empty"
+CALLBACK_ERROR = "callback_error"  # a node callback failed unexpectedly on this message
 
 # A noisy bearing may fall a little outside the field of view: allow this many sigmas.
 BEARING_MARGIN_SIGMAS = 5.0

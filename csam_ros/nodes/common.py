@@ -5,6 +5,7 @@ Topics and their QoS are declared in :mod:`csam_ros.ros.topics`.
 
 from __future__ import annotations
 
+import functools
 import math
 import signal
 import sys
@@ -22,6 +23,7 @@ from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
 from csam_ros.core.config_file import settings
+from csam_ros.core.validation import CALLBACK_ERROR, DropCounter
 from csam_ros.ros.topics import Topic
 
 T = TypeVar("T")
@@ -105,6 +107,28 @@ def subscribe(
     return node.create_subscription(
         topic.msgtype, name or topic.name, callback, topic.subscription_qos
     )
+
+
+def guarded(node: Node, drops: DropCounter, callback: Callable[..., T]) -> Callable[..., T | None]:
+    """``callback`` that never takes the node down: an unexpected exception is logged with
+    the message that caused it, counted once under ``callback_error`` in ``drops``, and the
+    node goes on with the data it had already accepted."""
+
+    @functools.wraps(callback)
+    def call(*args: Any) -> T | None:
+        try:
+            return callback(*args)
+        except Exception as error:  # noqa: BLE001 - the boundary of a node: nothing escapes
+            drops.add(CALLBACK_ERROR)
+            shown = " ".join(repr(a) for a in args)
+            if len(shown) > 500:
+                shown = shown[:500] + "..."
+            node.get_logger().error(
+                f"{callback.__name__}: {type(error).__name__}: {error}; dropped {shown}"
+            )
+            return None
+
+    return call
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None, doc: str = "") -> int:
