@@ -99,25 +99,50 @@ def odometry_from_message(msg: Odometry) -> tuple[float, np.ndarray, np.ndarray]
     return time_to_seconds(msg.header.stamp), inputs, sigmas
 
 
-def features_message(
-    robot: str, stamp_ns: int, labels, ranges, bearings, sigma_range, sigma_bearing
-) -> FeatureObservations:
-    msg = FeatureObservations()
+def _observations_message(
+    msg, robot: str, stamp_ns: int, observation, ids, ranges, bearings, sigma_range, sigma_bearing
+):
+    """``msg`` (features or rendezvous) stamped in the robot's body frame, with one
+    ``observation(id, range=, bearing=, sigma_range=, sigma_bearing=)`` per row."""
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.header.frame_id = f"{robot}/base_link"
     msg.observations = [
-        FeatureObservation(
-            label=int(k),
+        observation(
+            i,
             range=float(r),
             bearing=float(b),
             sigma_range=float(sr),
             sigma_bearing=float(sb),
         )
-        for k, r, b, sr, sb in zip(
-            labels, ranges, bearings, sigma_range, sigma_bearing, strict=True
-        )
+        for i, r, b, sr, sb in zip(ids, ranges, bearings, sigma_range, sigma_bearing, strict=True)
     ]
     return msg
+
+
+def _observation_arrays(obs) -> dict[str, np.ndarray]:
+    """Arrays ranges, bearings, sigma_range, sigma_bearing of observations in a message."""
+    return {
+        "ranges": np.array([o.range for o in obs], dtype=float),
+        "bearings": np.array([o.bearing for o in obs], dtype=float),
+        "sigma_range": np.array([o.sigma_range for o in obs], dtype=float),
+        "sigma_bearing": np.array([o.sigma_bearing for o in obs], dtype=float),
+    }
+
+
+def features_message(
+    robot: str, stamp_ns: int, labels, ranges, bearings, sigma_range, sigma_bearing
+) -> FeatureObservations:
+    return _observations_message(
+        FeatureObservations(),
+        robot,
+        stamp_ns,
+        lambda k, **measured: FeatureObservation(label=int(k), **measured),
+        labels,
+        ranges,
+        bearings,
+        sigma_range,
+        sigma_bearing,
+    )
 
 
 def features_from_message(msg: FeatureObservations) -> tuple[float, dict[str, np.ndarray]]:
@@ -125,10 +150,7 @@ def features_from_message(msg: FeatureObservations) -> tuple[float, dict[str, np
     obs = msg.observations
     arrays = {
         "labels": np.array([o.label for o in obs], dtype=np.int64),
-        "ranges": np.array([o.range for o in obs], dtype=float),
-        "bearings": np.array([o.bearing for o in obs], dtype=float),
-        "sigma_range": np.array([o.sigma_range for o in obs], dtype=float),
-        "sigma_bearing": np.array([o.sigma_bearing for o in obs], dtype=float),
+        **_observation_arrays(obs),
     }
     return time_to_seconds(msg.header.stamp), arrays
 
@@ -136,22 +158,17 @@ def features_from_message(msg: FeatureObservations) -> tuple[float, dict[str, np
 def rendezvous_message(
     robot: str, stamp_ns: int, observed, ranges, bearings, sigma_range, sigma_bearing
 ) -> RendezvousObservations:
-    msg = RendezvousObservations()
-    msg.header.stamp = ns_to_time(stamp_ns)
-    msg.header.frame_id = f"{robot}/base_link"
-    msg.observations = [
-        RendezvousObservation(
-            observed_robot=str(q),
-            range=float(r),
-            bearing=float(b),
-            sigma_range=float(sr),
-            sigma_bearing=float(sb),
-        )
-        for q, r, b, sr, sb in zip(
-            observed, ranges, bearings, sigma_range, sigma_bearing, strict=True
-        )
-    ]
-    return msg
+    return _observations_message(
+        RendezvousObservations(),
+        robot,
+        stamp_ns,
+        lambda q, **measured: RendezvousObservation(observed_robot=str(q), **measured),
+        observed,
+        ranges,
+        bearings,
+        sigma_range,
+        sigma_bearing,
+    )
 
 
 def rendezvous_from_message(msg: RendezvousObservations) -> tuple[float, dict[str, object]]:
@@ -159,10 +176,7 @@ def rendezvous_from_message(msg: RendezvousObservations) -> tuple[float, dict[st
     obs = msg.observations
     arrays: dict[str, object] = {
         "observed": np.array([o.observed_robot for o in obs], dtype=object),
-        "ranges": np.array([o.range for o in obs], dtype=float),
-        "bearings": np.array([o.bearing for o in obs], dtype=float),
-        "sigma_range": np.array([o.sigma_range for o in obs], dtype=float),
-        "sigma_bearing": np.array([o.sigma_bearing for o in obs], dtype=float),
+        **_observation_arrays(obs),
     }
     return time_to_seconds(msg.header.stamp), arrays
 
