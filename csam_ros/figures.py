@@ -381,6 +381,22 @@ def _add_ellipses(
     axes.autoscale_view()
 
 
+def _feature_ellipses(
+    axes: Axes, features: _Features, colours: Sequence[Any] | str, magnification: float
+) -> bool:
+    """The features' 95 % ellipses (those with finite axes); whether any has a finite width."""
+    _add_ellipses(
+        axes,
+        features.xy,
+        features.widths,
+        features.heights,
+        features.angles,
+        colours,
+        magnification,
+    )
+    return bool(np.isfinite(features.widths).any())
+
+
 def _rendezvous_poses(robot: _Robot, poses: FloatArray, tolerance: float) -> FloatArray:
     """Poses whose stamps are within ``tolerance`` of one of the robot's rendezvous stamps."""
     if robot.rendezvous_stamps.size == 0 or poses.shape[0] == 0:
@@ -434,6 +450,17 @@ def _start_marker(axes: Axes, poses: FloatArray, colour: str) -> None:
     )
 
 
+def _draw_trajectory(axes: Axes, robot: _Robot, poses: FloatArray, tolerance: float) -> bool:
+    """A robot's path with its first pose and its rendezvous poses (stamps within
+    ``tolerance``) circled; whether any rendezvous pose was drawn."""
+    axes.plot(poses[:, 0], poses[:, 1], color=robot.colour, linewidth=1.4, zorder=3)
+    _start_marker(axes, poses, robot.colour)
+    meeting = _rendezvous_poses(robot, poses, tolerance)
+    if meeting.shape[0]:
+        axes.plot(*meeting[:, :2].T, "o", ms=5, mfc="none", mec="black", mew=0.8, zorder=4)
+    return bool(meeting.shape[0])
+
+
 # --------------------------------------------------------------------------- figures
 
 
@@ -471,24 +498,10 @@ def draw_local_maps(result: CsamResult, path: str | Path, scenario: str | None =
             _note(axes, "empty local map")
             continue
         if poses.shape[0]:
-            axes.plot(poses[:, 0], poses[:, 1], color=robot.colour, linewidth=1.4, zorder=3)
-            _start_marker(axes, poses, robot.colour)
-            meeting = _rendezvous_poses(robot, poses, tolerance)
-            if meeting.shape[0]:
-                drawn_rendezvous = True
-                axes.plot(*meeting[:, :2].T, "o", ms=5, mfc="none", mec="black", mew=0.8, zorder=4)
+            drawn_rendezvous |= _draw_trajectory(axes, robot, poses, tolerance)
         if features.xy.shape[0]:
             axes.plot(*features.xy.T, ".", color="0.1", markersize=3, zorder=3)
-            _add_ellipses(
-                axes,
-                features.xy,
-                features.widths,
-                features.heights,
-                features.angles,
-                robot.colour,
-                magnification,
-            )
-            drawn_ellipses |= bool(np.isfinite(features.widths).any())
+            drawn_ellipses |= _feature_ellipses(axes, features, robot.colour, magnification)
         axes.autoscale_view()
 
     handles: list[Any] = [
@@ -635,12 +648,7 @@ def draw_joined_map(
         if poses is None or poses.shape[0] == 0:
             label += ", no joined trajectory"
         else:
-            axes.plot(poses[:, 0], poses[:, 1], color=robot.colour, linewidth=1.4, zorder=3)
-            _start_marker(axes, poses, robot.colour)
-            meeting = _rendezvous_poses(robot, poses, tolerance)
-            if meeting.shape[0]:
-                drawn_rendezvous = True
-                axes.plot(*meeting[:, :2].T, "o", ms=5, mfc="none", mec="black", mew=0.8, zorder=4)
+            drawn_rendezvous |= _draw_trajectory(axes, robot, poses, tolerance)
         handles.append(Line2D([], [], color=robot.colour, linewidth=1.4, label=label))
         if robot.base_node is not None:
             _draw_base_node(axes, robot, arrow, magnification)
@@ -670,16 +678,7 @@ def draw_joined_map(
             )
             label = f"feature seen by several robots ({int(multi.sum())})"
             handles.append(_key(label, marker="D", ms=4, color=MULTI_ROBOT_COLOUR))
-        _add_ellipses(
-            axes,
-            features.xy,
-            features.widths,
-            features.heights,
-            features.angles,
-            feature_colours,
-            magnification,
-        )
-        if np.isfinite(features.widths).any():
+        if _feature_ellipses(axes, features, feature_colours, magnification):
             handles.append(
                 _key(_ellipse_label(magnification), marker="o", ms=9, mfc="none", mec="0.3")
             )
