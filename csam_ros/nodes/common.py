@@ -10,7 +10,7 @@ import math
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, TypeVar
 
@@ -27,6 +27,7 @@ from csam_ros.core.validation import CALLBACK_ERROR, DropCounter
 from csam_ros.ros.topics import Topic
 
 T = TypeVar("T")
+N = TypeVar("N", bound=Node)
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 
 
@@ -147,15 +148,35 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, doc: st
             "-p name:=value --params-file config/FILE.yaml"
         )
         return 0
-    rclpy.init(args=args)
+
+    def spin(node: Node) -> int:
+        rclpy.spin(node)
+        return 0
+
+    return run_rclpy(factory, spin, args)
+
+
+def run_rclpy(
+    factory: Callable[[], N],
+    work: Callable[[N], int],
+    args: Sequence[str] | None = None,
+    close: Callable[[N | None], None] | None = None,
+    **init_options: Any,
+) -> int:
+    """Init rclpy (``args``, ``init_options``), make the node and return ``work(node)``; Ctrl-C
+    and an external shutdown end the work quietly with 0. Whatever happens, ``close`` (given
+    the node, or None when making it failed) runs, then the node is destroyed and rclpy shut
+    down."""
+    rclpy.init(args=args, **init_options)
     node = None
     try:
         node = factory()
-        rclpy.spin(node)
+        return work(node)
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        return 0
     finally:
+        if close is not None:
+            close(node)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0

@@ -23,9 +23,7 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-import rclpy
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import ReliabilityPolicy
@@ -35,7 +33,7 @@ from rosgraph_msgs.msg import Clock
 
 from csam_ros.bag import BagError, BagInfo, BagMessage, inspect_bag, publisher_qos, read_bag
 from csam_ros.bag.types import UnknownMessageTypeError, message_class
-from csam_ros.nodes.common import stop_on_signals
+from csam_ros.nodes.common import run_rclpy, stop_on_signals
 from csam_ros.ros.topics import CLOCK
 
 
@@ -240,10 +238,8 @@ def main(args: Sequence[str] | None = None) -> int:
         print(f"player: {error}", file=sys.stderr)
         return 1
     stop = stop_on_signals()
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    try:
-        node = PlayerNode(bag, topics, publish_clock, stop)
+
+    def play(node: PlayerNode) -> int:
         for warning in bag.warnings:
             node.get_logger().warning(warning)
         if not node.topics:
@@ -267,13 +263,14 @@ def main(args: Sequence[str] | None = None) -> int:
             if not options.loop or stop.is_set():
                 break
         node.finish(options.linger)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+        return 0
+
+    return run_rclpy(
+        lambda: PlayerNode(bag, topics, publish_clock, stop),
+        play,
+        args=argv,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ from rclpy.event_handler import (
     QoSRequestedIncompatibleQoSInfo,
     SubscriptionEventCallbacks,
 )
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
@@ -41,7 +41,7 @@ from rclpy.utilities import remove_ros_args
 
 from csam_ros.bag import BagError, BagWriter, message_class, subscription_qos
 from csam_ros.bag.types import UnknownMessageTypeError
-from csam_ros.nodes.common import stop_on_signals
+from csam_ros.nodes.common import run_rclpy, stop_on_signals
 
 MAX_HELD_BACK = 100_000  # messages kept while waiting for the first /clock under sim time
 
@@ -191,30 +191,33 @@ def main(args: Sequence[str] | None = None) -> int:
         print(f"recorder: {error}", file=sys.stderr)
         return 1
     stop = stop_on_signals()
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    try:
-        node = RecorderNode(
+
+    def record(node: RecorderNode) -> int:
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+        return 0
+
+    def close(node: RecorderNode | None) -> None:
+        if node is not None:
+            node.finish()
+        else:
+            writer.close()
+
+    return run_rclpy(
+        lambda: RecorderNode(
             writer,
             options.topics,
             options.exclude,
             poll_period_s=options.poll_period,
             flush_period_s=options.flush_period,
-        )
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.finish()
-            node.destroy_node()
-        else:
-            writer.close()
-        rclpy.try_shutdown()
-    return 0
+        ),
+        record,
+        args=argv,
+        close=close,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
 
 
 if __name__ == "__main__":
