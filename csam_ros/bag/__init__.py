@@ -4,6 +4,7 @@
   survives SIGKILL up to its last flushed chunk.
 - :func:`read_bag` / :func:`read_bag_messages`: messages in log-time order, raw or
   deserialized to rclpy message classes; :func:`inspect_bag`: topics, types, recorded QoS.
+- :func:`recover_bag`: rewrite a cut (killed) or partly damaged bag into a complete one.
 - :class:`MessageTypes`: full message definitions and type hashes (rosbags' typestore plus
   csam_msgs and installed packages).
 """
@@ -18,6 +19,7 @@ from .reader import (
     read_bag,
     read_bag_messages,
 )
+from .recover import RecoveryReport, recover_bag
 from .types import (
     MessageDefinition,
     MessageTypes,
@@ -35,6 +37,7 @@ __all__ = [
     "DecodedMessage",
     "MessageDefinition",
     "MessageTypes",
+    "RecoveryReport",
     "TopicInfo",
     "UnknownMessageTypeError",
     "inspect_bag",
@@ -45,5 +48,6 @@ __all__ = [
     "qos_to_dict",
     "read_bag",
     "read_bag_messages",
+    "recover_bag",
     "subscription_qos",
 ]

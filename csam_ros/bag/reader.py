@@ -2,9 +2,14 @@
 
 A bag is a directory (metadata.yaml plus .mcap files) or a single .mcap file. A complete MCAP
 file is read through its index in log-time order. A file cut short (no footer: the recorder
-was killed) is read linearly up to its last complete chunk, then sorted by log time. Without
-metadata.yaml the .mcap files of the directory are read alone (topics, types and QoS come
-from the MCAP schemas and channels).
+was killed) is read linearly up to its last complete chunk, then in log-time order. Every
+chunk's CRC is checked first (``mcapfile``): a chunk that is damaged (CRC mismatch, failed
+decompression) is skipped, never returned, and reported with the file, its offset and the
+messages lost; ``inspect_bag`` lists these warnings, the readers pass them to ``on_damage``
+(default: the ``csam_ros.bag`` logger). ``recover_bag`` (``csam bag recover``) rewrites such
+a bag complete. Without metadata.yaml the .mcap files of the directory are read alone
+(topics, types and QoS come from the MCAP schemas and channels); the files metadata.yaml
+names must lie inside the bag directory.
 
 ``read_bag`` yields raw CDR bytes; ``read_bag_messages`` deserializes them into the rclpy
 (rosidl generated) message classes, the same classes the nodes receive, so offline replay can
@@ -14,25 +19,24 @@ share the nodes' message conversion code.
 from __future__ import annotations
 
 import heapq
+import logging
 import os
-import struct
-from collections.abc import Callable, Collection, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import yaml
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel
 
+from .mcapfile import MAGIC as MCAP_MAGIC
+from .mcapfile import McapScan, iter_messages, scan_file
 from .qos import QosDict, parse_qos_profiles
 from .types import MessageTypes, message_class
 from .writer import METADATA_FILE, BagError
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_TRUNCATION_ERRORS = (McapError, struct.error, EOFError, ValueError)
+LOGGER = logging.getLogger("csam_ros.bag")
+DamageHandler = Callable[[str], None]
 
 
 class BagMessage(NamedTuple):
@@ -74,20 +78,11 @@ class BagInfo:
     message_count: int
     start_ns: int
     end_ns: int
-    truncated_files: list[Path] = field(default_factory=list)
+    truncated_files: list[Path] = field(default_factory=list)  # no footer or no readable index
     has_metadata: bool = False
     warnings: list[str] = field(default_factory=list)
-
-
-@dataclass
-class _FileScan:
-    messages: int = 0
-    start_ns: int = 2**63 - 1
-    end_ns: int = 0
-    counts: dict[str, int] = field(default_factory=dict)
-    types: dict[str, str] = field(default_factory=dict)
-    qos: dict[str, list[QosDict]] = field(default_factory=dict)
-    hashes: dict[str, str] = field(default_factory=dict)
+    damaged_files: list[Path] = field(default_factory=list)  # skipped chunks or unreadable bytes
+    skipped_chunks: int = 0
 
 
 def _load_metadata(path: Path) -> dict[str, Any] | None:
@@ -118,7 +113,7 @@ def _bag_files(path: Path, metadata: dict[str, Any] | None) -> list[Path]:
     if not path.is_dir():
         raise BagError(f"{path} is neither a bag directory nor an .mcap file")
     if metadata is not None and metadata.get("relative_file_paths"):
-        files = [path / name for name in metadata["relative_file_paths"]]
+        files = [_inside(path, name) for name in metadata["relative_file_paths"]]
         missing = [f.name for f in files if not f.is_file()]
         if missing:
             raise BagError(f"{path}: metadata.yaml names missing file(s) {', '.join(missing)}")
@@ -127,6 +122,19 @@ def _bag_files(path: Path, metadata: dict[str, Any] | None) -> list[Path]:
     if not files:
         raise BagError(f"{path} holds no .mcap file")
     return files
+
+
+def _inside(path: Path, name: Any) -> Path:
+    """``path / name`` for a file name of metadata.yaml; BagError unless it is a relative path
+    that stays inside the bag directory (symbolic links followed)."""
+    if not isinstance(name, str) or not name:
+        raise BagError(f"{path / METADATA_FILE}: file name {name!r} is not a path")
+    file = path / name
+    if Path(name).is_absolute() or not file.resolve().is_relative_to(path.resolve()):
+        raise BagError(
+            f"{path / METADATA_FILE} names {name}, outside the bag directory; not opening it"
+        )
+    return file
 
 
 def _check_magic(file: Path) -> None:
@@ -138,23 +146,6 @@ def _check_magic(file: Path) -> None:
         raise BagError(f"{file} is not an MCAP file")
 
 
-def _is_complete(file: Path) -> bool:
-    """Whether the file ends with an MCAP footer and its summary reads."""
-    with file.open("rb") as stream:
-        stream.seek(0, os.SEEK_END)
-        if stream.tell() < 2 * len(MCAP_MAGIC):
-            return False
-        stream.seek(-len(MCAP_MAGIC), os.SEEK_END)
-        if stream.read() != MCAP_MAGIC:
-            return False
-        stream.seek(0)
-        try:
-            make_reader(stream).get_summary()
-        except _TRUNCATION_ERRORS:
-            return False
-    return True
-
-
 def _channel_qos(channel: Channel) -> list[QosDict]:
     try:
         return parse_qos_profiles(channel.metadata.get("offered_qos_profiles", ""))
@@ -162,88 +153,51 @@ def _channel_qos(channel: Channel) -> list[QosDict]:
         return []
 
 
-def _iter_linear(file: Path) -> Iterator[tuple[Schema | None, Channel, Message]]:
-    """Every message of a file cut short, in file order, up to the last complete record."""
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    with file.open("rb") as stream:
-        records = StreamReader(stream, skip_magic=False).records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                return
-            except _TRUNCATION_ERRORS:
-                return
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                channel = channels.get(record.channel_id)
-                if channel is not None:
-                    yield schemas.get(channel.schema_id), channel, record
+def _scan(file: Path) -> McapScan:
+    try:
+        return scan_file(file)
+    except OSError as error:
+        raise BagError(f"cannot read {file}: {error.strerror or error}") from None
 
 
-def _iter_file(file: Path, complete: bool, topics: Collection[str] | None) -> Iterator[BagMessage]:
-    """Messages of one file in log-time order."""
-    if complete:
-        with file.open("rb") as stream:
-            reader = make_reader(stream)
-            for schema, channel, message in reader.iter_messages(
-                topics=list(topics) if topics is not None else None, log_time_order=True
-            ):
-                yield BagMessage(
-                    channel.topic, schema.name if schema else "", message.log_time, message.data
-                )
-        return
-    selected = [
-        BagMessage(channel.topic, schema.name if schema else "", message.log_time, message.data)
-        for schema, channel, message in _iter_linear(file)
-        if topics is None or channel.topic in topics
-    ]
-    selected.sort(key=lambda m: m.log_time_ns)
-    yield from selected
+def _lost(scan: McapScan, lost: dict[int, int] | None) -> str:
+    if not lost:
+        return "an unknown number of messages"
+    return ", ".join(f"{n} message(s) of {scan.topic_of(k)}" for k, n in sorted(lost.items()))
 
 
-def _scan_file(file: Path, complete: bool) -> _FileScan:
-    """Per-topic counts, types, QoS and time span of one file: from the summary statistics
-    of a complete file, else by reading it through."""
-    scan = _FileScan()
-
-    def add(channel: Channel, schema: Schema | None, n: int) -> None:
-        scan.types.setdefault(channel.topic, schema.name if schema else "")
-        scan.qos.setdefault(channel.topic, _channel_qos(channel))
-        scan.hashes.setdefault(channel.topic, channel.metadata.get("topic_type_hash", ""))
-        scan.counts[channel.topic] = scan.counts.get(channel.topic, 0) + n
-
-    if complete:
-        with file.open("rb") as stream:
-            summary = make_reader(stream).get_summary()
-        if summary is not None and summary.statistics is not None:
-            stats = summary.statistics
-            for channel_id, channel in summary.channels.items():
-                schema = summary.schemas.get(channel.schema_id)
-                add(channel, schema, stats.channel_message_counts.get(channel_id, 0))
-            scan.messages = stats.message_count
-            if stats.message_count:
-                scan.start_ns, scan.end_ns = stats.message_start_time, stats.message_end_time
-            return scan
-    for schema, channel, message in _iter_records(file, complete):
-        add(channel, schema, 1)
-        scan.messages += 1
-        scan.start_ns = min(scan.start_ns, message.log_time)
-        scan.end_ns = max(scan.end_ns, message.log_time)
-    return scan
+def file_warnings(scan: McapScan) -> list[str]:
+    """One line for each thing wrong with a scanned file: cut short, a skipped chunk (its
+    offset, why, the messages lost), bytes that do not read, messages without a channel."""
+    warnings = []
+    if scan.cut_at is not None:
+        counts = scan.counts()
+        chunks = sum(1 for c in scan.chunks if c.ok)
+        warnings.append(
+            f"{scan.path} is cut short (no MCAP footer: its recording was killed?); "
+            f"read {sum(counts.values())} message(s) in {chunks} complete chunk(s) up to byte "
+            f"{scan.cut_at} of {scan.size}; `csam bag recover` rewrites it complete"
+        )
+    for chunk in scan.skipped:
+        warnings.append(
+            f"{scan.path}: chunk at offset {chunk.offset} skipped ({chunk.reason}); "
+            f"{_lost(scan, chunk.lost)} lost"
+        )
+    warnings += [f"{scan.path}: {problem}" for problem in scan.problems]
+    return warnings
 
 
-def _iter_records(file: Path, complete: bool) -> Iterator[tuple[Schema | None, Channel, Message]]:
-    """Every message of a file in file order (complete: through the mcap reader)."""
-    if not complete:
-        yield from _iter_linear(file)
-        return
-    with file.open("rb") as stream:
-        yield from make_reader(stream).iter_messages()
+def _scan_topics(scan: McapScan, add: Callable[[str, str, list[QosDict], str, int], None]) -> None:
+    counts = scan.counts()
+    for channel_id, channel in scan.channels.items():
+        schema = scan.schemas.get(channel.schema_id)
+        add(
+            channel.topic,
+            schema.name if schema else "",
+            _channel_qos(channel),
+            channel.metadata.get("topic_type_hash", ""),
+            counts.get(channel_id, 0),
+        )
 
 
 def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
@@ -256,26 +210,22 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
     files = _bag_files(path, metadata)
     for file in files:
         _check_magic(file)
-    truncated = [file for file in files if not _is_complete(file)]
-    scans = [_scan_file(file, file not in truncated) for file in files]
-    warnings = [
-        f"{file} is cut short (no MCAP footer): reading it up to its last complete chunk"
-        for file in truncated
-    ]
+    scans = [_scan(file) for file in files]
+    warnings = [line for scan in scans for line in file_warnings(scan)]
 
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
     qos: dict[str, list[QosDict]] = {}
     hashes: dict[str, str] = {}
+
+    def add(topic: str, msgtype: str, profiles: list[QosDict], type_hash: str, n: int) -> None:
+        counts[topic] = counts.get(topic, 0) + n
+        types.setdefault(topic, msgtype)
+        qos.setdefault(topic, profiles)
+        hashes.setdefault(topic, type_hash)
+
     for scan in scans:
-        for topic, n in scan.counts.items():
-            counts[topic] = counts.get(topic, 0) + n
-        for topic, msgtype in scan.types.items():
-            types.setdefault(topic, msgtype)
-        for topic, profiles in scan.qos.items():
-            qos.setdefault(topic, profiles)
-        for topic, type_hash in scan.hashes.items():
-            hashes.setdefault(topic, type_hash)
+        _scan_topics(scan, add)
     if metadata is not None:  # metadata.yaml is authoritative for types and QoS
         for entry in metadata.get("topics_with_message_count") or []:
             try:
@@ -294,9 +244,10 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
         )
         for name in sorted(set(counts) | set(types))
     }
-    total = sum(scan.messages for scan in scans)
-    start = min((scan.start_ns for scan in scans if scan.messages), default=0)
-    end = max((scan.end_ns for scan in scans if scan.messages), default=0)
+    total = sum(sum(scan.counts().values()) for scan in scans)
+    spans = [span for span in (scan.span() for scan in scans) if span is not None]
+    start = min((span[0] for span in spans), default=0)
+    end = max((span[1] for span in spans), default=0)
     return BagInfo(
         path=path,
         files=files,
@@ -304,25 +255,51 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
         message_count=total,
         start_ns=start,
         end_ns=end,
-        truncated_files=truncated,
+        truncated_files=[scan.path for scan in scans if not scan.complete],
         has_metadata=metadata is not None,
         warnings=warnings,
+        damaged_files=[scan.path for scan in scans if scan.skipped or scan.problems],
+        skipped_chunks=sum(len(scan.skipped) for scan in scans),
     )
 
 
+def _iter_scan(
+    scan: McapScan, topics: set[str] | None, on_damage: DamageHandler
+) -> Iterator[BagMessage]:
+    for item in iter_messages(scan, topics):
+        if isinstance(item, str):
+            on_damage(item)
+            continue
+        channel, message = item
+        schema = scan.schemas.get(channel.schema_id)
+        yield BagMessage(
+            channel.topic, schema.name if schema else "", message.log_time, message.data
+        )
+
+
 def read_bag(
-    path: str | os.PathLike[str], topics: Iterable[str] | None = None
+    path: str | os.PathLike[str],
+    topics: Iterable[str] | None = None,
+    *,
+    on_damage: DamageHandler | None = None,
 ) -> Iterator[BagMessage]:
     """Yield every message (topic, msgtype, log_time_ns, raw CDR bytes) of a bag in log-time
     order, optionally only those of ``topics``. Reads killed recordings up to their last
-    complete chunk. Raises BagError for a bag that cannot be read at all."""
+    complete chunk; skips damaged chunks. What was cut or skipped is passed to ``on_damage``
+    line by line before the first message (default: a warning of the ``csam_ros.bag``
+    logger). Raises BagError for a bag that cannot be read at all."""
     path = Path(path)
     metadata = _load_metadata(path) if path.is_dir() else None
     files = _bag_files(path, metadata)
     for file in files:
         _check_magic(file)
+    report = on_damage if on_damage is not None else LOGGER.warning
+    scans = [_scan(file) for file in files]
+    for scan in scans:
+        for line in file_warnings(scan):
+            report(line)
     wanted = set(topics) if topics is not None else None
-    streams = [_iter_file(file, _is_complete(file), wanted) for file in files]
+    streams = [_iter_scan(scan, wanted, report) for scan in scans]
     if len(streams) == 1:
         yield from streams[0]
     else:
@@ -330,7 +307,10 @@ def read_bag(
 
 
 def read_bag_messages(
-    path: str | os.PathLike[str], topics: Iterable[str] | None = None
+    path: str | os.PathLike[str],
+    topics: Iterable[str] | None = None,
+    *,
+    on_damage: DamageHandler | None = None,
 ) -> Iterator[DecodedMessage]:
     """Like :func:`read_bag`, with each message deserialized into its rclpy message class
     (needs the message packages installed; rclpy is imported on first use).
@@ -346,7 +326,7 @@ def read_bag_messages(
     classes: dict[str, type] = {}
     checked: set[str] = set()
     decode: Callable[[bytes, type], Any] = deserialize_message
-    for message in read_bag(path, topics):
+    for message in read_bag(path, topics, on_damage=on_damage):
         if message.topic not in checked:
             expected = installed.definition(message.msgtype).type_hash
             if recorded.get(message.topic) not in ("", None, expected):

@@ -28,7 +28,7 @@ from mcap.writer import Writer as McapWriter
 from csam_ros import __version__
 
 from .qos import QosDict, dump_qos_profiles, qos_list
-from .types import MessageTypes, msgtype_of, normalize_msgtype
+from .types import MessageDefinition, MessageTypes, msgtype_of, normalize_msgtype
 
 METADATA_FILE = "metadata.yaml"
 METADATA_VERSION = 9
@@ -113,7 +113,7 @@ class BagWriter:
         )
         self._mcap.start(profile="ros2", library=f"csam_ros-{__version__} (mcap-python)")
         self._topics: dict[str, _Topic] = {}
-        self._schemas: dict[str, int] = {}
+        self._schemas: dict[tuple[str, str], int] = {}  # (type, definition text) -> schema id
         self._pending_bytes = 0
         self._pending_messages = 0
         self._last_flush = time.monotonic()
@@ -135,23 +135,33 @@ class BagWriter:
         """Messages written so far (flushed to disk or not)."""
         return sum(topic.message_count for topic in self._topics.values())
 
-    def add_topic(self, topic: str, msgtype: str, qos: Any = None) -> None:
+    def add_topic(
+        self,
+        topic: str,
+        msgtype: str,
+        qos: Any = None,
+        *,
+        definition: MessageDefinition | None = None,
+    ) -> None:
         """Register ``topic`` with its type and offered QoS: an rclpy QoSProfile, a rosbag2
-        QoS dict, a sequence of these (one per publisher), or None (none known)."""
+        QoS dict, a sequence of these (one per publisher), or None (none known).
+        ``definition`` (default: the installed one) is the type's definition text and hash to
+        store, e.g. the one recorded in another bag whose messages are copied."""
         self._check_open()
         if not topic.startswith("/"):
             raise ValueError(f"topic {topic!r} must be an absolute name starting with '/'")
         if topic in self._topics:
             raise BagError(f"topic {topic} is already in bag {self.path}")
         msgtype = normalize_msgtype(msgtype)
-        definition = self.types.definition(msgtype)
+        if definition is None:
+            definition = self.types.definition(msgtype)
         profiles = qos_list(qos)
-        schema_id = self._schemas.get(msgtype)
+        schema_id = self._schemas.get((msgtype, definition.text))
         if schema_id is None:
             schema_id = self._mcap.register_schema(
                 name=msgtype, encoding="ros2msg", data=definition.text.encode()
             )
-            self._schemas[msgtype] = schema_id
+            self._schemas[msgtype, definition.text] = schema_id
         channel_id = self._mcap.register_channel(
             topic=topic,
             message_encoding="cdr",

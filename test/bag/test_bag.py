@@ -371,3 +371,118 @@ def test_topic_recorded_with_another_definition_is_a_clear_error(sample_bag: tup
     with pytest.raises(BagError, match="/sample/localmap: recorded with another definition"):
         list(read_bag_messages(path))
     assert len(list(read_bag(path))) == len(written)
+
+
+def _labels_read_by_rosbags_and_mcap(path: Path) -> tuple[list[int], list[int]]:
+    """The labels of /robot1/features read back by rosbags' Reader and by the mcap reader."""
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import Reader
+
+    typestore = MessageTypes().register_custom_types()
+    with Reader(path) as reader:
+        by_rosbags = [
+            typestore.deserialize_cdr(raw, c.msgtype).observations[0].label
+            for c, _, raw in reader.messages()
+        ]
+        assert reader.message_count == len(by_rosbags)
+    from csam_msgs.msg import FeatureObservations
+    from rclpy.serialization import deserialize_message
+
+    (mcap_file,) = path.glob("*.mcap")
+    with mcap_file.open("rb") as stream:
+        by_mcap = [
+            deserialize_message(message.data, FeatureObservations).observations[0].label
+            for _, _, message in make_reader(stream).iter_messages(log_time_order=True)
+        ]
+    return by_rosbags, by_mcap
+
+
+def test_killed_bag_is_recovered_into_one_rosbags_and_mcap_read(tmp_path: Path) -> None:
+    """Case 8: rosbags' Reader refuses a bag cut by SIGKILL (no footer); recover_bag rewrites
+    it complete, with every flushed message, and metadata.yaml counts them."""
+    from rosbags.rosbag2 import Reader
+
+    from csam_ros.bag import recover_bag
+
+    path = tmp_path / "killed"
+    _write_killed_bag(path, flushed=25, unflushed=10)
+    with pytest.raises(Exception, match="magic"):  # noqa: PT011 - rosbags' own error type
+        with Reader(path):
+            pass
+    out = tmp_path / "recovered"
+    report = recover_bag(path, out)
+    assert report.messages == {"/robot1/features": 25}
+    assert report.skipped_chunks == [] and report.cut_files == [path / "killed_0.mcap"]
+    by_rosbags, by_mcap = _labels_read_by_rosbags_and_mcap(out)
+    assert by_rosbags == by_mcap == list(range(25))
+    info = inspect_bag(out)
+    assert info.truncated_files == [] and info.warnings == []
+    assert info.topics["/robot1/features"].message_count == 25
+    metadata = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["message_count"] == 25
+    assert metadata["topics_with_message_count"][0]["message_count"] == 25
+    with pytest.raises(BagError, match="already exists"):
+        recover_bag(path, out)
+
+
+def _chunk_offsets(mcap_file: Path) -> list[tuple[int, int]]:
+    """(start offset, length) of every chunk record, from the file's index."""
+    from mcap.reader import make_reader
+
+    with mcap_file.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    return [(c.chunk_start_offset, c.chunk_length) for c in summary.chunk_indexes]
+
+
+def _counter_bag(path: Path, n: int = 60, compression: bool = True) -> Path:
+    """A bag of ``n`` UInt32 messages (value i at i s), in many small chunks."""
+    with BagWriter(path, chunk_size=100, compression=compression) as bag:
+        bag.add_topic("/counter", "std_msgs/msg/UInt32")
+        for i in range(n):
+            bag.write("/counter", i * SECOND, b"\x00\x01\x00\x00" + i.to_bytes(4, "little"))
+    return path / f"{path.name}_0.mcap"
+
+
+@pytest.mark.parametrize("compression", [True, False], ids=["zstd", "uncompressed"])
+def test_a_damaged_chunk_is_skipped_with_a_warning(tmp_path: Path, compression: bool) -> None:
+    """Case 9: 64 bytes flipped inside a chunk: that chunk's messages are not returned (the
+    CRC or the decompression fails), the reader warns with the file, offset and messages
+    lost, and every other chunk reads."""
+    mcap = _counter_bag(tmp_path / "counter", compression=compression)
+    chunks = _chunk_offsets(mcap)
+    assert len(chunks) > 3
+    offset, length = chunks[2]
+    data = bytearray(mcap.read_bytes())
+    middle = offset + length - 16  # inside the chunk's records, before its end
+    for k in range(middle - 8, middle):
+        data[k] ^= 0xFF
+    mcap.write_bytes(bytes(data))
+    warnings: list[str] = []
+    read = [m.data for m in read_bag(mcap.parent, on_damage=warnings.append)]
+    good = {b"\x00\x01\x00\x00" + i.to_bytes(4, "little") for i in range(60)}
+    assert set(read) <= good and 0 < len(read) < 60
+    (warning,) = warnings
+    assert str(mcap) in warning and f"offset {offset}" in warning
+    lost = 60 - len(read)
+    assert f"{lost} message(s) of /counter lost" in warning
+    info = inspect_bag(mcap.parent)
+    assert info.message_count == len(read) == info.topics["/counter"].message_count
+    assert any(f"offset {offset}" in w for w in info.warnings)
+    assert info.damaged_files == [mcap]
+
+
+def test_metadata_may_not_name_files_outside_the_bag(tmp_path: Path, sample_bag: tuple) -> None:
+    """Case 10: relative_file_paths that leave the bag directory are refused by name (the file
+    outside is a valid MCAP file, which would otherwise be read)."""
+    path, _ = sample_bag
+    outside = tmp_path / "outside.mcap"
+    outside.write_bytes((path / "sample_0.mcap").read_bytes())
+    metadata = yaml.safe_load((path / "metadata.yaml").read_text())
+    for name in ("../outside.mcap", str(outside), "../../../../etc/passwd"):
+        metadata["rosbag2_bagfile_information"]["relative_file_paths"] = [name]
+        (path / "metadata.yaml").write_text(yaml.safe_dump(metadata))
+        with pytest.raises(BagError, match=f"{name}.*outside the bag directory"):
+            inspect_bag(path)
+        with pytest.raises(BagError, match="outside the bag directory"):
+            list(read_bag(path))

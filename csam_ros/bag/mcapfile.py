@@ -1,0 +1,539 @@
+"""One MCAP file read so that damage never turns into a wrong message or a traceback.
+
+Every chunk is checked before any of its messages is used: its record must be whole, its data
+must decompress to the size it declares, and the CRC-32 of the decompressed records must match
+the one stored in the chunk. A chunk that fails is skipped and reported (file, offset, reason,
+and the messages lost, counted from the chunk's message index when that still reads).
+
+A complete file (footer, a summary whose CRC matches) is read through its chunk index. Any
+other file (cut short by SIGKILL, or with a damaged summary) is read linearly, record by
+record; when a record does not parse (a damaged length, say), reading resumes at the next
+chunk whose CRC matches. Schema, channel and message records outside chunks have no checksum
+of their own: they are used only while the file reads in step from its start (no damage met),
+so that bytes misread after damage can never pose as a message.
+
+Everything is parsed here with explicit bounds; damage surfaces only as :class:`ScanProblem`
+entries, never as an exception (other than OSError for a file that cannot be opened).
+"""
+
+from __future__ import annotations
+
+import heapq
+import mmap
+import zlib
+from collections.abc import Collection, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zstandard
+from mcap.records import Channel, Schema
+
+MAGIC = b"\x89MCAP0\r\n"
+
+OP_FOOTER = 0x02
+OP_SCHEMA = 0x03
+OP_CHANNEL = 0x04
+OP_MESSAGE = 0x05
+OP_CHUNK = 0x06
+OP_MESSAGE_INDEX = 0x07
+OP_CHUNK_INDEX = 0x08
+OP_STATISTICS = 0x0B
+OP_DATA_END = 0x0F
+_KNOWN_OPCODES = frozenset(range(0x01, 0x10))
+_FOOTER_RECORD = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, crc
+_CHUNK_FIXED = 8 + 8 + 8 + 4 + 4  # start, end, uncompressed size, crc, compression length
+_MAX_UNCOMPRESSED = 1 << 31  # a chunk declaring more is damaged (rosbag2 writes ~1 MB chunks)
+
+
+class _DamageError(Exception):
+    """Bytes that do not parse as what they should be."""
+
+
+class _Cursor:
+    """Bounds-checked little-endian reads from ``data[pos:end]``."""
+
+    def __init__(self, data: bytes | mmap.mmap, pos: int = 0, end: int | None = None) -> None:
+        self.data = data
+        self.pos = pos
+        self.end = len(data) if end is None else end
+
+    def take(self, n: int) -> bytes:
+        if n < 0 or self.pos + n > self.end:
+            raise _DamageError(f"a field runs past its record ({n} bytes at {self.pos})")
+        chunk = self.data[self.pos : self.pos + n]
+        self.pos += n
+        return bytes(chunk)
+
+    def u16(self) -> int:
+        return int.from_bytes(self.take(2), "little")
+
+    def u32(self) -> int:
+        return int.from_bytes(self.take(4), "little")
+
+    def u64(self) -> int:
+        return int.from_bytes(self.take(8), "little")
+
+    def blob(self) -> bytes:
+        return self.take(self.u32())
+
+    def text(self) -> str:
+        try:
+            return self.blob().decode("utf-8")
+        except UnicodeDecodeError:
+            raise _DamageError("a string is not UTF-8") from None
+
+    def text_map(self) -> dict[str, str]:
+        length = self.u32()
+        inner = _Cursor(self.data, self.pos, self.pos + length)
+        if inner.end > self.end:
+            raise _DamageError("a map runs past its record")
+        result = {}
+        while inner.pos < inner.end:
+            key = inner.text()
+            result[key] = inner.text()
+        self.pos = inner.end
+        return result
+
+
+def _schema(cursor: _Cursor) -> Schema:
+    schema_id = cursor.u16()
+    return Schema(id=schema_id, name=cursor.text(), encoding=cursor.text(), data=cursor.blob())
+
+
+def _channel(cursor: _Cursor) -> Channel:
+    channel_id, schema_id = cursor.u16(), cursor.u16()
+    topic, encoding = cursor.text(), cursor.text()
+    return Channel(
+        id=channel_id,
+        schema_id=schema_id,
+        topic=topic,
+        message_encoding=encoding,
+        metadata=cursor.text_map(),
+    )
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    channel_id: int
+    log_time: int
+    publish_time: int
+    data: bytes
+
+
+@dataclass
+class ChunkRecords:
+    """The records of one verified chunk, in file order."""
+
+    schemas: list[Schema] = field(default_factory=list)
+    channels: list[Channel] = field(default_factory=list)
+    messages: list[RawMessage] = field(default_factory=list)
+
+
+def _records(data: bytes, into: ChunkRecords) -> None:
+    """Parse the schema, channel and message records of verified, decompressed chunk data."""
+    cursor = _Cursor(data)
+    while cursor.pos < cursor.end:
+        opcode = cursor.take(1)[0]
+        length = cursor.u64()
+        body = _Cursor(data, cursor.pos, cursor.pos + length)
+        cursor.take(length)
+        if opcode == OP_SCHEMA:
+            into.schemas.append(_schema(body))
+        elif opcode == OP_CHANNEL:
+            into.channels.append(_channel(body))
+        elif opcode == OP_MESSAGE:
+            channel_id, _sequence = body.u16(), body.u32()
+            log_time, publish_time = body.u64(), body.u64()
+            into.messages.append(
+                RawMessage(channel_id, log_time, publish_time, body.take(body.end - body.pos))
+            )
+
+
+def decode_chunk(data: bytes | mmap.mmap, offset: int, size: int) -> ChunkRecords:
+    """The records of the chunk record at ``offset``; _DamageError if any check fails."""
+    cursor = _Cursor(data, offset, size)
+    if cursor.take(1)[0] != OP_CHUNK:
+        raise _DamageError("no chunk record at this offset")
+    length = cursor.u64()
+    if offset + 9 + length > size:
+        raise _DamageError("the chunk runs past the end of the file")
+    body = _Cursor(data, cursor.pos, cursor.pos + length)
+    body.take(16)  # message start and end time: not trusted, the messages carry their own
+    uncompressed_size, crc = body.u64(), body.u32()
+    compression = body.text()
+    compressed = body.take(body.u64())
+    if body.pos != body.end:
+        raise _DamageError("its record length does not match its contents")
+    if uncompressed_size > _MAX_UNCOMPRESSED:
+        raise _DamageError(f"it declares {uncompressed_size} bytes of records")
+    if compression == "zstd":
+        try:
+            records = zstandard.ZstdDecompressor().decompress(
+                compressed, max_output_size=uncompressed_size
+            )
+        except zstandard.ZstdError as error:
+            raise _DamageError(f"zstd decompression failed ({error})") from None
+    elif compression == "lz4":
+        try:
+            import lz4.frame
+
+            records = lz4.frame.decompress(compressed)
+        except ImportError:
+            raise _DamageError("lz4 compression, and the lz4 module is not installed") from None
+        except Exception as error:  # lz4 raises RuntimeError and others on damaged frames
+            raise _DamageError(f"lz4 decompression failed ({error})") from None
+    elif compression == "":
+        records = compressed
+    else:
+        raise _DamageError(f"unknown compression {compression[:20]!r}")
+    if len(records) != uncompressed_size:
+        raise _DamageError(f"it decompresses to {len(records)} bytes, not {uncompressed_size}")
+    if crc != 0 and zlib.crc32(records) != crc:
+        raise _DamageError("chunk checksum mismatch")
+    result = ChunkRecords()
+    _records(records, result)
+    return result
+
+
+def _message_index_counts(data: bytes | mmap.mmap, pos: int, end: int) -> dict[int, int] | None:
+    """Messages per channel in the message index records at ``data[pos:end]``, or None."""
+    counts: dict[int, int] = {}
+    try:
+        cursor = _Cursor(data, pos, end)
+        while cursor.pos < cursor.end:
+            if cursor.take(1)[0] != OP_MESSAGE_INDEX:
+                return None
+            body = _Cursor(data, cursor.pos + 8, cursor.pos + 8 + cursor.u64())
+            cursor.take(body.end - body.pos)
+            channel_id = body.u16()
+            entries = body.u32()
+            if entries % 16 or body.pos + entries != body.end:
+                return None
+            counts[channel_id] = counts.get(channel_id, 0) + entries // 16
+    except _DamageError:
+        return None
+    return counts
+
+
+@dataclass
+class ChunkInfo:
+    """A chunk found in the file: verified (``ok``) or skipped with ``reason``."""
+
+    offset: int
+    ok: bool
+    start_ns: int = 0
+    end_ns: int = 0
+    counts: dict[int, int] = field(default_factory=dict)  # ok: messages per channel
+    reason: str = ""
+    lost: dict[int, int] | None = None  # skipped: messages per channel (None: unknown)
+
+
+@dataclass
+class McapScan:
+    """What one MCAP file holds as far as it reads, and what did not read."""
+
+    path: Path
+    size: int
+    complete: bool  # footer and a summary whose CRC matches
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    chunks: list[ChunkInfo] = field(default_factory=list)  # file order
+    loose: list[RawMessage] = field(default_factory=list)  # messages outside chunks
+    cut_at: int | None = None  # linear read: where the readable data ends (file cut short)
+    problems: list[str] = field(default_factory=list)  # damage other than skipped chunks
+    orphans: int = 0  # messages whose channel definition was lost
+
+    @property
+    def skipped(self) -> list[ChunkInfo]:
+        return [chunk for chunk in self.chunks if not chunk.ok]
+
+    def counts(self) -> dict[int, int]:
+        """Readable messages per channel id (orphans excluded)."""
+        counts: dict[int, int] = {}
+        for chunk in self.chunks:
+            for channel_id, n in chunk.counts.items():
+                counts[channel_id] = counts.get(channel_id, 0) + n
+        for message in self.loose:
+            counts[message.channel_id] = counts.get(message.channel_id, 0) + 1
+        return {k: n for k, n in counts.items() if k in self.channels}
+
+    def span(self) -> tuple[int, int] | None:
+        times = [(c.start_ns, c.end_ns) for c in self.chunks if c.ok and c.counts]
+        times += [(m.log_time, m.log_time) for m in self.loose]
+        if not times:
+            return None
+        return min(t[0] for t in times), max(t[1] for t in times)
+
+    def topic_of(self, channel_id: int) -> str:
+        channel = self.channels.get(channel_id)
+        return channel.topic if channel is not None else f"channel {channel_id}"
+
+
+def _count_chunk(info: ChunkInfo, records: ChunkRecords) -> None:
+    for message in records.messages:
+        info.counts[message.channel_id] = info.counts.get(message.channel_id, 0) + 1
+    if records.messages:
+        info.start_ns = min(m.log_time for m in records.messages)
+        info.end_ns = max(m.log_time for m in records.messages)
+
+
+def _read_summary(
+    data: mmap.mmap, size: int, scan: McapScan, chunks: list[tuple[int, int, int]]
+) -> str:
+    """Schemas and channels of a complete file's summary into ``scan``, the chunks' offsets
+    (chunk, its message index, their end) into ``chunks``. Returns "" on success, else why
+    the file must be read linearly: "cut" (no footer), "unindexed" (a complete file without
+    chunk index), or the damage found."""
+    if size < len(MAGIC) * 2 + _FOOTER_RECORD or data[size - len(MAGIC) :] != MAGIC:
+        return "cut"
+    summary_end = size - len(MAGIC) - _FOOTER_RECORD
+    footer = _Cursor(data, summary_end, size - len(MAGIC))
+    if footer.take(1)[0] != OP_FOOTER or footer.u64() != 20:
+        return "cut"  # the end magic alone is no footer
+    summary_start, _offsets_start, crc = footer.u64(), footer.u64(), footer.u32()
+    if summary_start == 0:
+        return "unindexed"
+    if not len(MAGIC) < summary_start <= summary_end:
+        return "its footer is damaged"
+    if crc != 0 and zlib.crc32(data[summary_start : size - len(MAGIC) - 4]) != crc:
+        return "its summary checksum does not match"
+    cursor = _Cursor(data, summary_start, summary_end)
+    while cursor.pos < cursor.end:
+        opcode = cursor.take(1)[0]
+        length = cursor.u64()
+        body = _Cursor(data, cursor.pos, cursor.pos + length)
+        cursor.take(length)
+        if opcode == OP_SCHEMA:
+            schema = _schema(body)
+            scan.schemas[schema.id] = schema
+        elif opcode == OP_CHANNEL:
+            channel = _channel(body)
+            scan.channels[channel.id] = channel
+        elif opcode == OP_CHUNK_INDEX:
+            body.take(16)  # message start and end time (taken from the messages instead)
+            offset, length = body.u64(), body.u64()
+            body.take(body.u32())  # message index offsets per channel
+            index_length = body.u64()
+            if not len(MAGIC) <= offset < offset + length + index_length <= summary_start:
+                return "a chunk index points outside the data section"
+            chunks.append((offset, offset + length, offset + length + index_length))
+    return "" if chunks else "unindexed"
+
+
+def _add_chunk(
+    scan: McapScan, data: mmap.mmap, offset: int, index: tuple[int, int] | None = None
+) -> ChunkInfo:
+    """Check the chunk at ``offset`` and add it to ``scan`` (its records if it reads; else the
+    messages lost, from the message index records at ``data[slice(*index)]`` if given)."""
+    info = ChunkInfo(offset=offset, ok=True)
+    try:
+        records = decode_chunk(data, offset, scan.size)
+    except _DamageError as error:
+        info.ok, info.reason = False, str(error)
+        if index is not None:
+            info.lost = _message_index_counts(data, *index)
+    else:
+        for schema in records.schemas:
+            scan.schemas.setdefault(schema.id, schema)
+        for channel in records.channels:
+            scan.channels.setdefault(channel.id, channel)
+        _count_chunk(info, records)
+    scan.chunks.append(info)
+    return info
+
+
+def _plausible_chunk(data: mmap.mmap, pos: int, size: int) -> bool:
+    """Whether a whole, CRC-checked chunk record starts at ``pos``."""
+    try:
+        decode_chunk(data, pos, size)
+    except _DamageError:
+        return False
+    return True
+
+
+def _next_chunk(data: mmap.mmap, start: int, size: int) -> int | None:
+    """The offset of the next readable chunk record at or after ``start``, or None."""
+    pos = start
+    while True:
+        pos = data.find(bytes([OP_CHUNK]), pos, size)
+        if pos < 0:
+            return None
+        if pos + 9 + _CHUNK_FIXED + 8 <= size:
+            length = int.from_bytes(data[pos + 1 : pos + 9], "little")
+            if _CHUNK_FIXED + 8 <= length <= size - pos - 9 and _plausible_chunk(data, pos, size):
+                return pos
+        pos += 1
+
+
+def _scan_linear(scan: McapScan, data: mmap.mmap) -> None:
+    """Read the data section record by record (see the module documentation)."""
+    size = scan.size
+    pos = len(MAGIC)
+    in_step = True  # no damage met yet: records outside chunks can be trusted
+    last_bad: ChunkInfo | None = None  # the messages it lost: from the index records after it
+    lost: dict[int, int] | None = None
+    ignored = 0
+
+    def settle() -> None:
+        if last_bad is not None:
+            last_bad.lost = lost or None
+
+    while True:
+        if pos >= size:
+            if not scan.complete:
+                scan.cut_at = size
+            break
+        opcode = data[pos]
+        length = int.from_bytes(data[pos + 1 : pos + 9], "little") if pos + 9 <= size else -1
+        end = pos + 9 + length
+        whole = opcode in _KNOWN_OPCODES and length >= 0 and end <= size
+        if opcode == OP_DATA_END and length != 4 or opcode == OP_FOOTER and length != 20:
+            whole = False
+        if not whole:
+            resume = _next_chunk(data, pos + 1, size)
+            if resume is None:
+                if not scan.complete:
+                    scan.cut_at = pos
+                if opcode not in _KNOWN_OPCODES or (length >= 0 and end <= size):
+                    scan.problems.append(f"bytes {pos} to {size} do not read as MCAP records")
+                break
+            scan.problems.append(f"bytes {pos} to {resume} do not read as MCAP records")
+            settle()
+            in_step, last_bad, pos = False, None, resume
+            continue
+        if opcode == OP_MESSAGE_INDEX:
+            if last_bad is not None and lost is not None:
+                counts = _message_index_counts(data, pos, end)
+                if counts is None:
+                    lost = None
+                else:
+                    for channel_id, n in counts.items():
+                        lost[channel_id] = lost.get(channel_id, 0) + n
+            pos = end
+            continue
+        settle()
+        last_bad = None
+        if opcode == OP_CHUNK:
+            info = _add_chunk(scan, data, pos)
+            if not info.ok:
+                in_step, last_bad, lost = False, info, {}
+        elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
+            if not in_step:
+                ignored += 1
+            else:
+                try:
+                    _loose_record(scan, opcode, _Cursor(data, pos + 9, end))
+                except _DamageError as error:
+                    scan.problems.append(f"record at offset {pos} does not read ({error})")
+                    in_step = False
+        elif opcode in (OP_DATA_END, OP_FOOTER):
+            break
+        pos = end
+    settle()
+    if ignored:
+        scan.problems.append(
+            f"{ignored} record(s) outside chunks after the damage were ignored (no checksum)"
+        )
+
+
+def _loose_record(scan: McapScan, opcode: int, body: _Cursor) -> None:
+    if opcode == OP_SCHEMA:
+        schema = _schema(body)
+        scan.schemas.setdefault(schema.id, schema)
+    elif opcode == OP_CHANNEL:
+        channel = _channel(body)
+        scan.channels.setdefault(channel.id, channel)
+    else:
+        channel_id, _sequence = body.u16(), body.u32()
+        log_time, publish_time = body.u64(), body.u64()
+        scan.loose.append(
+            RawMessage(channel_id, log_time, publish_time, body.take(body.end - body.pos))
+        )
+
+
+def scan_file(path: Path) -> McapScan:
+    """Check every chunk of an MCAP file and list what it holds (OSError if unreadable)."""
+    with path.open("rb") as stream:
+        size = stream.seek(0, 2)
+        scan = McapScan(path=path, size=size, complete=False)
+        if size <= len(MAGIC):
+            scan.cut_at = size
+            return scan
+        with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            chunks: list[tuple[int, int, int]] = []
+            try:
+                why = _read_summary(data, size, scan, chunks)
+            except _DamageError as error:
+                why = f"its summary is damaged ({error})"
+            if why:
+                scan.schemas.clear()
+                scan.channels.clear()
+                scan.complete = why == "unindexed"
+                if why not in ("cut", "unindexed"):
+                    scan.problems.append(f"{why}: read without its index")
+                _scan_linear(scan, data)
+            else:
+                scan.complete = True
+                for offset, index_start, index_end in sorted(chunks):
+                    _add_chunk(scan, data, offset, (index_start, index_end))
+    counts: dict[int, int] = {}
+    for chunk in scan.chunks:
+        for channel_id, n in chunk.counts.items():
+            counts[channel_id] = counts.get(channel_id, 0) + n
+    for message in scan.loose:
+        counts[message.channel_id] = counts.get(message.channel_id, 0) + 1
+    orphans = {k: n for k, n in counts.items() if k not in scan.channels}
+    scan.orphans = sum(orphans.values())
+    if orphans:
+        scan.problems.append(
+            f"{scan.orphans} message(s) of channel(s) {sorted(orphans)} whose definition was "
+            "in a lost chunk were dropped"
+        )
+    return scan
+
+
+def iter_messages(
+    scan: McapScan, topics: Collection[str] | None = None
+) -> Iterator[tuple[Channel, RawMessage] | str]:
+    """The verified messages of a scanned file in log-time order (file order among equal
+    times), optionally only those of ``topics``. A chunk that no longer reads (the file
+    changed since the scan) yields a string saying so instead."""
+    wanted = {
+        channel_id
+        for channel_id, channel in scan.channels.items()
+        if topics is None or channel.topic in topics
+    }
+    chunks = sorted(
+        (c for c in scan.chunks if c.ok and wanted.intersection(c.counts)),
+        key=lambda c: (c.start_ns, c.offset),
+    )
+    heap: list[tuple[int, int, int, RawMessage]] = [
+        (m.log_time, -1, k, m) for k, m in enumerate(scan.loose) if m.channel_id in wanted
+    ]
+    heapq.heapify(heap)
+    if not chunks:
+        while heap:
+            message = heapq.heappop(heap)[3]
+            yield scan.channels[message.channel_id], message
+        return
+    with scan.path.open("rb") as stream:
+        size = stream.seek(0, 2)
+        with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            i = 0
+            while i < len(chunks) or heap:
+                while i < len(chunks) and (not heap or chunks[i].start_ns <= heap[0][0]):
+                    chunk = chunks[i]
+                    i += 1
+                    try:
+                        records = decode_chunk(data, chunk.offset, size)
+                    except _DamageError as error:
+                        yield (
+                            f"{scan.path}: chunk at offset {chunk.offset} no longer reads ({error})"
+                        )
+                        continue
+                    for k, message in enumerate(records.messages):
+                        if message.channel_id in wanted:
+                            heapq.heappush(heap, (message.log_time, chunk.offset, k, message))
+                if heap:
+                    message = heapq.heappop(heap)[3]
+                    yield scan.channels[message.channel_id], message
