@@ -38,10 +38,25 @@ def _new_run_dir(name: str) -> Path:
 
 def _fresh_dir(path: Path | None, name: str) -> Path:
     out = path or _new_run_dir(name)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"{out} exists and is not a directory: choose a new --out directory")
     if out.exists() and any(out.iterdir()):
         raise CliError(f"{out} exists and is not empty: choose a new --out directory")
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def _robot_numbers(text: str | None) -> list[int] | None:
+    """``--robots 1,2,3`` as robot numbers (None: all robots)."""
+    if not text:
+        return None
+    try:
+        numbers = [int(r) for r in text.split(",")]
+    except ValueError:
+        raise CliError(f"--robots: expected robot numbers such as 1,2,3, got {text!r}") from None
+    if any(n < 1 for n in numbers):
+        raise CliError(f"--robots: robot numbers start at 1, got {text!r}")
+    return numbers
 
 
 MERGER_KEYS = {"solve_period"}
@@ -102,6 +117,9 @@ def _finish(out: Path, summary: RunSummary) -> None:
     print(f"result in {out}/")
     for name, r in result.robots.items():
         print(f"  {name}: {r.alignment}, {len(r.stamps)} poses")
+    for note in result.notes:
+        if ": no local map: " in note:  # a robot left out of the offline run (core.csam)
+            print(f"  {note}")
     print(f"  {len(result.features)} features, {len(result.associations)} associations")
     print("  summary.json, " + ", ".join(p.name for p in figures))
 
@@ -187,7 +205,12 @@ def offline_summary(
         builder.add(m.topic, m.message)
     log = builder.build()
     dropped = {r: c.as_dict() for r, c in builder.filter.drops.items()}
-    return RunSummary(run_csam(log, config, local_map), dropped=dropped), log.truth
+    try:
+        result = run_csam(log, config, local_map)
+    except ValueError as err:  # no robot with a local map: named with the reason of each
+        drops = "; ".join(f"{r} dropped {d}" for r, d in dropped.items() if d)
+        raise CliError(f"{bag}: {err}" + (f" ({drops})" if drops else "")) from None
+    return RunSummary(result, dropped=dropped), log.truth
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -321,7 +344,7 @@ def cmd_import(args: argparse.Namespace) -> int:
             config = load_config(resolve_config_path(args.config or "mrclam"))
         except (ConfigFileError, OSError, ValueError) as err:
             raise CliError(f"--config: {err}") from None
-        robots = [int(r) for r in args.robots.split(",")] if args.robots else None
+        robots = _robot_numbers(args.robots)
         try:
             log, report = import_mrclam(
                 args.source,
@@ -369,7 +392,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         swaps = load_config(base).get("landmark_swaps") or []
     except (ConfigFileError, OSError, ValueError) as err:
         raise CliError(f"--config: {err}") from None
-    robots = [int(r) for r in args.robots.split(",")] if args.robots else None
+    robots = _robot_numbers(args.robots)
     window = f"[{args.start}, {'end' if args.duration is None else args.start + args.duration}] s"
     print(f"calibrating on {args.source}, window {window} (about 40 s for all of Dataset 1)")
     began = time.perf_counter()
@@ -482,12 +505,43 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def _input_errors() -> tuple[type[BaseException], ...]:
+    """The errors that bad input raises (each reader names the file and line or key): a
+    missing or unreadable file, a file that is not text, a malformed config, scenario, data
+    set, 2D SLAM file, summary.json or bag."""
+    from csam_ros.bag import BagError
+    from csam_ros.core.config_file import ConfigFileError
+    from csam_ros.core.result import SummaryError
+    from csam_ros.datasets.mrclam import MrclamFormatError
+    from csam_ros.datasets.slam2d import Slam2dFormatError
+
+    return (
+        CliError,
+        ConfigFileError,  # and ScenarioError
+        MrclamFormatError,
+        Slam2dFormatError,
+        SummaryError,
+        BagError,
+        OSError,
+        UnicodeDecodeError,
+    )
+
+
+def _one_line(err: BaseException) -> str:
+    """An error as one line; an OSError names its file."""
+    if isinstance(err, OSError) and err.filename is not None and err.strerror:
+        text = f"{err.filename}: {err.strerror}"
+    else:
+        text = str(err) or type(err).__name__
+    return " ".join(text.split())
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return args.func(args)
-    except CliError as err:
-        print(f"csam {args.command}: {err}", file=sys.stderr)
+    except _input_errors() as err:  # the last resort: readers raise their own named errors
+        print(f"csam {args.command}: {_one_line(err)}", file=sys.stderr)
         return 2
     except LiveRunError as err:
         print(f"csam {args.command}: the run failed: {err}", file=sys.stderr)

@@ -239,3 +239,300 @@ def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) 
     assert bad.returncode == 2 and bad.stderr.startswith("csam import: --config:"), bad.stderr
     again = csam("calibrate", "mrclam", MRCLAM, *args)
     assert again.returncode == 2 and "never overwrites" in again.stderr
+
+
+def _log_bag(path: Path, samples: dict[str, int], v: float = 0.1) -> Path:
+    """A bag of sensor topics: each robot ``samples`` odometry steps at speed ``v`` and one
+    feature observation per step."""
+    from csam_ros.core.log import (
+        FeatureLog,
+        MultiRobotLog,
+        OdometryLog,
+        RobotLog,
+        empty_rendezvous,
+    )
+    from csam_ros.run.bag_io import write_log_bag
+
+    robots = {}
+    for name, n in samples.items():
+        t = 0.5 * np.arange(n)
+        odometry = OdometryLog(t, np.tile([v, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
+        features = FeatureLog(
+            t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
+        )
+        robots[name] = RobotLog(name, odometry, features, empty_rendezvous())
+    write_log_bag(MultiRobotLog(robots), path)
+    return path
+
+
+def _summary_without(tmp: Path, key: str) -> Path:
+    """A run directory whose summary.json (of a real offline run) lacks ``key``."""
+    run = tmp / "run"
+    done = csam("replay", _log_bag(tmp / "bag", {"robot1": 4}), "--offline", "--out", run)
+    assert done.returncode == 0, done.stderr
+    document = json.loads((run / "summary.json").read_text())
+    del document[key]
+    (run / "summary.json").write_text(json.dumps(document))
+    return run
+
+
+def _dataset(tmp: Path, name: str | None = None, content: bytes | None = b"") -> list[str]:
+    """``import mrclam`` arguments for a small data set whose file ``name`` holds ``content``
+    (None: the file is missing)."""
+    from mrclam_files import PLAIN_CONFIG, small_dataset
+
+    directory = small_dataset(tmp / "dataset")
+    if name is not None:
+        (directory / name).unlink()
+        if content is not None:
+            (directory / name).write_bytes(content)
+    config = tmp / "plain.yaml"
+    config.write_text(PLAIN_CONFIG)
+    return ["import", "mrclam", str(directory), "--config", str(config)]
+
+
+def _write(path: Path, content: str | bytes) -> Path:
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    return path
+
+
+BINARY = bytes(range(255, -1, -1)) * 4  # not UTF-8 from its first byte
+BAG = REPO / "bags" / "map_joining"
+BAD_INPUT = {
+    # name: (arguments of csam given a tmp directory, what the one stderr line must name)
+    "mrclam_empty_odometry": (
+        lambda t: _dataset(t, "Robot1_Odometry.dat"),
+        "Robot1_Odometry.dat: no valid odometry row",
+    ),
+    "mrclam_binary_odometry": (
+        lambda t: _dataset(t, "Robot1_Odometry.dat", BINARY),
+        "Robot1_Odometry.dat: no valid odometry row",
+    ),
+    "mrclam_empty_barcodes": (
+        lambda t: _dataset(t, "Barcodes.dat"),
+        "Barcodes.dat: no valid (subject, barcode) row",
+    ),
+    "mrclam_empty_landmarks": (
+        lambda t: _dataset(t, "Landmark_Groundtruth.dat", b"# only a comment\n"),
+        "Landmark_Groundtruth.dat: no valid landmark ground truth row",
+    ),
+    "mrclam_missing_landmarks": (
+        lambda t: _dataset(t, "Landmark_Groundtruth.dat", None),
+        "missing Landmark_Groundtruth.dat",
+    ),
+    "mrclam_robots_not_numbers": (
+        lambda t: [*_dataset(t), "--robots", "abc"],
+        "--robots: expected robot numbers such as 1,2,3, got 'abc'",
+    ),
+    "mrclam_config_not_yaml": (
+        lambda t: [*_dataset(t), "--config", str(_write(t / "c.yaml", "mrclam: [\n"))],
+        "c.yaml: not valid YAML",
+    ),
+    "mrclam_config_noise_not_a_mapping": (
+        lambda t: [*_dataset(t), "--config", str(_write(t / "c.yaml", "mrclam:\n  noise: 3\n"))],
+        "c.yaml: mrclam.noise: expected a mapping of numbers",
+    ),
+    "slam2d_binary": (
+        lambda t: ["import", "slam2d", str(_write(t / "f.g2o", BINARY))],
+        "f.g2o:1: not UTF-8 text",
+    ),
+    "slam2d_only_landmark_edges": (
+        lambda t: ["import", "slam2d", str(_write(t / "f.g2o", "EDGE_SE2_XY 0 1 1 0 1 0 1\n"))],
+        "f.g2o: no odometry record (ODOMETRY or EDGE_SE2)",
+    ),
+    "slam2d_odometry_beyond_float_range": (
+        lambda t: [
+            "import",
+            "slam2d",
+            str(_write(t / "f.g2o", "EDGE_SE2 0 1 1e308 0 0 1 0 0 1 0 1\n")),
+        ],
+        "f.g2o:1: the record converts to a non-finite value",
+    ),
+    "replay_one_odometry_sample": (
+        lambda t: ["replay", str(_log_bag(t / "bag", {"robot1": 1})), "--offline"],
+        "robot1: no local map: ",
+    ),
+    "replay_speed_beyond_float_range": (  # dropped at the boundary, or its solve fails
+        lambda t: ["replay", str(_log_bag(t / "bag", {"robot1": 4}, v=1e305)), "--offline"],
+        "no robot has a local map: robot1: no local map: ",
+    ),
+    "replay_binary_config": (
+        lambda t: ["replay", str(BAG), "--offline", "--config", str(_write(t / "c.yaml", BINARY))],
+        "c.yaml: not valid YAML",
+    ),
+    "replay_unknown_config_section": (
+        lambda t: [
+            "replay",
+            str(BAG),
+            "--offline",
+            "--config",
+            str(_write(t / "c.yaml", "local_map: {}\nlocal_maps: {}\n")),
+        ],
+        "c.yaml: unknown top-level section(s) ['local_maps']; known: ['csam', ",
+    ),
+    "replay_out_is_a_file": (
+        lambda t: ["replay", str(BAG), "--offline", "--out", str(_write(t / "taken", "mine"))],
+        "taken exists and is not a directory",
+    ),
+    "evaluate_invalid_json": (
+        lambda t: ["evaluate", str(_write(t / "summary.json", "{bad").parent)],
+        "summary.json: Expecting property name",
+    ),
+    "evaluate_json_list": (
+        lambda t: ["evaluate", str(_write(t / "summary.json", "[1, 2]").parent)],
+        "summary.json: summary: expected an object, got list",
+    ),
+    "evaluate_no_features": (
+        lambda t: ["evaluate", str(_summary_without(t, "features"))],
+        "summary.json: summary: no 'features' entry",
+    ),
+    "demo_missing_scenario": (
+        lambda t: ["demo", "--scenario", str(t / "nowhere.yaml")],
+        "nowhere.yaml: no such file",
+    ),
+    "demo_invalid_scenario": (
+        lambda t: ["demo", "--scenario", str(_write(t / "s.yaml", "scenario:\n  name: x\n"))],
+        "s.yaml: scenario.robots: expected a non-empty list",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUT))
+def test_bad_input_gives_one_line_and_exit_code_2(case: str, tmp_path: Path) -> None:
+    """Each kind of bad input: exit code 2 and one line ``csam <command>: ...`` naming the
+    file and line or key, never a traceback."""
+    make_args, expected = BAD_INPUT[case]
+    args = make_args(tmp_path)
+    out = [] if "--out" in args or args[0] == "evaluate" else ["--out", str(tmp_path / "out")]
+    result = csam(*args, *out)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, result.stderr
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    assert lines[0].startswith(f"csam {args[0]}: ") and expected in lines[0], lines[0]
+
+
+def test_offline_run_leaves_out_a_robot_without_a_local_map() -> None:
+    """run_csam (the offline replay's core) leaves out, and names in the notes, a robot with
+    one odometry sample and a robot whose solve is not finite (the boundary checks of a
+    replay may drop such input first; the core must not fail on it either)."""
+    from csam_ros.core.csam import run_csam
+    from csam_ros.core.log import (
+        FeatureLog,
+        MultiRobotLog,
+        OdometryLog,
+        RobotLog,
+        empty_rendezvous,
+    )
+
+    def robot(name: str, n: int, v: float) -> RobotLog:
+        t = 0.5 * np.arange(n)
+        odometry = OdometryLog(t, np.tile([v, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
+        features = FeatureLog(
+            t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
+        )
+        return RobotLog(name, odometry, features, empty_rendezvous())
+
+    log = MultiRobotLog(
+        {"robot1": robot("robot1", 5, 0.1), "robot2": robot("robot2", 1, 0.1)}
+        | {"robot3": robot("robot3", 5, 1e305)}
+    )
+    result = run_csam(log)
+    assert list(result.robots) == ["robot1"]
+    assert result.notes[:2] == [
+        "robot2: no local map: 1 usable odometry sample(s), a map needs two",
+        result.notes[1],
+    ]
+    assert result.notes[1].startswith("robot3: no local map: its solve failed")
+    with pytest.raises(ValueError, match="no robot has a local map: robot2: no local map"):
+        run_csam(MultiRobotLog({"robot2": robot("robot2", 1, 0.1)}))
+
+
+# -- bags: recover, damaged chunks, evaluate's source ----------------------------------------
+
+
+def _killed_counter_bag(path: Path, flushed: int, unflushed: int) -> None:
+    """A bag whose writer was never closed (as after SIGKILL): ``flushed`` messages on disk."""
+    from csam_ros.bag import BagWriter
+
+    bag = BagWriter(path, flush_period_s=3600)
+    bag.add_topic("/counter", "std_msgs/msg/UInt32")
+    for i in range(flushed + unflushed):
+        bag.write("/counter", (i + 1) * 10**9, b"\x00\x01\x00\x00" + i.to_bytes(4, "little"))
+        if i + 1 == flushed:
+            bag.flush()
+    bag._file.flush()
+
+
+def test_bag_recover_rewrites_a_killed_bag_for_rosbags(tmp_path: Path) -> None:
+    """Case 8 through the command: the recovered bag opens in rosbags with every flushed
+    message; the report names the topic counts and the cut file; errors are one line."""
+    killed = tmp_path / "killed"
+    _killed_counter_bag(killed, flushed=12, unflushed=5)
+    done = csam("bag", "recover", killed)
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "killed-recovered"
+    assert f"recovered 12 message(s) of {killed} into {out}/" in done.stdout
+    assert "/counter: 12" in done.stdout and "killed_0.mcap: cut short" in done.stdout
+    with AnyReader([out]) as reader:
+        values = [int.from_bytes(raw[4:], "little") for _, _, raw in reader.messages()]
+    assert values == list(range(12))
+    for args, words in (
+        (["bag", "recover", killed, "--out", out], "already exists"),
+        (["bag", "recover", tmp_path / "nowhere"], "does not exist"),
+        (["bag", "recover", REPO / "README.md"], "not an MCAP file"),
+    ):
+        bad = csam(*args)
+        assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1 and "Traceback" not in bad.stderr
+
+
+def test_offline_replay_of_a_bag_with_a_damaged_chunk_warns_and_runs(tmp_path: Path) -> None:
+    """Case 9 through the command: 64 bytes flipped inside a chunk of a recorded bag made
+    `csam replay --offline` end in a ZstdError traceback; now that chunk is skipped with a
+    warning line naming it, and the run completes."""
+    import shutil
+
+    from mcap.reader import make_reader
+
+    bag = tmp_path / "map_joining"
+    shutil.copytree(REPO / "bags" / "map_joining", bag)
+    mcap = bag / "bag_0.mcap"
+    with mcap.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    chunk = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)[1]
+    data = bytearray(mcap.read_bytes())
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+    data[middle : middle + 64] = bytes(b ^ 0x5A for b in data[middle : middle + 64])
+    mcap.write_bytes(bytes(data))
+    done = csam("replay", bag, "--offline", "--out", tmp_path / "out")
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    warnings = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1, done.stderr
+    assert f"{mcap}: chunk at offset {chunk.chunk_start_offset} skipped" in warnings[0]
+    assert "lost" in warnings[0]
+
+
+def test_evaluate_opens_only_a_bag_as_the_summary_source(tmp_path: Path) -> None:
+    """Case 10: summary.json's source names a file that is no bag: one line, exit 2."""
+    document = {
+        "reference_frame": "robot1/map",
+        "robots": {},
+        "features": [],
+        "associations": [],
+        "timing_s": {},
+        "statistics": {},
+        "notes": [],
+        "rendezvous_filter": {},
+    }
+    for source in ("/etc/passwd", str(tmp_path)):
+        (tmp_path / "summary.json").write_text(json.dumps({**document, "source": source}))
+        bad = csam("evaluate", tmp_path)
+        assert bad.returncode == 2, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1 and "Traceback" not in bad.stderr
+        assert f"{source} (the source named in summary.json) is not a readable bag" in bad.stderr
+    assert not (tmp_path / "metrics.json").exists()

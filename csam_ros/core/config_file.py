@@ -56,6 +56,8 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
     path = Path(name_or_path)
     if path.is_file():
         return path
+    if path.suffix or len(path.parts) > 1:  # a file path, not a name
+        raise ConfigFileError(f"{path}: no such file")
     directory = config_dir()
     candidate = directory / f"{name_or_path}.yaml"
     if candidate.is_file():
@@ -65,15 +67,33 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
     )
 
 
+# The top-level sections of parameter and scenario files and who reads them: ``scenario``
+# (datasets.scenario, the simulator), ``csam`` (core.csam.CsamConfig: the merger, the
+# smoothers' rendezvous thinning), ``local_map`` (core.local_map.LocalMapConfig: the
+# smoothers), ``merger`` (the merger node's solve_period), ``mrclam`` (the MR.CLAM importer
+# and calibration) and ``input`` (core.validation.InputBounds: bounds on sensor messages, in
+# the smoothers and offline replay). Any other top-level key is an error, so that a misspelt
+# section never leaves its settings at their defaults unnoticed.
+SECTIONS = ("csam", "local_map", "merger", "mrclam", "scenario", "input")
+
+
 def load_document(name_or_path: str | Path) -> dict[str, Any]:
-    """The whole parsed YAML document of a parameter or scenario file (all top-level keys)."""
+    """The whole parsed YAML document of a parameter or scenario file (all top-level keys,
+    each one of :data:`SECTIONS`)."""
     path = resolve_config_path(name_or_path)
     try:
-        document = yaml.safe_load(path.read_text())
+        document = yaml.safe_load(path.read_bytes().decode("utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as err:
-        raise ConfigFileError(f"{path}: not valid YAML: {err}") from err
+        raise ConfigFileError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from err
+    except OSError as err:
+        raise ConfigFileError(f"{path}: cannot read: {err.strerror or err}") from err
     if not isinstance(document, dict):
         raise ConfigFileError(f"{path}: expected a mapping, got {type(document).__name__}")
+    unknown = sorted(str(key) for key in document if key not in SECTIONS)
+    if unknown:
+        raise ConfigFileError(
+            f"{path}: unknown top-level section(s) {unknown}; known: {list(SECTIONS)}"
+        )
     return document
 
 

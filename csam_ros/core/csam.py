@@ -412,7 +412,12 @@ def run_csam(
 ) -> CsamResult:
     """Build every robot's local map from its log (with a pose at the stamp of every kept
     rendezvous measurement that involves it; thinning as the smoothers do) and run
-    :func:`join_maps`; ``timing_s["local_maps"]`` is the building time."""
+    :func:`join_maps`; ``timing_s["local_maps"]`` is the building time.
+
+    A robot with fewer than two odometry samples, or whose local solve fails or is not
+    finite, gets no local map: it is left out of the joining, as the merger leaves out a robot
+    whose local map never arrives, and named in the result's ``notes``. ValueError when no
+    robot is left."""
     config = config or CsamConfig()
     local_map = local_map or LocalMapConfig()
     start = time.perf_counter()
@@ -423,19 +428,35 @@ def run_csam(
         thinning.max_per_pair,
     )
     stamps = required_stamps(logs)
-    maps = [
-        robot_map_from_local_map(
-            build_local_map(
-                replace(robot, rendezvous=logs[name]),
-                stamps[name],
-                local_map.options(),
-                window=local_map.window,
+    maps: list[RobotMap] = []
+    left_out: list[str] = []
+    for name, robot in log.robots.items():
+        samples = len(robot.odometry.stamps)
+        if samples < 2:
+            left_out.append(
+                f"{name}: no local map: {samples} usable odometry sample(s), a map needs two"
             )
-        )
-        for name, robot in log.robots.items()
-    ]
+            continue
+        try:
+            # values beyond floating point range end here as an error, not as warnings
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                local = build_local_map(
+                    replace(robot, rendezvous=logs[name]),
+                    stamps[name],
+                    local_map.options(),
+                    window=local_map.window,
+                )
+            if not (np.isfinite(local.poses).all() and np.isfinite(local.landmarks).all()):
+                raise FloatingPointError("the solution is not finite")
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as err:
+            left_out.append(f"{name}: no local map: its solve failed ({err})")
+            continue
+        maps.append(robot_map_from_local_map(local))
+    if not maps:
+        raise ValueError("no robot has a local map: " + "; ".join(left_out))
     built = time.perf_counter() - start
     result = join_maps(maps, logs, config)
+    result.notes[:0] = left_out
     if thinning.min_interval > 0 or thinning.max_per_pair is not None:
         result.rendezvous_filter["thinning"] = thinned
     result.timing_s["local_maps"] = built

@@ -6,7 +6,10 @@ A data set directory holds ``Barcodes.dat`` (subject, barcode), ``Landmark_Groun
 (``robot1``..), the landmark subjects are those with ground truth.
 
 Policies (every dropped or repaired row is counted in :class:`ImportReport`, with the first
-offending lines quoted in ``ImportReport.notes``; no row ever raises):
+offending lines quoted in ``ImportReport.notes``; no row ever raises; a required file,
+``Barcodes.dat``, ``Landmark_Groundtruth.dat`` or a selected robot's ``RobotN_Odometry.dat``,
+that is missing, unreadable or without one valid row raises :class:`MrclamFormatError` naming
+it, quoting its first dropped line; a missing or empty measurement file is counted):
 
 - Stamps. Log stamps are seconds relative to ``ImportReport.epoch``, the earliest valid stamp
   in any robot file of the data set (all robots, whatever the selection), so a window
@@ -102,18 +105,46 @@ MRCLAM_NOISE = NoiseModel(
 )
 
 
+def _numbers(value: object) -> bool:
+    """Whether ``value`` is a mapping whose values are all numbers."""
+    return isinstance(value, Mapping) and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value.values()
+    )
+
+
 def load_config(path: str | Path) -> dict:
     """Read ``config/mrclam.yaml`` (top-level key ``mrclam``) and return that section, with
     ``noise`` turned into a :class:`~csam_ros.core.calibration.NoiseModel` (keys it leaves
-    out from :data:`MRCLAM_NOISE`)."""
-    import yaml
+    out from :data:`MRCLAM_NOISE`). A file that cannot be read, or a section of the wrong
+    shape, raises :class:`~csam_ros.core.config_file.ConfigFileError` naming file and key."""
+    from csam_ros.core.config_file import ConfigFileError, load_document
 
-    with open(path) as stream:
-        data = yaml.safe_load(stream)
-    if not isinstance(data, dict) or "mrclam" not in data:
-        raise ValueError(f"{path}: expected a top-level key 'mrclam'")
+    data = load_document(path)
+    if not isinstance(data.get("mrclam"), Mapping):
+        raise ConfigFileError(f"{path}: expected a top-level section 'mrclam' (a mapping)")
     section = dict(data["mrclam"])
-    section["noise"] = NoiseModel.from_dict(section.get("noise") or {}, MRCLAM_NOISE)
+    noise = section.get("noise") or {}
+    if not _numbers(noise):
+        raise ConfigFileError(f"{path}: mrclam.noise: expected a mapping of numbers, got {noise!r}")
+    try:
+        section["noise"] = NoiseModel.from_dict(dict(noise), MRCLAM_NOISE)
+    except (TypeError, ValueError) as err:
+        raise ConfigFileError(f"{path}: mrclam.noise: {err}") from None
+    scales = section.get("range_scale")
+    if scales is not None and not _numbers(scales):
+        raise ConfigFileError(
+            f"{path}: mrclam.range_scale: expected a mapping robot: scale, got {scales!r}"
+        )
+    swaps = section.get("landmark_swaps")
+    pair = list | tuple
+    if swaps is not None and not (
+        isinstance(swaps, pair)
+        and all(isinstance(p, pair) and len(p) == 2 and _numbers(dict(enumerate(p))) for p in swaps)
+    ):
+        raise ConfigFileError(
+            f"{path}: mrclam.landmark_swaps: expected a list of [subject, subject] pairs, "
+            f"got {swaps!r}"
+        )
     return section
 
 
@@ -199,7 +230,10 @@ def _read_table(
     Comment lines (``#``) and blank lines are skipped. Counted reasons:
     ``{prefix}_wrong_columns``, ``{prefix}_non_numeric``, ``{prefix}_non_finite``.
     """
-    text = path.read_text(errors="replace")
+    try:
+        text = path.read_bytes().decode("utf-8", errors="replace")
+    except OSError as err:
+        raise MrclamFormatError(f"{path}: cannot read: {err.strerror or err}") from None
     rows: list[list[str]] = []
     line_numbers: list[int] = []
     for number, line in enumerate(text.splitlines(), start=1):
@@ -270,10 +304,26 @@ def _sort_by_stamp(table: _Table, counter: _Counter, robot: str, prefix: str, na
     return table
 
 
+def _no_rows(path: Path, what: str, counter: _Counter) -> MrclamFormatError:
+    """The error of a required file without one usable row, quoting the first dropped line."""
+    first = next((n for n in counter.notes if n.startswith(f"{path.name}:")), None)
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    if not any(line.split() and not line.lstrip().startswith("#") for line in text.splitlines()):
+        why = " (the file is empty or holds only comments)"
+    elif first is not None:
+        why = f" (first dropped line: {first})"
+    else:
+        why = " (every line was dropped as malformed)"
+    return MrclamFormatError(f"{path}: no valid {what} row{why}")
+
+
 def _read_barcodes(directory: Path, counter: _Counter) -> dict[int, int]:
-    table = _read_table(directory / BARCODES_FILE, 2, counter, None, "barcode")
+    path = directory / BARCODES_FILE
+    table = _read_table(path, 2, counter, None, "barcode")
     values = table.values
-    integral = (values == np.round(values)).all(axis=1)
+    integral = (values == np.round(values)).all(axis=1) & (np.abs(values) < 2**62).all(axis=1)
+    if not integral.any():
+        raise _no_rows(path, "(subject, barcode)", counter)
     barcode_to_subject: dict[int, int] = {}
     for (subject, code), line in zip(
         values[integral].astype(np.int64), table.lines[integral], strict=True
@@ -289,9 +339,12 @@ def _read_barcodes(directory: Path, counter: _Counter) -> dict[int, int]:
 
 
 def _read_landmarks(directory: Path, counter: _Counter) -> tuple[NDArray[np.int64], FloatArray]:
-    table = _read_table(directory / LANDMARKS_FILE, 5, counter, None, "landmark")
+    path = directory / LANDMARKS_FILE
+    table = _read_table(path, 5, counter, None, "landmark")
     subjects = table.values[:, 0]
-    keep = subjects == np.round(subjects)
+    keep = (subjects == np.round(subjects)) & (np.abs(subjects) < 2**62)
+    if not keep.any():
+        raise _no_rows(path, "landmark ground truth", counter)
     subjects = subjects[keep].astype(np.int64)
     unique, first = np.unique(subjects, return_index=True)
     if unique.size != subjects.size:
@@ -348,6 +401,8 @@ def _odometry_log(
     """Turn the piecewise-constant command rows into log samples (module docstring)."""
     stamps = odometry.values[:, 0] - epoch
     commands = odometry.values[:, 1:3]
+    if stamps.size == 0:
+        return None
     # Duplicate stamps: keep the last row of each run of equal stamps.
     last_of_run = np.append(stamps[1:] != stamps[:-1], True)
     duplicates = int((~last_of_run).sum())
@@ -361,8 +416,6 @@ def _odometry_log(
             "by the last row with the same stamp)",
         )
     stamps, commands = stamps[last_of_run], commands[last_of_run]
-    if stamps.size == 0:
-        return None
     begin = max(window[0], stamps[0])
     end = min(window[1], stamps[-1])
     if not end > begin:
@@ -439,6 +492,9 @@ def import_mrclam(
     files = {
         r: _read_robot(directory, r, counter if r in selected else _Counter([])) for r in available
     }
+    for r in selected:
+        if files[r].odometry.values.shape[0] == 0:
+            raise _no_rows(directory / f"Robot{r}_Odometry.dat", "odometry", counter)
     first_stamps = [
         t.values[0, 0]
         for f in files.values()
@@ -540,7 +596,7 @@ def _measurement_logs(
             counter.add(name, reason, int(mask.sum()), f"{file_name}:{lines[mask][0]}: {why}")
 
     codes = values[:, 1]
-    ok = codes == np.round(codes)
+    ok = (codes == np.round(codes)) & (np.abs(codes) < 2**62)
     drop(~ok, "measurement_bad_barcode", "barcode is not an integer")
     bad_range = ok & ~(values[:, 2] > 0)
     drop(bad_range, "measurement_non_positive_range", "range <= 0")

@@ -37,6 +37,7 @@ line number.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,8 +115,8 @@ def read_slam2d(path: str | Path) -> Slam2dData:
     obs_z: list[list[float]] = []
     obs_c: list[Array] = []
     g2o_types: dict[int, str] = {}
-    with path.open() as handle:
-        for number, raw in enumerate(handle, start=1):
+    with path.open("rb") as handle:
+        for number, raw in enumerate(_text_lines(handle, path), start=1):
             where = f"{path}:{number}"
             line = raw.split("#", 1)[0].strip()
             if not line:
@@ -196,6 +197,19 @@ def read_slam2d(path: str | Path) -> Slam2dData:
     data.observations = np.array(obs_z, dtype=float).reshape(-1, 2)
     data.observation_covariance = np.array(obs_c, dtype=float).reshape(-1, 2, 2)
     return data
+
+
+def _text_lines(lines: Iterable[bytes], path: Path) -> Iterator[str]:
+    """The lines of a file opened in binary mode, decoded as UTF-8; a line that is not text
+    raises :class:`Slam2dFormatError` naming the file and line."""
+    for number, raw in enumerate(lines, start=1):
+        try:
+            yield raw.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise Slam2dFormatError(
+                f"{path}:{number}: not UTF-8 text (byte {raw[err.start]:#04x} at column "
+                f"{err.start + 1}): a 2D SLAM file is text"
+            ) from None
 
 
 def _claim(types: dict[int, str], vertex: int, kind: str, where: str) -> None:

@@ -60,6 +60,7 @@ Array = NDArray[np.float64]
 MIN_RANGE = 1e-9  # m: an observation this close to the robot centre has no bearing
 
 _ODOMETRY_RECORDS = ("ODOMETRY", "EDGE_SE2")
+_OBSERVATION_RECORDS = ("LANDMARK", "EDGE_SE2_XY")
 
 _log = logging.getLogger(__name__)
 
@@ -123,24 +124,31 @@ def polar_observations(
     return r, beta, np.sqrt(var_radial), np.sqrt(var_tangential) / r
 
 
-def _odometry_line(path: Path, edge: int) -> str:
-    """``path:line`` of the ``edge``-th odometry record (0-based) of the file."""
+def _odometry_line(path: Path, edge: int, records: tuple[str, ...] = _ODOMETRY_RECORDS) -> str:
+    """``path:line`` of the ``edge``-th odometry record (0-based) of the file (or of the
+    ``records`` given)."""
     count = -1
-    with path.open() as handle:
+    with path.open(errors="replace") as handle:
         for number, raw in enumerate(handle, start=1):
             tokens = raw.split("#", 1)[0].split()
-            if tokens and tokens[0] in _ODOMETRY_RECORDS:
+            if tokens and tokens[0] in records:
                 count += 1
                 if count == edge:
                     return f"{path}:{number}"
     return str(path)
 
 
-def _chain(data: Slam2dData, path: Path) -> tuple[Array, Array]:
-    """Relative poses and covariances of the chain, in the order of the sorted pose ids."""
+def _chain(data: Slam2dData, path: Path) -> tuple[Array, Array, Array]:
+    """Relative poses and covariances of the chain, in the order of the sorted pose ids, and
+    the index of each one's record among the file's odometry records."""
     pose_ids = data.pose_ids
     if len(pose_ids) == 0:
         raise Slam2dFormatError(f"{path}: no poses")
+    if len(pose_ids) == 1:
+        raise Slam2dFormatError(
+            f"{path}: no odometry record ({' or '.join(_ODOMETRY_RECORDS)}): a robot's log "
+            f"needs at least two poses joined by odometry, the file has only pose {pose_ids[0]}"
+        )
     position = {int(p): k for k, p in enumerate(pose_ids)}
     first = np.array([position[int(a)] for a in data.odometry_first], dtype=np.int64)
     second = np.array([position[int(b)] for b in data.odometry_second], dtype=np.int64)
@@ -169,7 +177,23 @@ def _chain(data: Slam2dData, path: Path) -> tuple[Array, Array]:
             f"{path}: no odometry from pose {pose_ids[k]} to pose {pose_ids[k + 1]}: the poses "
             "do not form one chain"
         )
-    return data.odometry[link], data.odometry_covariance[link]
+    return data.odometry[link], data.odometry_covariance[link], link
+
+
+def _check_usable(
+    values: Array, sigmas: Array, path: Path, rows: Array, records: tuple[str, ...]
+) -> None:
+    """Raise naming the first record whose converted values are not finite or whose sigmas
+    are not positive (a number beyond floating point range, e.g. ``dx = 1e308``); ``rows``
+    gives each one's index among the file's ``records``."""
+    bad = ~np.isfinite(values).all(axis=1) | ~(sigmas > 0).all(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise Slam2dFormatError(
+            f"{_odometry_line(path, int(rows[k]), records)}: the record converts to a "
+            "non-finite value or a zero sigma in the robot's log (a number beyond floating "
+            "point range)"
+        )
 
 
 def convert_slam2d(
@@ -182,12 +206,13 @@ def convert_slam2d(
     path = Path(data.source)
     if not (np.isfinite(sample_time) and sample_time > 0):
         raise ValueError(f"sample_time must be a positive number of seconds, got {sample_time}")
-    relative, covariance = _chain(data, path)
+    relative, covariance, link = _chain(data, path)
     count = len(relative) + 1
     stamps = np.arange(count) * float(sample_time)
     inputs = inputs_from_relative_poses(relative, sample_time)
     q = input_covariances(inputs, sample_time, covariance)
     sigmas = np.sqrt(np.diagonal(q, axis1=1, axis2=2))
+    _check_usable(np.concatenate([inputs, sigmas], axis=1), sigmas, path, link, _ODOMETRY_RECORDS)
     first_sigma = sigmas[:1] if len(sigmas) else np.ones((1, 3))
     odometry = OdometryLog(
         stamps, np.concatenate([np.zeros((1, 3)), inputs]), np.concatenate([first_sigma, sigmas])
@@ -208,6 +233,8 @@ def convert_slam2d(
     r, beta, sigma_r, sigma_b = polar_observations(
         data.observations[order], data.observation_covariance[order]
     )
+    polar = np.stack([r, beta, sigma_r, sigma_b], axis=1)
+    _check_usable(polar, polar[:, 2:], path, order, _OBSERVATION_RECORDS)
     features = FeatureLog(
         stamps[pose_index[order]],
         data.observation_landmark[order].astype(np.int64),

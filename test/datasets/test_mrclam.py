@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mrclam_files import BARCODES, LANDMARKS, clean_odometry, write_dataset
 
 from csam_ros.core.calibration import NoiseModel
 from csam_ros.datasets.mrclam import (
@@ -20,34 +21,6 @@ from csam_ros.datasets.mrclam import (
 
 DATASET = default_dataset_dir()
 ROOT = Path(__file__).resolve().parents[2]
-HEADER = "# a comment line\n# another one\n"
-# subjects 1-3 robots, 6-9 landmarks
-BARCODES = {1: 5, 2: 14, 3: 41, 6: 72, 7: 27, 8: 54, 9: 70}
-LANDMARKS = {6: (1.0, 2.0), 7: (3.0, -1.0), 8: (-2.0, 0.5), 9: (0.0, 4.0)}
-
-
-def write_dataset(
-    directory: Path,
-    odometry: dict[int, list[str]],
-    measurements: dict[int, list[str]],
-) -> Path:
-    """Write a data set; rows are given as raw text lines so that tests can corrupt them."""
-    directory.mkdir(parents=True, exist_ok=True)
-    (directory / "Barcodes.dat").write_text(
-        HEADER + "".join(f"  {s} \t {b}\n" for s, b in BARCODES.items())
-    )
-    (directory / "Landmark_Groundtruth.dat").write_text(
-        HEADER + "".join(f"{s} {x} {y} 0.001 0.001\n" for s, (x, y) in LANDMARKS.items())
-    )
-    for robot, rows in odometry.items():
-        (directory / f"Robot{robot}_Odometry.dat").write_text(HEADER + "\n".join(rows) + "\n")
-    for robot, rows in measurements.items():
-        (directory / f"Robot{robot}_Measurement.dat").write_text(HEADER + "\n".join(rows) + "\n")
-    return directory
-
-
-def clean_odometry(t0: float = 1000.0, n: int = 11, v: float = 0.1) -> list[str]:
-    return [f"{t0 + 0.5 * i:.3f} {v} 0.0" for i in range(n)]
 
 
 def test_clean_import_labels_and_truth(tmp_path: Path) -> None:
