@@ -165,6 +165,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+_warned: set[str] = set()
+
+
+def _warn(line: str) -> None:
+    """Print a warning about the input once, e.g. a bag cut short or with a damaged chunk
+    (what was read and what was lost)."""
+    if line not in _warned:
+        _warned.add(line)
+        print(f"warning: {line}", file=sys.stderr)
+
+
 def _bag_robots(bag: Path) -> list[str]:
     return _bag_contents(bag)[0]
 
@@ -175,6 +186,8 @@ def _bag_contents(bag: Path) -> tuple[list[str], float]:
     from csam_ros.ros.topics import parse
 
     info = inspect_bag(bag)
+    for line in info.warnings:
+        _warn(line)
     declared = [parse(t) for t in info.topics]
     robots = sorted({d[1] for d in declared if d is not None and d[0].sensor})
     if not robots:
@@ -201,7 +214,8 @@ def offline_summary(
         raise CliError(str(err)) from None
     robots = _bag_robots(bag)
     builder = LogBuilder(robots)
-    for m in read_bag_messages(bag, [*sensor_topics(robots), FEATURES_TRUTH.name]):
+    topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
+    for m in read_bag_messages(bag, topics, on_damage=_warn):
         builder.add(m.topic, m.message)
     log = builder.build()
     dropped = {r: c.as_dict() for r, c in builder.filter.drops.items()}
@@ -316,19 +330,43 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _truth_of(run_dir: Path, source: str | None) -> GroundTruth | None:
-    """The ground truth in the run's bag, or in the bag it replayed (``source``)."""
-    from csam_ros.bag import read_bag_messages
+    """The ground truth in the run's bag, or in the bag it replayed (``source``, the path as
+    given to ``csam replay``: a relative one is relative to where replay ran, as is the
+    current directory's). Only a bag is opened: CliError for anything else."""
+    from csam_ros.bag import BagError, inspect_bag, read_bag_messages
     from csam_ros.ros.conversions import truth_from_message
     from csam_ros.ros.topics import FEATURES_TRUTH
 
-    candidates = [run_dir / "bag"]
+    candidates = [(run_dir / "bag", "the run's bag")]
     if source:
-        candidates.append(Path(source))
-    for bag in candidates:
-        if bag.exists():
-            for m in read_bag_messages(bag, [FEATURES_TRUTH.name]):
-                return truth_from_message(m.message)
+        candidates.append((Path(source), "the source named in summary.json"))
+    for bag, what in candidates:
+        if not bag.exists():
+            continue
+        try:
+            info = inspect_bag(bag)
+        except BagError as err:
+            raise CliError(f"{bag} ({what}) is not a readable bag: {err}") from None
+        if FEATURES_TRUTH.name not in info.topics:
+            continue
+        for line in info.warnings:
+            _warn(line)
+        for m in read_bag_messages(bag, [FEATURES_TRUTH.name], on_damage=_warn):
+            return truth_from_message(m.message)
     return None
+
+
+def cmd_bag_recover(args: argparse.Namespace) -> int:
+    """Write every message of a cut or damaged bag that still verifies into a new bag."""
+    from csam_ros.bag import BagError, recover_bag
+
+    try:
+        report = recover_bag(args.bag, args.out)
+    except BagError as err:
+        raise CliError(str(err)) from None
+    for line in report.lines():
+        print(line)
+    return 0
 
 
 def cmd_import(args: argparse.Namespace) -> int:
@@ -502,6 +540,17 @@ def parser() -> argparse.ArgumentParser:
     cal.add_argument("--duration", type=float, help="seconds of data to calibrate on")
     cal.add_argument("--rounds", type=int, default=12, help="most expectation-maximisation rounds")
     cal.set_defaults(func=cmd_calibrate)
+
+    bag = sub.add_parser("bag", help="bag tools: recover a killed or damaged recording")
+    bag_tools = bag.add_subparsers(dest="bag_command", required=True)
+    recover = bag_tools.add_parser(
+        "recover",
+        help="rewrite a bag cut short (recording killed) or with damaged chunks into a "
+        "complete one that every reader opens; the bag itself is left as it is",
+    )
+    recover.add_argument("bag", type=Path, help="bag directory or .mcap file")
+    recover.add_argument("--out", type=Path, help="the new bag directory (default: BAG-recovered)")
+    recover.set_defaults(func=cmd_bag_recover)
     return p
 
 
