@@ -358,16 +358,32 @@ class MergerStats:
 
     dropped: dict[str, int]  # dropped messages and failed solves by reason
     solves: int
+    # per robot: smoother restarts seen (a new local map starting later or holding fewer
+    # poses than the last one) and the poses of history they lost; no key when none
+    restarts: dict[str, int] = field(default_factory=dict)
+    restart_poses_lost: dict[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"dropped": dict(self.dropped), "solves": self.solves}
+        document: dict[str, Any] = {"dropped": dict(self.dropped), "solves": self.solves}
+        if self.restarts:
+            document["restarts"] = dict(self.restarts)
+            document["restart_poses_lost"] = dict(self.restart_poses_lost)
+        return document
 
     @classmethod
     def from_dict(cls, node: Any, where: str = "merger") -> MergerStats:
-        node = _object(node, where, ("dropped", "solves"))
+        restarted = isinstance(node, Mapping) and "restarts" in node
+        keys = ("dropped", "solves", *(("restarts", "restart_poses_lost") if restarted else ()))
+        node = _object(node, where, keys)
         return cls(
             dropped=_counts(node["dropped"], f"{where}.dropped"),
             solves=_count(node["solves"], f"{where}.solves"),
+            restarts=_counts(node["restarts"], f"{where}.restarts") if restarted else {},
+            restart_poses_lost=(
+                _counts(node["restart_poses_lost"], f"{where}.restart_poses_lost")
+                if restarted
+                else {}
+            ),
         )
 
 

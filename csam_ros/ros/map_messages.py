@@ -39,11 +39,32 @@ from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.result import CsamResult
 from csam_ros.core.solver import Problem
+from csam_ros.core.validation import (
+    MALFORMED_LOCAL_MAP,
+    MALFORMED_RENDEZVOUS_POSES,
+    ROBOT_MISMATCH,
+    DropCounter,
+    LocalMapArrays,
+    local_map_fault,
+    rendezvous_row_mask,
+)
 from csam_ros.ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
 
 
-class LocalMapError(ValueError):
-    """A local map message that cannot be turned into a local problem."""
+class RefusedMessageError(ValueError):
+    """A message refused at the merger's boundary, with the reason its drop is counted under."""
+
+    def __init__(self, detail: str, reason: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+class LocalMapError(RefusedMessageError):
+    """A local map message that cannot be turned into a local problem (or a map that has no
+    message form)."""
+
+    def __init__(self, detail: str, reason: str = MALFORMED_LOCAL_MAP) -> None:
+        super().__init__(detail, reason)
 
 
 def _kernel_to_message(kernel: RobustKernel | None) -> tuple[str, float]:
@@ -138,64 +159,117 @@ def robot_map_to_message(
     return msg
 
 
-def robot_map_from_message(msg: LocalMap) -> RobotMap:
-    """Rebuild the local problem of a local map message at its published estimate."""
-    name = msg.robot
-    n = len(msg.poses)
-    if n == 0 or len(msg.pose_stamps) != n:
-        raise LocalMapError(f"{name}: {n} poses with {len(msg.pose_stamps)} stamps")
+def _robot_of(msg: LocalMap | RendezvousPoses, robot: str | None, error: type) -> str:
+    """The robot a message belongs to: ``robot`` (its topic's) when given, which the
+    message's own ``robot`` field and frame must then name."""
+    if robot is None:
+        return msg.robot
+    if msg.robot != robot:
+        raise error(f"{robot}: message names robot {msg.robot!r}", ROBOT_MISMATCH)
+    if msg.header.frame_id != f"{robot}/map":
+        raise error(f"{robot}: frame {msg.header.frame_id!r} is not '{robot}/map'", ROBOT_MISMATCH)
+    return robot
+
+
+def _feature_label(member: list[str] | tuple[str, ...], robot: str) -> int:
+    if len(member) != 1:
+        raise LocalMapError(f"{robot}: a feature of a local map has {len(member)} members, not 1")
+    owner, _, label = member[0].rpartition("/")
+    if owner != robot:
+        raise LocalMapError(f"{robot}: feature {member[0]!r} is not labelled '{robot}/<label>'")
+    try:
+        value = int(label)
+    except ValueError:
+        raise LocalMapError(f"{robot}: feature {member[0]!r} has no integer label") from None
+    if not -(2**63) <= value < 2**63:
+        raise LocalMapError(f"{robot}: feature label {value} is out of range")
+    return value
+
+
+def local_map_arrays(msg: LocalMap, robot: str) -> LocalMapArrays:
+    """The numbers of a local map message, unchecked (only the feature labels are parsed)."""
+
+    def rows(values: list[list[float]], width: int) -> np.ndarray:
+        return np.array(values, dtype=float).reshape(-1, width)
+
+    odo, obs = msg.odometry_factors, msg.observation_factors
+    return LocalMapArrays(
+        stamps=np.array([time_to_ns(t) / 1e9 for t in msg.pose_stamps], dtype=float),
+        poses=rows([[p.x, p.y, p.theta] for p in msg.poses], 3),
+        pose_covariances=np.asarray(msg.pose_covariances, dtype=float),
+        feature_labels=np.array(
+            [_feature_label(f.members, robot) for f in msg.features], dtype=np.int64
+        ),
+        feature_xy=rows([[f.x, f.y] for f in msg.features], 2),
+        feature_cov=rows([list(f.covariance) for f in msg.features], 3),
+        prior_sqrt_information=np.asarray(msg.first_pose_prior_sqrt_information, dtype=float),
+        odometry_ends=np.array([[f.from_pose, f.to_pose] for f in odo], dtype=np.int64).reshape(
+            -1, 2
+        ),
+        odometry_delta=rows([[f.delta.x, f.delta.y, f.delta.theta] for f in odo], 3),
+        odometry_sqrt_information=rows([list(f.sqrt_information) for f in odo], 9),
+        observation_pose=np.array([f.pose for f in obs], dtype=np.int64),
+        observation_label=np.array([f.label for f in obs], dtype=np.int64),
+        observation_xy=rows([[f.x, f.y] for f in obs], 2),
+        observation_sqrt_information=rows([list(f.sqrt_information) for f in obs], 4),
+        robust_kernel=msg.observation_robust_kernel,
+        robust_parameter=float(msg.observation_robust_parameter),
+        cost=float(msg.cost),
+    )
+
+
+def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
+    """Rebuild the local problem of a local map message at its published estimate.
+
+    ``robot`` is the robot of the topic it came on (None: trust the message's ``robot``).
+    Every field is checked first (:func:`~csam_ros.core.validation.local_map_fault`): a
+    message C-SAM could not use raises :class:`LocalMapError` naming the fault, with the
+    reason to count it under (``malformed_local_map`` or ``robot_mismatch``).
+    """
+    name = _robot_of(msg, robot, LocalMapError)
+    m = local_map_arrays(msg, name)
+    fault = local_map_fault(m)
+    if fault is not None:
+        raise LocalMapError(f"{name}: {fault}")
     problem = Problem()
-    poses = np.array([[p.x, p.y, p.theta] for p in msg.poses], dtype=float)
-    pose_ids = problem.add_variables(POSE, [(name, "pose", i) for i in range(n)], poses)
-    labels = np.array([int(f.members[0].rpartition("/")[2]) for f in msg.features], dtype=np.int64)
-    xy = np.array([[f.x, f.y] for f in msg.features], dtype=float).reshape(-1, 2)
-    feature_ids = problem.add_variables(POINT, [(name, "feature", int(k)) for k in labels], xy)
-    feature_of = dict(zip(labels.tolist(), feature_ids.tolist(), strict=True))
+    n = len(m.poses)
+    pose_ids = problem.add_variables(POSE, [(name, "pose", i) for i in range(n)], m.poses)
+    feature_ids = problem.add_variables(
+        POINT, [(name, "feature", int(k)) for k in m.feature_labels], m.feature_xy
+    )
+    feature_of = dict(zip(m.feature_labels.tolist(), feature_ids.tolist(), strict=True))
     problem.add_factor(
         PosePrior(
             pose_ids[:1],
             [[0.0, 0.0, 0.0]],
-            np.asarray(msg.first_pose_prior_sqrt_information, dtype=float).reshape(1, 3, 3),
+            m.prior_sqrt_information.reshape(1, 3, 3),
             name=f"{name} gauge",
         )
     )
-    odo = msg.odometry_factors
-    if odo:
-        ends = np.array([[f.from_pose, f.to_pose] for f in odo], dtype=np.int64)
-        if ends.max() >= n:
-            raise LocalMapError(f"{name}: odometry factor names pose {ends.max()} of {n}")
+    if len(m.odometry_ends):
         problem.add_factor(
             RelativePose(
-                pose_ids[ends[:, 0]],
-                pose_ids[ends[:, 1]],
-                np.array([[f.delta.x, f.delta.y, f.delta.theta] for f in odo]),
-                np.array([f.sqrt_information for f in odo], dtype=float).reshape(-1, 3, 3),
+                pose_ids[m.odometry_ends[:, 0]],
+                pose_ids[m.odometry_ends[:, 1]],
+                m.odometry_delta,
+                m.odometry_sqrt_information.reshape(-1, 3, 3),
                 name=f"{name} odometry",
             )
         )
-    obs = msg.observation_factors
-    if obs:
-        pose = np.array([f.pose for f in obs], dtype=np.int64)
-        if pose.max() >= n:
-            raise LocalMapError(f"{name}: observation factor names pose {pose.max()} of {n}")
-        try:
-            points = np.array([feature_of[int(f.label)] for f in obs], dtype=np.int64)
-        except KeyError as err:
-            raise LocalMapError(f"{name}: observation of unknown feature {err}") from None
+    if len(m.observation_pose):
         problem.add_factor(
             PointObservation(
-                pose_ids[pose],
-                points,
-                np.array([[f.x, f.y] for f in obs]),
-                np.array([f.sqrt_information for f in obs], dtype=float).reshape(-1, 2, 2),
-                robust=_kernel_from_message(
-                    msg.observation_robust_kernel, msg.observation_robust_parameter
-                ),
+                pose_ids[m.observation_pose],
+                np.array([feature_of[int(k)] for k in m.observation_label], dtype=np.int64),
+                m.observation_xy,
+                m.observation_sqrt_information.reshape(-1, 2, 2),
+                robust=_kernel_from_message(m.robust_kernel, m.robust_parameter),
                 name=f"{name} observations",
             )
         )
-    stamps = np.array([time_to_ns(t) / 1e9 for t in msg.pose_stamps])
-    return RobotMap(name, problem, stamps, pose_ids, labels, feature_ids, gauge_factor=0)
+    return RobotMap(
+        name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
+    )
 
 
 def rendezvous_poses_message(
@@ -230,8 +304,35 @@ def rendezvous_poses_message(
     return msg
 
 
-def rendezvous_log_from_message(msg: RendezvousPoses) -> RendezvousLog:
-    """The rendezvous measurements a robot made, from its rendezvous poses message."""
+def rendezvous_log_from_message(
+    msg: RendezvousPoses,
+    robot: str | None = None,
+    robots: Sequence[str] | None = None,
+    pose_stamps: np.ndarray | None = None,
+    tolerance: float = 1e-6,
+    drops: DropCounter | None = None,
+) -> RendezvousLog:
+    """The rendezvous measurements a robot made, from its rendezvous poses message.
+
+    ``robot`` is the robot of the topic it came on (None: trust the message). A message
+    whose robot or frame is not the topic's, or whose stamps, poses and pose indices do not
+    match, raises :class:`RefusedMessageError` (``robot_mismatch``, ``malformed_rendezvous_poses``).
+    Single measurements with bad numbers, of the robot itself, of a robot not in ``robots``
+    (when given) or at a stamp inside the robot's map (``pose_stamps``) where it holds no
+    pose are left out, each counted once in ``drops`` under its reason.
+    """
+    name = _robot_of(msg, robot, RefusedMessageError)
+    k = len(msg.stamps)
+    if len(msg.poses) != k or len(msg.pose_indices) != k:
+        raise RefusedMessageError(
+            f"{name}: {k} stamps, {len(msg.poses)} poses and {len(msg.pose_indices)} indices",
+            MALFORMED_RENDEZVOUS_POSES,
+        )
+    poses = np.array([[p.x, p.y, p.theta] for p in msg.poses], dtype=float)
+    if not np.all(np.isfinite(poses)):
+        raise RefusedMessageError(
+            f"{name}: a rendezvous pose is not finite", MALFORMED_RENDEZVOUS_POSES
+        )
     stamps, observed, r, b, sr, sb = [], [], [], [], [], []
     for group in msg.measurements:
         t = time_to_ns(group.header.stamp) / 1e9
@@ -242,13 +343,28 @@ def rendezvous_log_from_message(msg: RendezvousPoses) -> RendezvousLog:
             b.append(o.bearing)
             sr.append(o.sigma_range)
             sb.append(o.sigma_bearing)
-    return RendezvousLog(
-        np.array(stamps, dtype=float),
+    keep = rendezvous_row_mask(
+        name,
+        list(robots) if robots is not None else sorted(set(observed) - {name}),
+        stamps,
         observed,
-        np.array(r, dtype=float),
-        np.array(b, dtype=float),
-        np.array(sr, dtype=float),
-        np.array(sb, dtype=float),
+        r,
+        b,
+        sr,
+        sb,
+        pose_stamps,
+        tolerance,
+        drops if drops is not None else DropCounter(),
+    )
+    order = np.argsort(np.array(stamps, dtype=float)[keep], kind="stable")
+    index = np.flatnonzero(keep)[order]
+    return RendezvousLog(
+        np.array(stamps, dtype=float)[index],
+        [observed[i] for i in index],
+        np.array(r, dtype=float)[index],
+        np.array(b, dtype=float)[index],
+        np.array(sr, dtype=float)[index],
+        np.array(sb, dtype=float)[index],
     )
 
 
