@@ -97,13 +97,16 @@ def _csam_params(document: dict) -> dict:
 
 def _smoother_params(document: dict) -> dict:
     """The smoothers' parameters: their fields of the ``local_map:`` section (all but the
-    offline-only ``batch_window``) and of the ``csam:`` section (the rendezvous thinning)."""
+    offline-only ``batch_window``), of the ``csam:`` section (the rendezvous thinning) and the
+    ``input:`` section (bounds on sensor messages)."""
     from csam_ros.core.csam import CsamConfig
     from csam_ros.core.local_map import SMOOTHER, LocalMapConfig
+    from csam_ros.core.validation import InputBounds
 
     return {
         **_node_params(document, "local_map", LocalMapConfig, SMOOTHER),
         **_node_params(document, "csam", CsamConfig, SMOOTHER),
+        **_node_params(document, "input", InputBounds, SMOOTHER),
     }
 
 
@@ -203,6 +206,7 @@ def offline_summary(
     from csam_ros.core.csam import CsamConfig, run_csam
     from csam_ros.core.local_map import LocalMapConfig
     from csam_ros.core.result import RunSummary
+    from csam_ros.core.validation import InputBounds
     from csam_ros.ros.conversions import LogBuilder
     from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
 
@@ -210,10 +214,11 @@ def offline_summary(
     try:
         config = CsamConfig.from_dict(document.get("csam"), "csam")
         local_map = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
+        bounds = InputBounds.from_dict(document.get("input"), "input")
     except ValueError as err:
         raise CliError(str(err)) from None
     robots = _bag_robots(bag)
-    builder = LogBuilder(robots)
+    builder = LogBuilder(robots, bounds=bounds)
     topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
     for m in read_bag_messages(bag, topics, on_damage=_warn):
         builder.add(m.topic, m.message)
@@ -499,7 +504,7 @@ def parser() -> argparse.ArgumentParser:
     replay.add_argument(
         "--config",
         type=Path,
-        help="YAML with csam: and local_map: sections (e.g. config/mrclam.yaml)",
+        help="YAML with csam:, local_map:, merger: and input: sections (e.g. config/mrclam.yaml)",
     )
     replay.set_defaults(func=cmd_replay)
 

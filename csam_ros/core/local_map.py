@@ -6,12 +6,13 @@ the origin, fixed by a pose prior of sigma ``gauge_sigma`` (far below every othe
 Key poses are held at: the first odometry stamp, every feature-scan stamp, every requested
 stamp (rendezvous: the robot's own observations of others and other robots' observations of
 it, which may arrive late) and, optionally, a regular grid ``t0 + k * key_interval`` so that
-the path is sampled during stretches without observations. Stamps closer than
-``stamp_tolerance`` share one key pose. Odometry samples between consecutive keys are composed
-into one relative-pose factor (:func:`csam_ros.core.motion.odometry_between`); a key inserted
-in the past splits the factor of its interval (exact for the mean). Features give Cartesian
-observation factors (docs/METHOD.md section 3); a new landmark is initialised from its first
-observation.
+the path is sampled during stretches without observations (only where odometry samples are at
+most ``key_interval`` apart: none inside a gap in the odometry, whatever its length). Stamps
+closer than ``stamp_tolerance`` share one key pose. Odometry samples between consecutive keys
+are composed into one relative-pose factor (:func:`csam_ros.core.motion.odometry_between`); a
+key inserted in the past splits the factor of its interval (exact for the mean). Features give
+Cartesian observation factors (docs/METHOD.md section 3); a new landmark is initialised from
+its first observation.
 
 Update policy (online). Data are buffered as they arrive. :meth:`LocalMap.update` integrates
 everything covered by odometry: new keys (appended or inserted in the past) get initial values
@@ -335,8 +336,7 @@ class LocalMap:
         req = np.asarray(self._requested, dtype=float)
         candidates.append(req[(req >= t0 - tol) & (req <= t_end + tol)])
         if self.options.key_interval:
-            count = int(np.floor((t_end - t0) / self.options.key_interval)) + 1
-            candidates.append(t0 + self.options.key_interval * np.arange(count))
+            candidates.append(_regular_keys(self._odo_t, self.options.key_interval))
         cand = np.clip(np.unique(np.concatenate(candidates)), t0, t_end)
         new_keys = self._new_key_stamps(cand, tol)
         inserted = self._insert_keys(new_keys)
@@ -569,6 +569,18 @@ class LocalMap:
         return r, self._keys[idx].copy(), self._key_values[idx].copy()
 
 
+def _regular_keys(stamps: Array, interval: float) -> Array:
+    """The grid ``t0 + k * interval`` over ``[t0, t_end]`` of sorted odometry ``stamps``,
+    but only where consecutive samples are at most ``interval`` apart, so that a gap in the
+    odometry adds no key pose (the grid points of each short interval ``(t_{i-1}, t_i]``)."""
+    t0 = stamps[0]
+    scaled = (stamps - t0) / interval
+    dense = np.flatnonzero(np.diff(stamps) <= interval)
+    k = np.concatenate([[0.0], np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
+    k = np.unique(k[(k >= 0) & (k <= np.floor(scaled[-1]))])
+    return t0 + interval * k
+
+
 def build_local_map(
     log: RobotLog,
     extra_pose_stamps: ArrayLike = (),
@@ -593,9 +605,11 @@ def build_local_map(
     local.request_poses(extra_pose_stamps)
     if not window > 0:
         raise ValueError(f"window must be positive or None, got {window}")
-    edges = odo.stamps[0] + window * np.arange(
-        1, int((odo.stamps[-1] - odo.stamps[0]) // window) + 1
-    )
+    # the window ends t0 + k * window after data (no empty windows across a gap)
+    t0, last = odo.stamps[0], int((odo.stamps[-1] - odo.stamps[0]) // window)
+    k = np.ceil((np.concatenate([odo.stamps, f.stamps]) - t0) / window)
+    k = np.unique(np.concatenate([k, k + 1]))
+    edges = t0 + window * k[(k >= 1) & (k <= last)]
     o_cut = np.searchsorted(odo.stamps, edges, side="right")
     f_order = np.argsort(f.stamps, kind="stable")
     f_sorted = f.stamps[f_order]

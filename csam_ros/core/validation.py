@@ -8,10 +8,15 @@ reason that shows in ``/csam/status``; accepted data is never touched by a later
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from csam_ros.core.config_file import from_mapping, setting
+from csam_ros.core.local_map import SMOOTHER
 
 # Reasons, as they appear in /csam/status and summary.json.
 NOT_FINITE = "not_finite"
@@ -24,6 +29,13 @@ STAMP_BACKWARDS = "stamp_backwards"
 DUPLICATE = "duplicate"
 EMPTY = "empty"
 CALLBACK_ERROR = "callback_error"  # a node callback failed unexpectedly on this message
+# Beyond the physical bounds of InputBounds.
+RANGE_OUT_OF_BOUNDS = "range_out_of_bounds"
+SIGMA_OUT_OF_BOUNDS = "sigma_out_of_bounds"  # a sigma, or the ratio of a measurement's sigmas
+SPEED_OUT_OF_BOUNDS = "speed_out_of_bounds"
+TOO_MANY_OBSERVATIONS = "too_many_observations"
+STAMP_JUMP = "stamp_jump"  # more than max_stamp_jump away from its stream
+STAMP_GAP = "stamp_gap"  # odometry resumed after a gap (the sample that started it)
 # The merger's boundary: local maps and rendezvous poses from the smoothers.
 MALFORMED_LOCAL_MAP = "malformed_local_map"
 MALFORMED_RENDEZVOUS_POSES = "malformed_rendezvous_poses"
@@ -33,6 +45,82 @@ FAILED_SOLVE = "failed_solve"  # a merger solve that raised or gave non-finite n
 
 # A noisy bearing may fall a little outside the field of view: allow this many sigmas.
 BEARING_MARGIN_SIGMAS = 5.0
+# The sigma (m, m, rad) of the unknown motion across a gap in a robot's odometry.
+GAP_SIGMA = 1000.0
+
+
+@dataclass(frozen=True)
+class InputBounds:
+    """The ``input:`` section of a parameter file, and the smoother node's parameters of the
+    same names: physical bounds on every field of an incoming sensor message.
+
+    A value beyond them is dropped and counted, since the core would either raise on it (a
+    covariance that is not positive definite) or be left stuck with it (an odometry factor
+    that no later update can whiten), or, for a stamp, build a million poses.
+    """
+
+    max_range: float = setting(
+        1000.0,
+        "m: largest range of a feature or robot observation",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+    min_sigma: float = setting(
+        1e-6,
+        "smallest sigma of any measurement (m, rad, m/s or rad/s)",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+    max_sigma: float = setting(
+        1000.0,
+        "largest sigma of any measurement (m, rad, m/s or rad/s)",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+    max_sigma_ratio: float = setting(
+        1e6,
+        "largest ratio between the sigmas of one measurement (a range-bearing observation: "
+        "range * sigma_bearing over sigma_range; odometry: its largest over its smallest)",
+        minimum=1.0,
+        node=SMOOTHER,
+    )
+    max_speed: float = setting(
+        30.0,
+        "m/s: largest |v| and |v_lat| of odometry",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+    max_turn_rate: float = setting(
+        30.0, "rad/s: largest |omega| of odometry", minimum=0.0, exclusive=True, node=SMOOTHER
+    )
+    max_stamp_jump: float = setting(
+        60.0,
+        "s: largest step of a stream's stamps taken as continuous (beyond: a gap)",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+    max_observations: int = setting(
+        1000,
+        "most observations in one features or rendezvous message",
+        minimum=1,
+        node=SMOOTHER,
+    )
+
+    def __post_init__(self) -> None:
+        if not self.min_sigma <= self.max_sigma:
+            raise ValueError(
+                f"input: min_sigma {self.min_sigma:g} exceeds max_sigma {self.max_sigma:g}"
+            )
+
+    @classmethod
+    def from_dict(cls, node: Mapping[str, Any] | None, source: str = "input") -> InputBounds:
+        """Build from a mapping; unknown keys and bad values are errors naming them."""
+        return from_mapping(cls, node, source)
 
 
 @dataclass
@@ -45,6 +133,14 @@ class DropCounter:
         if n > 0:
             self.counts[reason] += n
 
+    def reclassify(self, old: str, new: str) -> None:
+        """Count one item under ``new`` that was counted under ``old``."""
+        if self.counts[old] > 0:
+            self.counts[old] -= 1
+            if self.counts[old] == 0:
+                del self.counts[old]
+        self.counts[new] += 1
+
     @property
     def total(self) -> int:
         return sum(self.counts.values())
@@ -53,28 +149,13 @@ class DropCounter:
         return dict(sorted(self.counts.items()))
 
 
-@dataclass
-class StampGuard:
-    """Rejects a message whose stamp goes backwards or repeats on one stream (topic).
-
-    Only accepted messages move the guard, so a rejected message (say, a garbage stamp far in
-    the future with invalid content) cannot block the stream.
-    """
-
-    last_stamp: float = -np.inf
-
-    def reason(self, stamp: float) -> str | None:
-        """The drop reason for a message at ``stamp``, or None if its stamp is acceptable."""
-        if not np.isfinite(stamp):
-            return NOT_FINITE
-        if stamp < self.last_stamp:
-            return STAMP_BACKWARDS
-        if stamp == self.last_stamp:
-            return DUPLICATE
-        return None
-
-    def accept(self, stamp: float) -> None:
-        self.last_stamp = stamp
+def _sigma_fault(
+    sigmas: NDArray[np.float64], ratios: NDArray[np.float64], bounds: InputBounds
+) -> NDArray[np.bool_]:
+    """Measurements (rows) whose sigmas leave [min_sigma, max_sigma] or whose ``ratios`` (of
+    their covariance's axes) exceed ``max_sigma_ratio``."""
+    out = ((sigmas < bounds.min_sigma) | (sigmas > bounds.max_sigma)).any(axis=-1)
+    return out | ~(ratios <= bounds.max_sigma_ratio)
 
 
 def range_bearing_mask(
@@ -84,78 +165,173 @@ def range_bearing_mask(
     sigma_bearing: ArrayLike,
     field_of_view: float,
     drops: DropCounter,
+    bounds: InputBounds | None = None,
 ) -> NDArray[np.bool_]:
     """Which range-bearing observations are valid; counts the others by their first fault.
 
     ``field_of_view`` is the sensor's full opening angle in radians (2 pi: no limit).
     """
+    bounds = bounds or InputBounds()
     r = np.asarray(ranges, dtype=float)
     b = np.asarray(bearings, dtype=float)
     sr = np.asarray(sigma_range, dtype=float)
     sb = np.asarray(sigma_bearing, dtype=float)
     keep = np.ones(r.shape, dtype=bool)
-    for reason, bad in (
-        (NOT_FINITE, ~(np.isfinite(r) & np.isfinite(b) & np.isfinite(sr) & np.isfinite(sb))),
-        (NON_POSITIVE_RANGE, r <= 0),
-        (NON_POSITIVE_SIGMA, (sr <= 0) | (sb <= 0)),
-        (OUTSIDE_FIELD_OF_VIEW, np.abs(b) > 0.5 * field_of_view + BEARING_MARGIN_SIGMAS * sb),
-    ):
+    with np.errstate(all="ignore"):
+        sigmas = np.stack([sr, sb], axis=-1)
+        # the observation's covariance axes: the map floors the tangential one against the
+        # radial one (core.sensor), not the other way round
+        spread = r * sb / sr
+        faults = (
+            (NOT_FINITE, ~(np.isfinite(r) & np.isfinite(b) & np.isfinite(sr) & np.isfinite(sb))),
+            (NON_POSITIVE_RANGE, r <= 0),
+            (NON_POSITIVE_SIGMA, (sr <= 0) | (sb <= 0)),
+            (RANGE_OUT_OF_BOUNDS, r > bounds.max_range),
+            (SIGMA_OUT_OF_BOUNDS, _sigma_fault(sigmas, spread, bounds)),
+            (OUTSIDE_FIELD_OF_VIEW, np.abs(b) > 0.5 * field_of_view + BEARING_MARGIN_SIGMAS * sb),
+        )
+    for reason, bad in faults:
         fault = keep & bad
         drops.add(reason, int(fault.sum()))
         keep &= ~fault
     return keep
 
 
-def odometry_ok(inputs: ArrayLike, sigmas: ArrayLike, drops: DropCounter) -> bool:
-    """Whether one odometry sample (input and its sigmas) is usable; counts it if not."""
+def odometry_fault(inputs: ArrayLike, sigmas: ArrayLike, bounds: InputBounds) -> str | None:
+    """Why one odometry sample (input and its sigmas) is unusable, or None."""
     u = np.asarray(inputs, dtype=float)
     s = np.asarray(sigmas, dtype=float)
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(s))):
-        drops.add(NOT_FINITE)
-        return False
+        return NOT_FINITE
     if np.any(s <= 0):
-        drops.add(NON_POSITIVE_SIGMA)
-        return False
-    return True
+        return NON_POSITIVE_SIGMA
+    if max(abs(u[0]), abs(u[1])) > bounds.max_speed or abs(u[2]) > bounds.max_turn_rate:
+        return SPEED_OUT_OF_BOUNDS
+    if _sigma_fault(s, s.max() / s.min(), bounds):
+        return SIGMA_OUT_OF_BOUNDS
+    return None
+
+
+OdometrySample = tuple[float, NDArray[np.float64], NDArray[np.float64]]  # stamp, input, sigmas
+
+
+@dataclass
+class _Stream:
+    """One (robot, stream)'s stamps: the last accepted one, and an odometry sample held back
+    until the next one shows whether it starts the stream or ends a gap."""
+
+    last: float = -np.inf
+    held: OdometrySample | None = None
 
 
 class MeasurementFilter:
     """Validates every robot's measurement streams as they arrive, counting drops per robot.
 
     ``robots`` lists the known robot names (None: any name is accepted as a robot, but a
-    rendezvous must still name another robot). Each (robot, stream) pair has its own
-    :class:`StampGuard`. Within a message, single bad observations are dropped and the rest kept;
-    a message that arrives with no observation is dropped as ``empty``.
+    rendezvous must still name another robot). Every field is checked against ``bounds``.
+    Within a message, single bad observations are dropped and the rest kept; a message that
+    arrives with no observation is dropped as ``empty``, one with more than
+    ``max_observations`` as ``too_many_observations``.
+
+    Stamps (``J`` = ``bounds.max_stamp_jump``). A robot's odometry is its clock:
+
+    - Odometry starts with two samples less than ``J`` apart: the first is held back until
+      the second confirms it (a lone first sample far off is replaced, counted
+      ``stamp_jump``), so an outlier cannot become the start.
+    - A sample at or before the last accepted one is dropped (``stamp_backwards``,
+      ``duplicate``); it never moves the stream, so no backward outlier blocks it.
+    - A sample more than ``J`` after the last accepted one is dropped (``stamp_jump``) and
+      held. If the next sample follows it within ``J``, the stream has resumed after a real
+      gap: that count becomes ``stamp_gap``, and both are accepted, the held one as a
+      sample of unknown motion (zero input, sigmas ``GAP_SIGMA / gap``: the gap's motion
+      has a sigma of ``GAP_SIGMA`` m, m, rad whatever its length), so the local map bridges
+      the gap with one weak factor and no regular key poses. Any other next sample drops
+      the held one for good, so a single outlier creates no pose and blocks nothing.
+    - Features and rendezvous more than ``J`` away from the robot's clock (the observer's
+      last accepted odometry stamp, else ``reference()``, e.g. the smoother's own robot for
+      its peers) are dropped as ``stamp_jump``; each stream also drops a stamp at or before
+      its last accepted one, unless that one lies more than ``J`` from the clock (or, with
+      no clock yet, from the new stamp): an outlier accepted before the clock existed must
+      not block the stream.
     """
 
-    def __init__(self, robots: list[str] | None = None, field_of_view: float = 2 * np.pi) -> None:
+    def __init__(
+        self,
+        robots: list[str] | None = None,
+        field_of_view: float = 2 * np.pi,
+        bounds: InputBounds | None = None,
+        reference: Callable[[], float] | None = None,
+    ) -> None:
         self.robots = None if robots is None else list(robots)
         self.field_of_view = float(field_of_view)
+        self.bounds = bounds or InputBounds()
+        self.reference = reference
         self.drops: dict[str, DropCounter] = {}
-        self._guards: dict[tuple[str, str], StampGuard] = {}
+        self._streams: dict[tuple[str, str], _Stream] = {}
 
     def counter(self, robot: str) -> DropCounter:
         """The drop counter of ``robot`` (unknown robots are counted under their own name)."""
         return self.drops.setdefault(robot, DropCounter())
 
-    def _stamp_fault(self, robot: str, stream: str, stamp: float) -> str | None:
-        if self.robots is not None and robot not in self.robots:
-            return UNKNOWN_ROBOT
-        return self._guards.setdefault((robot, stream), StampGuard()).reason(stamp)
+    def clock(self, robot: str) -> float:
+        """``robot``'s last accepted odometry stamp, else ``reference()`` (-inf: none)."""
+        last = self._stream(robot, "odometry").last
+        if np.isfinite(last) or self.reference is None:
+            return last
+        return self.reference()
 
-    def _accept(self, robot: str, stream: str, stamp: float) -> None:
-        self._guards[(robot, stream)].accept(stamp)
+    def _stream(self, robot: str, stream: str) -> _Stream:
+        return self._streams.setdefault((robot, stream), _Stream())
 
-    def odometry(self, robot: str, stamp: float, inputs: ArrayLike, sigmas: ArrayLike) -> bool:
-        """Whether an odometry sample is accepted."""
-        fault = self._stamp_fault(robot, "odometry", stamp)
+    def _known(self, robot: str) -> bool:
+        return self.robots is None or robot in self.robots
+
+    def odometry(
+        self, robot: str, stamp: float, inputs: ArrayLike, sigmas: ArrayLike
+    ) -> list[OdometrySample]:
+        """The samples to add for one odometry message, in stamp order: none (dropped or held
+        back), the sample, or after a gap the held sample of unknown motion and this one."""
+        drops = self.counter(robot)
+        if not self._known(robot):
+            drops.add(UNKNOWN_ROBOT)
+            return []
+        fault = (
+            NOT_FINITE if not np.isfinite(stamp) else odometry_fault(inputs, sigmas, self.bounds)
+        )
         if fault is not None:
-            self.counter(robot).add(fault)
-            return False
-        if not odometry_ok(inputs, sigmas, self.counter(robot)):
-            return False
-        self._accept(robot, "odometry", stamp)
-        return True
+            drops.add(fault)
+            return []
+        sample = (float(stamp), np.asarray(inputs, dtype=float), np.asarray(sigmas, dtype=float))
+        s, jump = self._stream(robot, "odometry"), self.bounds.max_stamp_jump
+        held = s.held
+        follows_held = held is not None and 0 < stamp - held[0] <= jump
+        if not np.isfinite(s.last):  # not started: the first of two close samples
+            if follows_held:
+                s.last, s.held = sample[0], None
+                return [held, sample]  # type: ignore[list-item]
+            if held is not None and stamp == held[0]:
+                drops.add(DUPLICATE)
+                return []
+            if held is not None:
+                drops.add(STAMP_JUMP)  # the held sample: nothing close followed it
+            s.held = sample
+            return []
+        if stamp <= s.last:
+            drops.add(DUPLICATE if stamp == s.last else STAMP_BACKWARDS)
+            return []
+        if stamp - s.last <= jump:
+            s.last, s.held = sample[0], None
+            return [sample]
+        if follows_held:
+            assert held is not None
+            drops.reclassify(STAMP_JUMP, STAMP_GAP)
+            gap = held[0] - s.last
+            unknown = (held[0], np.zeros(3), np.full(3, GAP_SIGMA / gap))
+            s.last, s.held = sample[0], None
+            return [unknown, sample]
+        drops.add(STAMP_JUMP)
+        s.held = sample
+        return []
 
     def features(
         self,
@@ -186,6 +362,22 @@ class MeasurementFilter:
             robot, "rendezvous", stamp, ranges, bearings, sigma_range, sigma_bearing, observed
         )
 
+    def _stamp_fault(self, robot: str, stream: str, stamp: float) -> str | None:
+        """Why a features or rendezvous message at ``stamp`` is dropped, or None."""
+        if not self._known(robot):
+            return UNKNOWN_ROBOT
+        if not np.isfinite(stamp):
+            return NOT_FINITE
+        jump = self.bounds.max_stamp_jump
+        clock = self.clock(robot)
+        if np.isfinite(clock) and abs(stamp - clock) > jump:
+            return STAMP_JUMP
+        last = self._stream(robot, stream).last
+        anchor = clock if np.isfinite(clock) else stamp
+        if np.isfinite(last) and abs(last - anchor) <= jump and stamp <= last:
+            return DUPLICATE if stamp == last else STAMP_BACKWARDS
+        return None
+
     def _observations(
         self,
         robot: str,
@@ -199,18 +391,18 @@ class MeasurementFilter:
     ) -> NDArray[np.bool_] | None:
         drops = self.counter(robot)
         r = np.asarray(ranges, dtype=float)
-        if r.size == 0:
-            if self.robots is None or robot in self.robots:
-                drops.add(EMPTY)
-            else:
+        if r.size == 0 or r.size > self.bounds.max_observations:
+            if not self._known(robot):
                 drops.add(UNKNOWN_ROBOT)
+            else:
+                drops.add(EMPTY if r.size == 0 else TOO_MANY_OBSERVATIONS)
             return None
         fault = self._stamp_fault(robot, stream, stamp)
         if fault is not None:
             drops.add(fault)
             return None
         keep = range_bearing_mask(
-            r, bearings, sigma_range, sigma_bearing, self.field_of_view, drops
+            r, bearings, sigma_range, sigma_bearing, self.field_of_view, drops, self.bounds
         )
         if observed is not None:
             names = np.asarray(observed, dtype=object)
@@ -223,7 +415,7 @@ class MeasurementFilter:
                 keep &= ~unknown
         if not keep.any():  # every observation was counted under its own fault
             return None
-        self._accept(robot, stream, stamp)
+        self._stream(robot, stream).last = float(stamp)
         return keep
 
 

@@ -6,7 +6,10 @@ stamp of every rendezvous measurement that involves its robot. Publishes ``local
 ``rendezvous_poses`` and ``path`` every ``publish_period`` seconds (of the node's clock, so sim
 time under ``use_sim_time``) when new data arrived, and when asked through ``~/flush``
 (std_srvs/Trigger; the reply's message is the published local map's stamp in nanoseconds).
-Bad input is dropped and counted (``/csam/status``); the node keeps running.
+Every field of every sensor message is checked against the ``input:`` bounds
+(:class:`~csam_ros.core.validation.InputBounds`, the same checks as offline replay); bad input is
+dropped and counted (``/csam/status``), and every callback is guarded, so an unexpected error
+is logged and counted as ``callback_error``: the node keeps running with what it accepted.
 """
 
 from __future__ import annotations
@@ -29,8 +32,15 @@ from csam_ros.core.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.robust import select_rendezvous
-from csam_ros.core.validation import MeasurementFilter
-from csam_ros.nodes.common import declare, declare_settings, publisher, run_node, subscribe
+from csam_ros.core.validation import InputBounds, MeasurementFilter
+from csam_ros.nodes.common import (
+    declare,
+    declare_settings,
+    guarded,
+    publisher,
+    run_node,
+    subscribe,
+)
 from csam_ros.ros.conversions import (
     features_from_message,
     ns_to_time,
@@ -76,10 +86,15 @@ class Smoother(Node):
         self.map = CoreLocalMap(self.robot, local_map.options())
         self.thinning = declare_settings(self, CsamConfig).thinning()
         self.robots = list(dict.fromkeys([self.robot, *peers]))
-        self.filter = MeasurementFilter(self.robots, np.deg2rad(fov))
+        bounds = declare_settings(self, InputBounds)
+        self.filter = MeasurementFilter(self.robots, np.deg2rad(fov), bounds)
         # the peers' own checks, repeated on their rendezvous streams so that this node keeps
-        # poses at the same measurements as their smoothers (drops counted there, not here)
-        self.peer_filter = MeasurementFilter(self.robots, np.deg2rad(fov))
+        # poses at the same measurements as their smoothers (drops counted there, not here);
+        # their stamps are checked against this robot's odometry (one time for all robots)
+        self.peer_filter = MeasurementFilter(
+            self.robots, np.deg2rad(fov), bounds, lambda: self.filter.clock(self.robot)
+        )
+        self.drops = self.filter.counter(self.robot)
         self.own_rendezvous: list[tuple[float, dict]] = []
         self.rendezvous_stamps: set[float] = set()
         self.last_odometry_ns = -1
@@ -89,15 +104,16 @@ class Smoother(Node):
         self.errors = 0
 
         # this robot's topics by relative name (the node runs in the robot's namespace)
-        subscribe(self, ODOM, self.on_odometry)
-        subscribe(self, FEATURES, self.on_features)
-        subscribe(self, RENDEZVOUS, self.on_own_rendezvous)
+        subscribe(self, ODOM, guarded(self, self.drops, self.on_odometry))
+        subscribe(self, FEATURES, guarded(self, self.drops, self.on_features))
+        subscribe(self, RENDEZVOUS, guarded(self, self.drops, self.on_own_rendezvous))
+        on_peer = guarded(self, self.drops, self.on_peer_rendezvous)
         for peer in self.robots:
             if peer != self.robot:
                 subscribe(
                     self,
                     RENDEZVOUS,
-                    lambda msg, peer=peer: self.on_peer_rendezvous(peer, msg),
+                    lambda msg, peer=peer: on_peer(peer, msg),
                     RENDEZVOUS.of(peer),
                 )
         self.local_map_pub = publisher(self, LOCAL_MAP)
@@ -105,14 +121,15 @@ class Smoother(Node):
         self.path_pub = publisher(self, PATH)
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
-        self.create_timer(self.publish_period, self.on_timer)
+        self.create_timer(self.publish_period, guarded(self, self.drops, self.on_timer))
 
     # -- input ----------------------------------------------------------------------------------
 
     def on_odometry(self, msg: Odometry) -> None:
-        stamp, inputs, sigmas = odometry_from_message(msg)
-        if self.filter.odometry(self.robot, stamp, inputs, sigmas):
-            self.map.add_odometry([stamp], inputs[None], sigmas[None])
+        samples = self.filter.odometry(self.robot, *odometry_from_message(msg))
+        if samples:
+            stamps, inputs, sigmas = zip(*samples, strict=True)
+            self.map.add_odometry(stamps, np.stack(inputs), np.stack(sigmas))
             self.last_odometry_ns = time_to_ns(msg.header.stamp)
             self.dirty = True
 
@@ -167,7 +184,8 @@ class Smoother(Node):
             self.solve_and_publish()
 
     def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        self.solve_and_publish(converge=True)
+        """Solve to convergence and publish; always answers (the update itself is guarded)."""
+        guarded(self, self.drops, self.solve_and_publish)(True)
         response.success = self.published_ns >= 0
         response.message = str(self.published_ns)
         return response

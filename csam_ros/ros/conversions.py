@@ -36,7 +36,7 @@ from csam_ros.core.log import (
     RendezvousLog,
     RobotLog,
 )
-from csam_ros.core.validation import MeasurementFilter
+from csam_ros.core.validation import InputBounds, MeasurementFilter
 from csam_ros.ros.topics import (
     FEATURES,
     FEATURES_TRUTH,
@@ -300,12 +300,18 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
 class LogBuilder:
     """Collects sensor messages (in arrival order) into a :class:`MultiRobotLog`.
 
-    Every message passes the same :class:`MeasurementFilter` as in the smoother nodes; drops are
-    in ``filter.drops``. Robots appear in the order of ``robots`` (or of first arrival).
+    Every message passes the same :class:`MeasurementFilter` (with the same ``bounds``) as in
+    the smoother nodes; drops are in ``filter.drops``. Robots appear in the order of ``robots``
+    (or of first accepted data).
     """
 
-    def __init__(self, robots: list[str] | None = None, field_of_view: float = 2 * np.pi) -> None:
-        self.filter = MeasurementFilter(robots, field_of_view)
+    def __init__(
+        self,
+        robots: list[str] | None = None,
+        field_of_view: float = 2 * np.pi,
+        bounds: InputBounds | None = None,
+    ) -> None:
+        self.filter = MeasurementFilter(robots, field_of_view, bounds)
         self._order: list[str] = list(robots or [])
         self._odometry: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
         self._features: dict[str, list[tuple[float, dict[str, np.ndarray]]]] = {}
@@ -325,10 +331,10 @@ class LogBuilder:
         if topic is FEATURES_TRUTH:
             self.truth = truth_from_message(msg)  # type: ignore[arg-type]
         elif topic is ODOM:
-            stamp, u, s = odometry_from_message(msg)  # type: ignore[arg-type]
-            if self.filter.odometry(robot, stamp, u, s):
+            samples = self.filter.odometry(robot, *odometry_from_message(msg))  # type: ignore[arg-type]
+            if samples:
                 self._robot(robot)
-                self._odometry.setdefault(robot, []).append((stamp, u, s))
+                self._odometry.setdefault(robot, []).extend(samples)
         elif topic is FEATURES:
             stamp, a = features_from_message(msg)  # type: ignore[arg-type]
             keep = self.filter.features(

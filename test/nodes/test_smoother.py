@@ -77,3 +77,181 @@ def test_smoother_keeps_the_offline_thinned_rendezvous(ros_context) -> None:
         assert 0 < own.stamps.size <= 12  # two peers, at most 6 each
     finally:
         smoother.destroy_node()
+
+
+# -- the boundary: bad sensor messages through the node's own (guarded) callbacks -------------
+
+GOOD_SECONDS = 12.0
+
+
+def _good_messages() -> list:
+    """robot1's sensor messages of the map-joining scenario's first seconds, in stamp order."""
+    from csam_ros.core.simulation import simulate
+    from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.ros.conversions import log_to_messages
+
+    log = simulate(load_scenario("map_joining"), seed=3)
+    return [
+        m
+        for m in log_to_messages(log, with_truth=False)
+        if m.topic.startswith("/robot1/") and m.stamp_ns <= GOOD_SECONDS * 1e9
+    ]
+
+
+def deliver(node, topic: str, msg) -> None:
+    """Hand ``msg`` to the node's subscription of ``topic`` as its executor would."""
+    (subscription,) = [s for s in node.subscriptions if s.topic_name == topic]
+    subscription.callback(msg)
+
+
+def flushed_map(node) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]:
+    """Flush (as the service does) and return the stamps, poses and landmarks of the map."""
+    from std_srvs.srv import Trigger
+
+    response = node.on_flush(Trigger.Request(), Trigger.Response())
+    assert response.success
+    local = node.map
+    landmarks = dict(zip(local.landmark_labels, local.landmarks, strict=True))
+    return local.stamps.copy(), local.poses.copy(), landmarks
+
+
+def assert_good_map_unchanged(node, good) -> None:
+    stamps, poses, landmarks = flushed_map(node)
+    good_stamps, good_poses, good_landmarks = good
+    index = node.map.pose_index(good_stamps)
+    np.testing.assert_allclose(stamps[index], good_stamps, atol=1e-9)
+    np.testing.assert_allclose(poses[index], good_poses, atol=1e-6)
+    for label, xy in good_landmarks.items():
+        np.testing.assert_allclose(landmarks[label], xy, atol=1e-6)
+
+
+def new_smoother(ros_context, **parameters):
+    from csam_ros.nodes.smoother import Smoother
+
+    overrides = [Parameter("robots", value=["robot1", "robot2"])]
+    overrides += [Parameter(k, value=v) for k, v in parameters.items()]
+    return Smoother(context=ros_context, namespace="robot1", parameter_overrides=overrides)
+
+
+def fed_smoother(ros_context, messages, **parameters):
+    node = new_smoother(ros_context, **parameters)
+    for m in messages:
+        deliver(node, m.topic, m.message)
+    return node, flushed_map(node)
+
+
+def _features(stamp_s: float, r: float, sr: float, sb: float, label: int = 1):
+    from csam_ros.ros.conversions import features_message
+
+    return features_message("robot1", stamp_to_ns(stamp_s), [label], [r], [0.1], [sr], [sb])
+
+
+def _odometry(stamp_s: float, v: float = 0.5):
+    from csam_ros.ros.conversions import odometry_message
+
+    return odometry_message(
+        "robot1", stamp_to_ns(stamp_s), np.array([v, 0.0, 0.02]), np.full(3, 0.02)
+    )
+
+
+def test_smoother_drops_features_beyond_the_bounds(ros_context) -> None:
+    """Issue 15 case 2: each of these killed the node with a ValueError from add_features."""
+    node, good = fed_smoother(ros_context, _good_messages())
+    try:
+        t = GOOD_SECONDS + 0.05
+        for i, (r, sr, sb) in enumerate(
+            [(1e8, 0.01, 0.01), (1e300, 0.01, 0.01), (3.0, 1e-10, 0.01), (3.0, 1e-300, 1e-300)]
+        ):
+            deliver(node, "/robot1/features", _features(t + 0.01 * i, r, sr, sb, label=900 + i))
+        assert node.drops.as_dict() == {"range_out_of_bounds": 2, "sigma_out_of_bounds": 2}
+        assert_good_map_unchanged(node, good)
+        assert node.errors == 0
+    finally:
+        node.destroy_node()
+
+
+def test_smoother_outlier_stamp_neither_stalls_nor_blocks_odometry(ros_context) -> None:
+    """Issue 15 case 3: one odometry message stamped 1e6 s made a million poses and blocked
+    every later one as stamp_backwards."""
+    messages = _good_messages()
+    node, good = fed_smoother(ros_context, messages)
+    try:
+        deliver(node, "/robot1/odom", _odometry(1e6))
+        stamps, _, _ = flushed_map(node)
+        assert len(stamps) == len(good[0])
+        for k in range(1, 6):
+            deliver(node, "/robot1/odom", _odometry(GOOD_SECONDS + 0.1 * k))
+        stamps, _, _ = flushed_map(node)
+        assert node.last_odometry_ns == stamp_to_ns(GOOD_SECONDS + 0.5)
+        assert node.drops.as_dict() == {"stamp_jump": 1}
+        # a real gap: the stream resumes 1e6 s later and goes on there, with a few poses
+        for k in range(3):
+            deliver(node, "/robot1/odom", _odometry(1e6 + 0.1 * k))
+        stamps, _, _ = flushed_map(node)
+        assert node.last_odometry_ns == stamp_to_ns(1e6 + 0.2)
+        assert stamps[-1] == 1e6 and len(stamps) <= len(good[0]) + 4
+        assert node.drops.as_dict() == {"stamp_jump": 1, "stamp_gap": 1}
+        assert_good_map_unchanged(node, good)
+        assert node.errors == 0
+    finally:
+        node.destroy_node()
+
+
+def test_smoother_drops_odometry_beyond_the_speed_bound_and_keeps_updating(ros_context) -> None:
+    """Issue 15 case 4: v = 1e300 was accepted, and every later update then failed."""
+    node, good = fed_smoother(ros_context, _good_messages())
+    try:
+        deliver(node, "/robot1/odom", _odometry(GOOD_SECONDS + 0.1, v=1e300))
+        for k in range(2, 12):
+            deliver(node, "/robot1/odom", _odometry(GOOD_SECONDS + 0.1 * k))
+        stamps, _, _ = flushed_map(node)
+        assert node.last_odometry_ns == stamp_to_ns(GOOD_SECONDS + 1.1)
+        assert stamps[-1] == GOOD_SECONDS + 1  # the map went on after the bad sample
+        assert node.drops.as_dict() == {"speed_out_of_bounds": 1}
+        assert node.errors == 0
+        assert_good_map_unchanged(node, good)
+    finally:
+        node.destroy_node()
+
+
+def test_offline_replay_drops_the_same_messages(tmp_path) -> None:
+    """Cases 2-4 in a bag: ``csam replay --offline`` finishes, counts each drop once, and
+    the robot's map is the one of the good data."""
+    from csam_ros.bag import BagWriter
+    from csam_ros.bag.types import msgtype_of
+    from csam_ros.cli import main
+    from csam_ros.core.result import RunSummary
+    from csam_ros.ros.conversions import StampedMessage
+    from csam_ros.ros.topics import qos_of
+
+    good = _good_messages()
+    t = GOOD_SECONDS - 2.05
+    bad = [
+        StampedMessage(stamp_to_ns(t), "/robot1/features", _features(t, 1e8, 0.01, 0.01)),
+        StampedMessage(
+            stamp_to_ns(t + 0.01), "/robot1/features", _features(t + 0.01, 3.0, 1e-10, 0.01)
+        ),
+        StampedMessage(stamp_to_ns(t + 0.02), "/robot1/odom", _odometry(1e6)),
+        StampedMessage(stamp_to_ns(t + 0.03), "/robot1/odom", _odometry(t + 0.03, v=1e300)),
+    ]
+    summaries = {}
+    for name, messages in (("good", good), ("bad", sorted(good + bad, key=lambda m: m.stamp_ns))):
+        bag = tmp_path / f"{name}_bag"
+        with BagWriter(bag) as writer:
+            for m in messages:
+                if m.topic not in writer.topics:
+                    writer.add_topic(m.topic, msgtype_of(m.message), qos_of(m.topic))
+                writer.write(m.topic, m.stamp_ns, m.message)
+        assert main(["replay", str(bag), "--offline", "--out", str(tmp_path / name)]) == 0
+        summaries[name] = RunSummary.read(tmp_path / name / "summary.json")
+    assert summaries["bad"].dropped == {
+        "robot1": {
+            "range_out_of_bounds": 1,
+            "sigma_out_of_bounds": 1,
+            "speed_out_of_bounds": 1,
+            "stamp_jump": 1,
+        }
+    }
+    a, b = (summaries[k].result.robots["robot1"] for k in ("good", "bad"))
+    np.testing.assert_allclose(b.stamps, a.stamps)
+    np.testing.assert_allclose(b.poses_local, a.poses_local, atol=1e-9)
