@@ -96,7 +96,8 @@ def _load_metadata(path: Path) -> dict[str, Any] | None:
         if not isinstance(info, dict):
             raise TypeError
     except (yaml.YAMLError, OSError, UnicodeDecodeError, KeyError, TypeError) as error:
-        raise BagError(f"{meta} is not a rosbag2 metadata file ({error})") from None
+        cause = " ".join(str(error).split())
+        raise BagError(f"{meta} is not a rosbag2 metadata file ({cause})") from None
     storage = info.get("storage_identifier", "mcap")
     if storage != "mcap":
         raise BagError(f"{path} uses storage {storage!r}; only mcap bags are supported")
@@ -113,7 +114,10 @@ def _bag_files(path: Path, metadata: dict[str, Any] | None) -> list[Path]:
     if not path.is_dir():
         raise BagError(f"{path} is neither a bag directory nor an .mcap file")
     if metadata is not None and metadata.get("relative_file_paths"):
-        files = [_inside(path, name) for name in metadata["relative_file_paths"]]
+        names = metadata["relative_file_paths"]
+        if not isinstance(names, list):
+            raise BagError(f"{path / METADATA_FILE}: relative_file_paths is not a list of files")
+        files = [_inside(path, name) for name in names]
         missing = [f.name for f in files if not f.is_file()]
         if missing:
             raise BagError(f"{path}: metadata.yaml names missing file(s) {', '.join(missing)}")
@@ -130,7 +134,11 @@ def _inside(path: Path, name: Any) -> Path:
     if not isinstance(name, str) or not name:
         raise BagError(f"{path / METADATA_FILE}: file name {name!r} is not a path")
     file = path / name
-    if Path(name).is_absolute() or not file.resolve().is_relative_to(path.resolve()):
+    try:
+        inside = file.resolve().is_relative_to(path.resolve())
+    except (OSError, RuntimeError, ValueError):  # a loop of links, a NUL in the name
+        inside = False
+    if Path(name).is_absolute() or not inside:
         raise BagError(
             f"{path / METADATA_FILE} names {name}, outside the bag directory; not opening it"
         )

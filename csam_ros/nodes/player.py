@@ -205,6 +205,12 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
     return options
 
 
+def _news(node: PlayerNode, bag: BagInfo, line: str) -> None:
+    """Log a warning about the bag unless inspect_bag already reported it."""
+    if line not in bag.warnings:
+        node.get_logger().warning(line)
+
+
 def select_topics(bag: BagInfo, requested: Sequence[str] | None, publish_clock: bool) -> list[str]:
     """The bag topics to play; BagError for a requested topic the bag lacks or no messages."""
     if requested is not None:
@@ -259,7 +265,11 @@ def main(args: Sequence[str] | None = None) -> int:
         # a best-effort sample sent in that gap is lost, so let discovery settle both ways
         stop.wait(options.delay)
         while True:
-            node.play(read_bag(bag.path, node.topics), options.rate, options.clock_period)
+            # what is cut or damaged was logged above from inspect_bag; log only news here
+            messages = read_bag(
+                bag.path, node.topics, on_damage=lambda line: _news(node, bag, line)
+            )
+            node.play(messages, options.rate, options.clock_period)
             if not options.loop or stop.is_set():
                 break
         node.finish(options.linger)

@@ -197,7 +197,7 @@ def test_killed_bag_without_metadata_plays_its_complete_chunks(
         assert player.returncode == 0, nodes.output(player)
         spin(executor, lambda: len(received) == 10, 5)
         assert received == payloads[:10]
-        assert "cut short" in nodes.output(player)
+        assert nodes.output(player).count("cut short") == 1  # warned once, not per reading
 
 
 def test_min_subscribers_waits_for_that_many_then_plays_anyway(
