@@ -195,14 +195,21 @@ def _as_sqrt_information(
             f"{name}: sqrt_information must have shape ({count}, {dim}, {dim}), got {w.shape}"
         )
     _check_finite(w.reshape(count, -1), f"{name} sqrt_information")
-    if count:
-        # W must be invertible: |det W| relative to the scale of its entries.
-        scale = np.abs(w).max(axis=(1, 2))
-        det = np.abs(np.linalg.det(w))
-        bad = np.flatnonzero(~(det > 1e-12 * np.maximum(scale, 1e-300) ** dim))
-        if bad.size:
-            raise ValueError(f"{name}: sqrt_information of factor {bad[0]} is singular")
+    bad = singular_sqrt_information(w)
+    if bad.size:
+        raise ValueError(f"{name}: sqrt_information of factor {bad[0]} is singular")
     return np.ascontiguousarray(w)
+
+
+def singular_sqrt_information(w: Array) -> NDArray[np.int64]:
+    """Indices of the (K, d, d) finite square-root information matrices a factor refuses as
+    singular: |det W| not above 1e-12 of the scale of its entries to the power d."""
+    if len(w) == 0:
+        return np.zeros(0, dtype=np.int64)
+    dim = w.shape[-1]
+    scale = np.abs(w).max(axis=(1, 2))
+    det = np.abs(np.linalg.det(w))
+    return np.flatnonzero(~(det > 1e-12 * np.maximum(scale, 1e-300) ** dim))
 
 
 # ---------------------------------------------------------------------------------------------

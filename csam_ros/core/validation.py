@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.config_file import from_mapping, setting
+from csam_ros.core.factors import singular_sqrt_information
 from csam_ros.core.local_map import SMOOTHER
 
 # Reasons, as they appear in /csam/status and summary.json.
@@ -463,14 +464,14 @@ def _number_fault(name: str, values: NDArray[np.float64], bound: float) -> str |
 
 
 def _sqrt_information_fault(name: str, rows: NDArray[np.float64], size: int) -> str | None:
-    """Each row must be a finite, bounded, non-singular ``size`` x ``size`` matrix."""
+    """Each row must be a finite, bounded ``size`` x ``size`` matrix that the factors take
+    as non-singular."""
     fault = _number_fault(name, rows, MAX_SQRT_INFORMATION)
     if fault is not None or len(rows) == 0:
         return fault
-    sv = np.linalg.svd(rows.reshape(-1, size, size), compute_uv=False)
-    singular = np.flatnonzero(sv[:, -1] <= 1e-12 * np.maximum(sv[:, 0], 1e-300))
+    singular = singular_sqrt_information(rows.reshape(-1, size, size))
     if len(singular):
-        return f"{name} {int(singular[0])} is singular (singular values {sv[singular[0]]})"
+        return f"{name} {int(singular[0])} has a singular square-root information"
     return None
 
 

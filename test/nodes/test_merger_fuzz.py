@@ -1,0 +1,426 @@
+"""Fuzz the merger's boundary: generated LocalMap and RendezvousPoses messages, after good maps.
+
+Every message goes to a real in-process merger through its own (guarded) subscription
+callback, then the merger's timer callback solves. Properties, for every message:
+
+- no exception reaches ``guarded`` (``callback_error`` stays 0) and no solve fails;
+- a message that leaves the merger's data as it was (refused, or with its bad rows
+  dropped) leaves the joined map exactly as it was;
+- a message the merger takes is one it can solve with.
+
+Under the test profile each of the three tests draws ``CSAM_FUZZ_EXAMPLES`` examples
+(default 60, all three in about 10 s on 2 cores); for a longer run:
+
+    CSAM_FUZZ_EXAMPLES=1000 .venv/bin/python -m pytest -q -s test/nodes/test_merger_fuzz.py
+
+``-s`` shows how many examples ran and how many the merger refused or took.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import Counter
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from csam_msgs.msg import (
+    FeatureEstimate,
+    LocalMap,
+    ObservationFactor,
+    OdometryFactor,
+    RendezvousObservation,
+    RendezvousObservations,
+    RendezvousPoses,
+)
+from geometry_msgs.msg import Pose2D
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from merger_harness import ROBOTS, MergerHarness, copied, run_messages
+
+from csam_ros.core.result import CsamResult
+from csam_ros.ros.conversions import ns_to_time, time_to_ns
+
+EXAMPLES = int(os.environ.get("CSAM_FUZZ_EXAMPLES", "60"))
+FUZZ = settings(
+    max_examples=EXAMPLES,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+TALLY: Counter[str] = Counter()
+
+floats = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0.0, -0.0, 1e-300, -1.0, 1.0, 1e9, 1e12, 1e300, math.nan, math.inf]),
+)
+uint32 = st.one_of(st.integers(0, 6), st.sampled_from([1000, 2**31, 4_000_000_000, 2**32 - 1]))
+int64 = st.one_of(st.integers(-3, 6), st.sampled_from([999_999, -(2**63), 2**63 - 1]))
+names = st.sampled_from(["robot1", "robot2", "robot9", "", "robot2/", "/robot2"])
+member = st.one_of(
+    st.builds(lambda r, k: f"{r}/{k}", names, int64),
+    st.sampled_from(["", "robot2/x", "robot2/1e3", "robot2/" + "9" * 30, "robot2"]),
+)
+stamp_ns = st.one_of(st.integers(0, 40 * 10**9), st.sampled_from([0, 2**62]))
+
+
+def _pose() -> st.SearchStrategy[Pose2D]:
+    return st.builds(Pose2D, x=floats, y=floats, theta=floats)
+
+
+def _time() -> st.SearchStrategy[Any]:
+    return stamp_ns.map(ns_to_time)
+
+
+@st.composite
+def random_local_maps(draw: st.DrawFn) -> LocalMap:
+    """A local map with every field drawn: random lengths, indices, labels and numbers."""
+    robot = draw(st.one_of(st.just("robot2"), names))  # mostly the topic's: checks go deeper
+    m = LocalMap(robot=robot)
+    m.header.frame_id = draw(st.sampled_from([f"{robot}/map", f"{robot}/map", "world"]))
+    small = st.integers(0, 5)
+    m.pose_stamps = draw(st.lists(_time(), max_size=6))
+    m.poses = draw(st.lists(_pose(), max_size=6))
+    m.pose_covariances = draw(st.lists(floats, max_size=12))
+    m.features = draw(
+        st.lists(
+            st.builds(
+                FeatureEstimate,
+                members=st.lists(member, max_size=2),
+                x=floats,
+                y=floats,
+                covariance=st.lists(floats, min_size=3, max_size=3),
+            ),
+            max_size=draw(small),
+        )
+    )
+    m.first_pose_prior_sqrt_information = draw(st.lists(floats, min_size=9, max_size=9))
+    m.odometry_factors = draw(
+        st.lists(
+            st.builds(
+                OdometryFactor,
+                from_pose=uint32,
+                to_pose=uint32,
+                delta=_pose(),
+                sqrt_information=st.lists(floats, min_size=9, max_size=9),
+            ),
+            max_size=draw(small),
+        )
+    )
+    m.observation_factors = draw(
+        st.lists(
+            st.builds(
+                ObservationFactor,
+                pose=uint32,
+                label=int64,
+                x=floats,
+                y=floats,
+                sqrt_information=st.lists(floats, min_size=4, max_size=4),
+            ),
+            max_size=draw(small),
+        )
+    )
+    m.observation_robust_kernel = draw(st.sampled_from(["", "huber", "cauchy", "tukey"]))
+    m.observation_robust_parameter = draw(floats)
+    m.cost = draw(floats)
+    return m
+
+
+def _mutate_list(draw: st.DrawFn, items: list[Any], fresh: Any) -> None:
+    """Delete a slice of, duplicate an element of, or append a drawn element to ``items``."""
+    op = draw(st.sampled_from(["delete", "duplicate", "append"]))
+    if op == "append" or not items:
+        items.append(draw(fresh))
+    elif op == "delete":
+        i = draw(st.integers(0, len(items) - 1))
+        del items[i : i + draw(st.integers(1, 3))]
+    else:
+        items.insert(
+            draw(st.integers(0, len(items))), copied(items[draw(st.integers(0, len(items) - 1))])
+        )
+
+
+def _set_number(draw: st.DrawFn, items: list[Any], field: str, values: Any) -> None:
+    if items:
+        item = items[draw(st.integers(0, len(items) - 1))]
+        current = getattr(item, field)
+        if not isinstance(current, str) and hasattr(current, "__len__"):
+            current = list(current)
+            current[draw(st.integers(0, len(current) - 1))] = draw(values)
+            setattr(item, field, current)
+        else:
+            setattr(item, field, draw(values))
+
+
+def mutated_local_maps(good: LocalMap) -> st.SearchStrategy[LocalMap]:
+    """robot2's good map with one to three fields or lists changed."""
+
+    @st.composite
+    def build(draw: st.DrawFn) -> LocalMap:
+        m = copied(good)
+        for _ in range(draw(st.integers(1, 3))):
+            target = draw(
+                st.sampled_from(
+                    [
+                        "pose", "stamp", "poses", "stamps", "covariances", "feature", "members",
+                        "features", "odometry", "odometry_index", "odometry_factors",
+                        "observation", "observation_index", "observation_label",
+                        "observation_factors", "prior", "kernel", "robot",
+                    ]
+                )
+            )  # fmt: skip
+            if target == "pose":
+                _set_number(draw, m.poses, draw(st.sampled_from(["x", "y", "theta"])), floats)
+            elif target == "stamp" and m.pose_stamps:
+                m.pose_stamps[draw(st.integers(0, len(m.pose_stamps) - 1))] = draw(_time())
+            elif target == "poses":
+                _mutate_list(draw, m.poses, _pose())
+            elif target == "stamps":
+                _mutate_list(draw, m.pose_stamps, _time())
+            elif target == "covariances":
+                values = list(m.pose_covariances)
+                _mutate_list(draw, values, floats)
+                m.pose_covariances = values
+            elif target == "feature":
+                _set_number(
+                    draw, m.features, draw(st.sampled_from(["x", "y", "covariance"])), floats
+                )
+            elif target == "members":
+                if m.features:
+                    i = draw(st.integers(0, len(m.features) - 1))
+                    m.features[i].members = draw(st.lists(member, max_size=2))
+            elif target == "features":
+                _mutate_list(
+                    draw,
+                    m.features,
+                    st.builds(
+                        FeatureEstimate, members=st.lists(member, max_size=2), x=floats, y=floats
+                    ),
+                )
+            elif target == "odometry":
+                field = draw(st.sampled_from(["sqrt_information", "delta"]))
+                if field == "delta":
+                    _set_number(draw, m.odometry_factors, "delta", _pose())
+                else:
+                    _set_number(draw, m.odometry_factors, field, floats)
+            elif target == "odometry_index":
+                _set_number(
+                    draw,
+                    m.odometry_factors,
+                    draw(st.sampled_from(["from_pose", "to_pose"])),
+                    uint32,
+                )
+            elif target == "odometry_factors":
+                _mutate_list(
+                    draw,
+                    m.odometry_factors,
+                    st.builds(OdometryFactor, from_pose=uint32, to_pose=uint32),
+                )
+            elif target == "observation":
+                _set_number(
+                    draw,
+                    m.observation_factors,
+                    draw(st.sampled_from(["x", "y", "sqrt_information"])),
+                    floats,
+                )
+            elif target == "observation_index":
+                _set_number(draw, m.observation_factors, "pose", uint32)
+            elif target == "observation_label":
+                _set_number(draw, m.observation_factors, "label", int64)
+            elif target == "observation_factors":
+                _mutate_list(
+                    draw,
+                    m.observation_factors,
+                    st.builds(ObservationFactor, pose=uint32, label=int64),
+                )
+            elif target == "prior":
+                values = list(m.first_pose_prior_sqrt_information)
+                values[draw(st.integers(0, 8))] = draw(floats)
+                m.first_pose_prior_sqrt_information = values
+            elif target == "kernel":
+                m.observation_robust_kernel = draw(st.sampled_from(["", "huber", "cauchy", "x"]))
+                m.observation_robust_parameter = draw(floats)
+            elif target == "robot":
+                m.robot = draw(names)
+        return m
+
+    return build()
+
+
+def _rows(pose_stamps: list[int]) -> st.SearchStrategy[RendezvousObservations]:
+    stamps = st.one_of(stamp_ns, st.sampled_from(pose_stamps))
+
+    def group(t: int, rows: list[RendezvousObservation]) -> RendezvousObservations:
+        g = RendezvousObservations(observations=rows)
+        g.header.stamp = ns_to_time(t)
+        g.header.frame_id = "robot2/base_link"
+        return g
+
+    row = st.builds(
+        RendezvousObservation,
+        observed_robot=names,
+        range=floats | st.floats(0.1, 50),
+        bearing=floats | st.floats(-3, 3),
+        sigma_range=floats | st.floats(0.01, 1),
+        sigma_bearing=floats | st.floats(0.001, 0.1),
+    )
+    return st.builds(group, stamps, st.lists(row, max_size=3))
+
+
+def rendezvous_messages(good: RendezvousPoses, pose_stamps: list[int]) -> st.SearchStrategy[Any]:
+    """robot2's good rendezvous message with rows added, removed or changed, or one drawn
+    from scratch."""
+
+    @st.composite
+    def mutated(draw: st.DrawFn) -> RendezvousPoses:
+        m = copied(good)
+        for _ in range(draw(st.integers(1, 3))):
+            target = draw(st.sampled_from(["rows", "row", "stamps", "poses", "indices", "robot"]))
+            if target == "rows":
+                _mutate_list(draw, m.measurements, _rows(pose_stamps))
+            elif target == "row" and m.measurements:
+                g = m.measurements[draw(st.integers(0, len(m.measurements) - 1))]
+                _set_number(
+                    draw,
+                    g.observations,
+                    draw(st.sampled_from(["range", "bearing", "sigma_range", "sigma_bearing"])),
+                    floats,
+                )
+                _set_number(draw, g.observations, "observed_robot", names)
+            elif target == "stamps":
+                _mutate_list(draw, m.stamps, _time())
+            elif target == "poses":
+                _set_number(draw, m.poses, draw(st.sampled_from(["x", "y", "theta"])), floats)
+            elif target == "indices":
+                values = list(m.pose_indices)
+                _mutate_list(draw, values, uint32)
+                m.pose_indices = values
+            elif target == "robot":
+                m.robot = draw(names)
+                m.header.frame_id = draw(st.sampled_from([f"{m.robot}/map", "robot2/map"]))
+        return m
+
+    @st.composite
+    def scratch(draw: st.DrawFn) -> RendezvousPoses:
+        m = RendezvousPoses(robot=draw(names))
+        m.header.frame_id = f"{m.robot}/map"
+        k = draw(st.integers(0, 3))
+        m.stamps = draw(st.lists(_time(), min_size=k, max_size=k + 1))
+        m.poses = draw(st.lists(_pose(), min_size=k, max_size=k))
+        m.pose_indices = draw(st.lists(uint32, min_size=k, max_size=k))
+        m.measurements = draw(st.lists(_rows(pose_stamps), max_size=3))
+        return m
+
+    return st.one_of(mutated(), scratch())
+
+
+def _view(result: CsamResult | None) -> Any:
+    assert result is not None
+    return (
+        [(tuple(f.members), tuple(f.xy)) for f in result.features],
+        [(a.a, a.b, a.mahalanobis) for a in result.associations],
+        {
+            n: (r.alignment, None if r.base_node is None else tuple(r.base_node))
+            for n, r in result.robots.items()
+        },
+    )
+
+
+def _same_data(merger: Any, maps: dict[str, Any], logs: dict[str, Any]) -> bool:
+    def log_key(log: Any) -> Any:
+        return (
+            log.stamps.tolist(),
+            list(log.observed),
+            log.ranges.tolist(),
+            log.bearings.tolist(),
+            log.sigma_range.tolist(),
+            log.sigma_bearing.tolist(),
+        )
+
+    return all(merger.local_maps.get(r) is maps[r] for r in ROBOTS) and all(
+        log_key(merger.rendezvous[r]) == log_key(logs[r]) for r in ROBOTS
+    )
+
+
+class Fuzzer:
+    """A merger holding the good maps; each message is fed to it from that state."""
+
+    def __init__(self, harness: MergerHarness) -> None:
+        self.merger = harness.merger
+        self.harness = harness
+        self.callbacks = {s.topic_name: s.callback for s in self.merger.subscriptions}
+        self.timer = next(iter(self.merger.timers)).callback
+        self.maps = dict(self.merger.local_maps)
+        self.logs = dict(self.merger.rendezvous)
+        self.stamps = dict(self.merger.local_map_stamps)
+        self.result = self.merger.last_result
+        self.view = _view(self.result)
+
+    def feed(self, topic_robot: str, msg: Any) -> None:
+        m = self.merger
+        m.local_maps, m.rendezvous = dict(self.maps), dict(self.logs)
+        m.local_map_stamps, m.last_result, m.dirty = dict(self.stamps), self.result, False
+        m.restarts.clear()
+        m.restart_poses_lost.clear()
+        kind = "local_map" if isinstance(msg, LocalMap) else "rendezvous_poses"
+        dropped = m.drops.total
+        self.callbacks[f"/{topic_robot}/{kind}"](msg)
+        self.timer()
+        counts = m.drops.as_dict()
+        assert counts.get("callback_error", 0) == 0, counts
+        assert counts.get("failed_solve", 0) == 0, (counts, m.last_error)
+        if _same_data(m, self.maps, self.logs):
+            assert _view(m.last_result) == self.view
+            TALLY["refused" if m.drops.total > dropped else "unchanged"] += 1
+        else:
+            assert m.last_result is not self.result  # taken and solved
+            TALLY["taken"] += 1
+
+
+@pytest.fixture
+def fuzzer(ros_context, spin) -> Iterator[Fuzzer]:
+    harness = MergerHarness(ros_context, spin, solve_period=3600.0)
+    harness.merger.dirty = False
+    try:
+        for r in ROBOTS:
+            harness.publish(r, GOOD.rendezvous[r])
+            harness.publish(r, GOOD.local_maps[r])
+        harness.wait(
+            lambda: (
+                set(harness.merger.local_maps) == set(ROBOTS)
+                and set(harness.merger.rendezvous) == set(ROBOTS)
+            )
+        )
+        next(iter(harness.merger.timers)).callback()
+        assert harness.merger.last_result is not None
+        yield Fuzzer(harness)
+    finally:
+        print(f"\nmerger fuzz: {sum(TALLY.values())} examples so far: {dict(TALLY)}")
+        harness.close()
+
+
+GOOD = run_messages()
+ROBOT2_STAMPS = [time_to_ns(t) for t in GOOD.local_maps["robot2"].pose_stamps]
+
+
+@FUZZ
+@given(msg=random_local_maps())
+def test_random_local_maps(fuzzer: Fuzzer, msg: LocalMap) -> None:
+    fuzzer.feed("robot2", msg)
+
+
+@FUZZ
+@given(msg=mutated_local_maps(GOOD.local_maps["robot2"]))
+def test_mutated_local_maps(fuzzer: Fuzzer, msg: LocalMap) -> None:
+    fuzzer.feed("robot2", msg)
+
+
+@FUZZ
+@given(msg=rendezvous_messages(GOOD.rendezvous["robot2"], ROBOT2_STAMPS))
+def test_rendezvous_messages(fuzzer: Fuzzer, msg: RendezvousPoses) -> None:
+    fuzzer.feed("robot2", msg)
+
+
+def test_good_messages_are_taken_unchanged(fuzzer: Fuzzer) -> None:
+    """The fuzzer's baseline: the good messages again leave the joined map as it was."""
+    fuzzer.feed("robot2", GOOD.rendezvous["robot2"])
+    assert _view(fuzzer.merger.last_result) == fuzzer.view
