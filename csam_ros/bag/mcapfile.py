@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import heapq
 import mmap
+import struct
 import zlib
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
@@ -129,24 +130,34 @@ class ChunkRecords:
     messages: list[RawMessage] = field(default_factory=list)
 
 
+_RECORD_HEAD = struct.Struct("<BQ")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
 def _records(data: bytes, into: ChunkRecords) -> None:
     """Parse the schema, channel and message records of verified, decompressed chunk data."""
-    cursor = _Cursor(data)
-    while cursor.pos < cursor.end:
-        opcode = cursor.take(1)[0]
-        length = cursor.u64()
-        body = _Cursor(data, cursor.pos, cursor.pos + length)
-        cursor.take(length)
-        if opcode == OP_SCHEMA:
-            into.schemas.append(_schema(body))
-        elif opcode == OP_CHANNEL:
-            into.channels.append(_channel(body))
-        elif opcode == OP_MESSAGE:
-            channel_id, _sequence = body.u16(), body.u32()
-            log_time, publish_time = body.u64(), body.u64()
+    pos, end = 0, len(data)
+    while pos < end:
+        if pos + _RECORD_HEAD.size > end:
+            raise _DamageError("a record header runs past the chunk")
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        start = pos + _RECORD_HEAD.size
+        pos = start + length
+        if pos > end:
+            raise _DamageError("a record runs past the chunk")
+        if opcode == OP_MESSAGE:
+            if length < _MESSAGE_HEAD.size:
+                raise _DamageError("a message record is too short")
+            channel_id, _sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, start)
             into.messages.append(
-                RawMessage(channel_id, log_time, publish_time, body.take(body.end - body.pos))
+                RawMessage(
+                    channel_id, log_time, publish_time, data[start + _MESSAGE_HEAD.size : pos]
+                )
             )
+        elif opcode == OP_SCHEMA:
+            into.schemas.append(_schema(_Cursor(data, start, pos)))
+        elif opcode == OP_CHANNEL:
+            into.channels.append(_channel(_Cursor(data, start, pos)))
 
 
 def decode_chunk(data: bytes | mmap.mmap, offset: int, size: int) -> ChunkRecords:

@@ -195,14 +195,14 @@ def file_warnings(scan: McapScan) -> list[str]:
     return warnings
 
 
-def _scan_topics(scan: McapScan, add: Callable[[str, str, list[QosDict], str, int], None]) -> None:
+def _scan_topics(scan: McapScan, add: Callable[[str, str, Channel, str, int], None]) -> None:
     counts = scan.counts()
     for channel_id, channel in scan.channels.items():
         schema = scan.schemas.get(channel.schema_id)
         add(
             channel.topic,
             schema.name if schema else "",
-            _channel_qos(channel),
+            channel,
             channel.metadata.get("topic_type_hash", ""),
             counts.get(channel_id, 0),
         )
@@ -226,10 +226,12 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
     qos: dict[str, list[QosDict]] = {}
     hashes: dict[str, str] = {}
 
-    def add(topic: str, msgtype: str, profiles: list[QosDict], type_hash: str, n: int) -> None:
+    channels: dict[str, Channel] = {}
+
+    def add(topic: str, msgtype: str, channel: Channel, type_hash: str, n: int) -> None:
         counts[topic] = counts.get(topic, 0) + n
         types.setdefault(topic, msgtype)
-        qos.setdefault(topic, profiles)
+        channels.setdefault(topic, channel)
         hashes.setdefault(topic, type_hash)
 
     for scan in scans:
@@ -246,6 +248,9 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
                 warnings.append(f"{path / METADATA_FILE}: ignored a topic entry ({error})")
             else:
                 counts.setdefault(name, 0)
+    for topic, channel in channels.items():  # QoS YAML is slow to parse: only when needed
+        if topic not in qos:
+            qos[topic] = _channel_qos(channel)
     topics = {
         name: TopicInfo(
             name, types.get(name, ""), qos.get(name, []), counts.get(name, 0), hashes.get(name, "")
