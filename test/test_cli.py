@@ -335,6 +335,14 @@ BAD_INPUT = {
         lambda t: [*_dataset(t), "--config", str(_write(t / "c.yaml", "mrclam:\n  noise: 3\n"))],
         "c.yaml: mrclam.noise: expected a mapping of numbers",
     ),
+    "mrclam_config_unknown_key": (
+        lambda t: [
+            *_dataset(t),
+            "--config",
+            str(_write(t / "c.yaml", "mrclam:\n  lable_seed: 1\n")),
+        ],
+        "c.yaml: mrclam: unknown key(s) ['lable_seed']",
+    ),
     "slam2d_binary": (
         lambda t: ["import", "slam2d", str(_write(t / "f.g2o", BINARY))],
         "f.g2o:1: not UTF-8 text",

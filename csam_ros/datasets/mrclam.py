@@ -105,6 +105,12 @@ MRCLAM_NOISE = NoiseModel(
 )
 
 
+# The keys of a config file's ``mrclam:`` section (config/mrclam.yaml).
+MRCLAM_KEYS = frozenset(
+    {"robots", "start", "duration", "label_seed", "noise", "range_scale", "landmark_swaps"}
+)
+
+
 def _numbers(value: object) -> bool:
     """Whether ``value`` is a mapping whose values are all numbers."""
     return isinstance(value, Mapping) and all(
@@ -123,6 +129,11 @@ def load_config(path: str | Path) -> dict:
     if not isinstance(data.get("mrclam"), Mapping):
         raise ConfigFileError(f"{path}: expected a top-level section 'mrclam' (a mapping)")
     section = dict(data["mrclam"])
+    unknown = sorted(str(key) for key in section if key not in MRCLAM_KEYS)
+    if unknown:
+        raise ConfigFileError(
+            f"{path}: mrclam: unknown key(s) {unknown}; allowed: {sorted(MRCLAM_KEYS)}"
+        )
     noise = section.get("noise") or {}
     if not _numbers(noise):
         raise ConfigFileError(f"{path}: mrclam.noise: expected a mapping of numbers, got {noise!r}")
