@@ -208,7 +208,9 @@ def odometry_fault(inputs: ArrayLike, sigmas: ArrayLike, bounds: InputBounds) ->
         return NON_POSITIVE_SIGMA
     if max(abs(u[0]), abs(u[1])) > bounds.max_speed or abs(u[2]) > bounds.max_turn_rate:
         return SPEED_OUT_OF_BOUNDS
-    if _sigma_fault(s, s.max() / s.min(), bounds):
+    with np.errstate(over="ignore"):
+        ratio = s.max() / s.min()
+    if _sigma_fault(s, ratio, bounds):
         return SIGMA_OUT_OF_BOUNDS
     return None
 
