@@ -222,9 +222,10 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
     """Rebuild the local problem of a local map message at its published estimate.
 
     ``robot`` is the robot of the topic it came on (None: trust the message's ``robot``).
-    Every field is checked first (:func:`~csam_ros.core.validation.local_map_fault`): a
-    message C-SAM could not use raises :class:`LocalMapError` naming the fault, with the
-    reason to count it under (``malformed_local_map`` or ``robot_mismatch``).
+    Every field is checked first (:func:`~csam_ros.core.validation.local_map_fault`), then
+    the factors are linearised once at the estimate: a message C-SAM could not use raises
+    :class:`LocalMapError` naming the fault, with the reason to count it under
+    (``malformed_local_map`` or ``robot_mismatch``).
     """
     name = _robot_of(msg, robot, LocalMapError)
     m = local_map_arrays(msg, name)
@@ -267,6 +268,11 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
                 name=f"{name} observations",
             )
         )
+    with np.errstate(all="ignore"):  # values within bounds may still overflow together
+        try:
+            problem.normal_equations().linearize(problem.values)
+        except FloatingPointError as error:
+            raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
     return RobotMap(
         name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
     )
