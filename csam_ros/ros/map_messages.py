@@ -38,7 +38,7 @@ from csam_ros.core.factors import (
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.result import CsamResult
-from csam_ros.core.solver import Problem
+from csam_ros.core.solver import Problem, SingularProblemError
 from csam_ros.core.validation import (
     MALFORMED_LOCAL_MAP,
     MALFORMED_RENDEZVOUS_POSES,
@@ -223,7 +223,8 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
 
     ``robot`` is the robot of the topic it came on (None: trust the message's ``robot``).
     Every field is checked first (:func:`~csam_ros.core.validation.local_map_fault`), then
-    the factors are linearised once at the estimate: a message C-SAM could not use raises
+    the problem is linearised and factored once at the estimate (non-finite or singular
+    information, which C-SAM would meet at every solve): a message C-SAM could not use raises
     :class:`LocalMapError` naming the fault, with the reason to count it under
     (``malformed_local_map`` or ``robot_mismatch``).
     """
@@ -270,8 +271,11 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
         )
     with np.errstate(all="ignore"):  # values within bounds may still overflow together
         try:
-            problem.normal_equations().linearize(problem.values)
-        except FloatingPointError as error:
+            system = problem.normal_equations()
+            system.linearize(problem.values)
+            system.check_blocks()
+            system.factorize(0.0)
+        except (FloatingPointError, SingularProblemError) as error:
             raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
     return RobotMap(
         name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
