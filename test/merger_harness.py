@@ -139,8 +139,8 @@ class MergerHarness:
         pubs = self.maps if isinstance(msg, LocalMap) else self.rendezvous
         pubs[topic_robot].publish(msg)
 
-    def start(self, messages: RunMessages) -> JoinedMap:
-        """Publish the good messages; return the joined map of them all."""
+    def hold(self, messages: RunMessages) -> None:
+        """Publish the good messages; wait until the merger holds every robot's."""
         for r in ROBOTS:
             self.publish(r, messages.rendezvous[r])
             self.publish(r, messages.local_maps[r])
@@ -148,11 +148,13 @@ class MergerHarness:
             lambda: (
                 set(self.merger.local_maps) == set(ROBOTS)
                 and set(self.merger.rendezvous) == set(ROBOTS)
-                and not self.merger.dirty
-                and self.merger.solves > 0
-                and len(self.joined) > 0
             )
         )
+
+    def start(self, messages: RunMessages) -> JoinedMap:
+        """Publish the good messages; return the joined map of them all."""
+        self.hold(messages)
+        self.wait(lambda: not self.merger.dirty and self.merger.solves > 0 and len(self.joined) > 0)
         self.settle(0.1)
         return self.resolve()
 

@@ -260,13 +260,17 @@ class McapScan:
 
     def counts(self) -> dict[int, int]:
         """Readable messages per channel id (orphans excluded)."""
+        return {k: n for k, n in self.all_counts().items() if k in self.channels}
+
+    def all_counts(self) -> dict[int, int]:
+        """Messages per channel id in verified chunks and outside chunks, orphans included."""
         counts: dict[int, int] = {}
         for chunk in self.chunks:
             for channel_id, n in chunk.counts.items():
                 counts[channel_id] = counts.get(channel_id, 0) + n
         for message in self.loose:
             counts[message.channel_id] = counts.get(message.channel_id, 0) + 1
-        return {k: n for k, n in counts.items() if k in self.channels}
+        return counts
 
     def span(self) -> tuple[int, int] | None:
         times = [(c.start_ns, c.end_ns) for c in self.chunks if c.ok and c.counts]
@@ -487,13 +491,7 @@ def scan_file(path: Path) -> McapScan:
                 scan.complete = True
                 for offset, index_start, index_end in sorted(chunks):
                     _add_chunk(scan, data, offset, (index_start, index_end))
-    counts: dict[int, int] = {}
-    for chunk in scan.chunks:
-        for channel_id, n in chunk.counts.items():
-            counts[channel_id] = counts.get(channel_id, 0) + n
-    for message in scan.loose:
-        counts[message.channel_id] = counts.get(message.channel_id, 0) + 1
-    orphans = {k: n for k, n in counts.items() if k not in scan.channels}
+    orphans = {k: n for k, n in scan.all_counts().items() if k not in scan.channels}
     scan.orphans = sum(orphans.values())
     if orphans:
         scan.problems.append(

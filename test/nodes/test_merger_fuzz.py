@@ -381,15 +381,7 @@ def fuzzer(ros_context, spin) -> Iterator[Fuzzer]:
     harness = MergerHarness(ros_context, spin, solve_period=3600.0)
     harness.merger.dirty = False
     try:
-        for r in ROBOTS:
-            harness.publish(r, GOOD.rendezvous[r])
-            harness.publish(r, GOOD.local_maps[r])
-        harness.wait(
-            lambda: (
-                set(harness.merger.local_maps) == set(ROBOTS)
-                and set(harness.merger.rendezvous) == set(ROBOTS)
-            )
-        )
+        harness.hold(GOOD)
         next(iter(harness.merger.timers)).callback()
         assert harness.merger.last_result is not None
         yield Fuzzer(harness)

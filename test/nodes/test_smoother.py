@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
 import numpy as np
 from rclpy.parameter import Parameter
 
@@ -133,11 +137,16 @@ def new_smoother(ros_context, **parameters):
     return Smoother(context=ros_context, namespace="robot1", parameter_overrides=overrides)
 
 
-def fed_smoother(ros_context, messages, **parameters):
+@contextmanager
+def fed_smoother(ros_context, messages, **parameters) -> Iterator[tuple[Any, tuple]]:
+    """A smoother fed ``messages`` and flushed, with its map; destroyed on leaving."""
     node = new_smoother(ros_context, **parameters)
-    for m in messages:
-        deliver(node, m.topic, m.message)
-    return node, flushed_map(node)
+    try:
+        for m in messages:
+            deliver(node, m.topic, m.message)
+        yield node, flushed_map(node)
+    finally:
+        node.destroy_node()
 
 
 def _features(stamp_s: float, r: float, sr: float, sb: float, label: int = 1):
@@ -156,8 +165,7 @@ def _odometry(stamp_s: float, v: float = 0.5):
 
 def test_smoother_drops_features_beyond_the_bounds(ros_context) -> None:
     """Issue 15 case 2: each of these killed the node with a ValueError from add_features."""
-    node, good = fed_smoother(ros_context, _good_messages())
-    try:
+    with fed_smoother(ros_context, _good_messages()) as (node, good):
         t = GOOD_SECONDS + 0.05
         for i, (r, sr, sb) in enumerate(
             [(1e8, 0.01, 0.01), (1e300, 0.01, 0.01), (3.0, 1e-10, 0.01), (3.0, 1e-300, 1e-300)]
@@ -166,16 +174,13 @@ def test_smoother_drops_features_beyond_the_bounds(ros_context) -> None:
         assert node.drops.as_dict() == {"range_out_of_bounds": 2, "sigma_out_of_bounds": 2}
         assert_good_map_unchanged(node, good)
         assert node.errors == 0
-    finally:
-        node.destroy_node()
 
 
 def test_smoother_outlier_stamp_neither_stalls_nor_blocks_odometry(ros_context) -> None:
     """Issue 15 case 3: one odometry message stamped 1e6 s made a million poses and blocked
     every later one as stamp_backwards."""
     messages = _good_messages()
-    node, good = fed_smoother(ros_context, messages)
-    try:
+    with fed_smoother(ros_context, messages) as (node, good):
         deliver(node, "/robot1/odom", _odometry(1e6))
         stamps, _, _ = flushed_map(node)
         assert len(stamps) == len(good[0])
@@ -193,14 +198,11 @@ def test_smoother_outlier_stamp_neither_stalls_nor_blocks_odometry(ros_context) 
         assert node.drops.as_dict() == {"stamp_jump": 1, "stamp_gap": 1}
         assert_good_map_unchanged(node, good)
         assert node.errors == 0
-    finally:
-        node.destroy_node()
 
 
 def test_smoother_drops_odometry_beyond_the_speed_bound_and_keeps_updating(ros_context) -> None:
     """Issue 15 case 4: v = 1e300 was accepted, and every later update then failed."""
-    node, good = fed_smoother(ros_context, _good_messages())
-    try:
+    with fed_smoother(ros_context, _good_messages()) as (node, good):
         deliver(node, "/robot1/odom", _odometry(GOOD_SECONDS + 0.1, v=1e300))
         for k in range(2, 12):
             deliver(node, "/robot1/odom", _odometry(GOOD_SECONDS + 0.1 * k))
@@ -210,8 +212,6 @@ def test_smoother_drops_odometry_beyond_the_speed_bound_and_keeps_updating(ros_c
         assert node.drops.as_dict() == {"speed_out_of_bounds": 1}
         assert node.errors == 0
         assert_good_map_unchanged(node, good)
-    finally:
-        node.destroy_node()
 
 
 def test_offline_replay_drops_the_same_messages(tmp_path) -> None:

@@ -112,8 +112,8 @@ def _fresh_labels(msg: FeatureObservations, taken: set[int]) -> None:
 
 def test_no_message_escapes_the_smoothers_boundary(ros_context) -> None:
     good_messages = _good_messages()
-    reference, good = fed_smoother(ros_context, good_messages, max_observations=MAX_OBSERVATIONS)
-    reference.destroy_node()
+    with fed_smoother(ros_context, good_messages, max_observations=MAX_OBSERVATIONS) as fed:
+        good = fed[1]
     good_labels = set(good[2])
     ran: list[int] = []
     seen: Counter[str] = Counter()  # drop reasons, and extra poses, over all examples
@@ -125,8 +125,8 @@ def test_no_message_escapes_the_smoothers_boundary(ros_context) -> None:
     @given(st.lists(st.one_of(odometry(), features(), rendezvous()), max_size=12))
     def check(messages) -> None:
         ran.append(1)
-        node, _ = fed_smoother(ros_context, good_messages, max_observations=MAX_OBSERVATIONS)
-        try:
+        with fed_smoother(ros_context, good_messages, max_observations=MAX_OBSERVATIONS) as fed:
+            node = fed[0]
             taken = set(good_labels)
             for topic, msg in messages:
                 if isinstance(msg, FeatureObservations):
@@ -138,8 +138,6 @@ def test_no_message_escapes_the_smoothers_boundary(ros_context) -> None:
             assert_good_map_unchanged(node, good)
             seen.update(node.drops.counts)
             seen["(new poses)"] += len(node.map.stamps) - len(good[0])
-        finally:
-            node.destroy_node()
 
     check()
     print(f"{len(ran)} examples; {dict(sorted(seen.items()))}")
