@@ -18,7 +18,7 @@ PYTEST_ARGS ?=
 CSAM_MRCLAM_DIR ?= $(wildcard $(abspath ../shared/data/mrclam/MRCLAM_Dataset1))
 export CSAM_MRCLAM_DIR
 
-.PHONY: run test bench lint setup setup-dev clean
+.PHONY: run test bench fuzz lint setup setup-dev clean
 
 run: setup
 	$(VENV)/bin/csam demo $(RUN_ARGS)
@@ -29,6 +29,12 @@ test: setup-dev
 bench: setup-dev
 	$(PY) -m csam_ros.bench.smoothing
 	$(PY) -m csam_ros.bench.joining
+
+# the fuzz tests of make test with many more examples (about 5 minutes)
+fuzz: setup-dev
+	CSAM_FUZZ_EXAMPLES=1000 CSAM_BAG_FUZZ_EXAMPLES=3000 $(PY) -m pytest -q -p no:cacheprovider \
+		test/nodes/test_smoother_fuzz.py test/nodes/test_merger_fuzz.py \
+		test/bag/test_bag_fuzz.py test/datasets/test_importer_fuzz.py
 
 lint: setup-dev
 	$(VENV)/bin/ruff check .

@@ -336,7 +336,9 @@ class LocalMap:
         req = np.asarray(self._requested, dtype=float)
         candidates.append(req[(req >= t0 - tol) & (req <= t_end + tol)])
         if self.options.key_interval:
-            candidates.append(_regular_keys(self._odo_t, self.options.key_interval))
+            # grid keys of the samples before the last update are keys already (or in a gap)
+            since = max(int(np.searchsorted(self._odo_t, self._last_solved_odometry)) - 1, 0)
+            candidates.append(_regular_keys(self._odo_t[since:], self.options.key_interval, t0))
         cand = np.clip(np.unique(np.concatenate(candidates)), t0, t_end)
         new_keys = self._new_key_stamps(cand, tol)
         inserted = self._insert_keys(new_keys)
@@ -569,14 +571,13 @@ class LocalMap:
         return r, self._keys[idx].copy(), self._key_values[idx].copy()
 
 
-def _regular_keys(stamps: Array, interval: float) -> Array:
-    """The grid ``t0 + k * interval`` over ``[t0, t_end]`` of sorted odometry ``stamps``,
-    but only where consecutive samples are at most ``interval`` apart, so that a gap in the
-    odometry adds no key pose (the grid points of each short interval ``(t_{i-1}, t_i]``)."""
-    t0 = stamps[0]
+def _regular_keys(stamps: Array, interval: float, t0: float) -> Array:
+    """The grid ``t0 + k * interval`` over the span of sorted odometry ``stamps``, but only
+    where consecutive samples are at most ``interval`` apart, so that a gap in the odometry
+    adds no key pose (the grid points of each short interval ``(t_{i-1}, t_i]``)."""
     scaled = (stamps - t0) / interval
     dense = np.flatnonzero(np.diff(stamps) <= interval)
-    k = np.concatenate([[0.0], np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
+    k = np.concatenate([np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
     k = np.unique(k[(k >= 0) & (k <= np.floor(scaled[-1]))])
     return t0 + interval * k
 
