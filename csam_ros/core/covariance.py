@@ -89,35 +89,43 @@ def covariance_block(system: NormalEquations, scalar_indices: ArrayLike) -> Arra
     return 0.5 * (cov + cov.T)
 
 
-def covariance_columns(system: NormalEquations, scalar_indices: ArrayLike) -> Array:
-    """Columns ``(A^T A)^-1 E_S`` (``(n, |S|)``, rows in the problem's scalar order): the cross
-    covariance of every unknown with the components ``S``.
+def covariance_columns(
+    system: NormalEquations, scalar_indices: ArrayLike, rows: ArrayLike | None = None
+) -> Array:
+    """``(A^T A)^-1`` at ``rows`` (default: every scalar, in the problem's order) and the
+    columns ``S = scalar_indices``: the cross covariance of those unknowns with ``S``.
 
-    ``Y = L^-1 P^T E_S`` on the reached rows, then one backward substitution
-    ``L^-T D^-1 Y``: ``O(nnz(L) |S|)``, linear in the map for a fixed ``S``, where taking the
-    rows of :func:`covariance_block` over ``S`` and all other wanted unknowns would cost their
-    square.
+    ``Y = L^-1 P^T E_S`` on the rows the forward substitution reaches from ``S``, then the
+    backward substitution ``L^-T D^-1 Y`` on the rows the wanted ones need (their ancestors in
+    the elimination tree: ``z_j`` takes ``z_i`` only for ``L_ij != 0``, ``i`` above ``j``).
+    Cost ``O(nnz(L) |S|)`` at most, linear in the map for a fixed ``S``, where
+    :func:`covariance_block` over ``S`` and the wanted rows grows with their square.
     """
     cols = np.asarray(scalar_indices, dtype=np.int64)
     n = system.n
+    wanted = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
     if system.backend != "qdldl":
         rhs = np.zeros((n, len(cols)))
         rhs[cols, np.arange(len(cols))] = 1.0
-        return np.column_stack([system.solve(rhs[:, j]) for j in range(len(cols))])
+        return np.column_stack([system.solve(rhs[:, j]) for j in range(len(cols))])[wanted]
     strict_lower, d, perm = system._factorization.factors()  # type: ignore[union-attr]
     strict_lower = sp.csc_matrix(strict_lower)
     inverse_perm = np.empty(n, dtype=np.int64)
     inverse_perm[perm] = np.arange(n)
-    rows = _reach(_elimination_tree(strict_lower), inverse_perm[cols])
-    unit_lower = (strict_lower[rows][:, rows] + sp.eye(len(rows), format="csc")).tocsr()
-    rhs = np.zeros((len(rows), len(cols)))
-    rhs[np.searchsorted(rows, inverse_perm[cols]), np.arange(len(cols))] = 1.0
+    parent = _elimination_tree(strict_lower)
+    forward = _reach(parent, inverse_perm[cols])
+    unit_lower = (strict_lower[forward][:, forward] + sp.eye(len(forward), format="csc")).tocsr()
+    rhs = np.zeros((len(forward), len(cols)))
+    rhs[np.searchsorted(forward, inverse_perm[cols]), np.arange(len(cols))] = 1.0
     y = spsolve_triangular(unit_lower, rhs, lower=True, unit_diagonal=True).reshape(rhs.shape)
-    w = np.zeros((n, len(cols)))
-    w[rows] = y / d[rows, None]
-    unit_upper = (strict_lower.T + sp.eye(n, format="csr")).tocsr()
+    backward = _reach(parent, inverse_perm[wanted])
+    w = np.zeros((len(backward), len(cols)))
+    inside = np.isin(forward, backward, assume_unique=True)
+    w[np.searchsorted(backward, forward[inside])] = y[inside] / d[forward[inside], None]
+    restricted = strict_lower[backward][:, backward]
+    unit_upper = (restricted.T + sp.eye(len(backward), format="csr")).tocsr()
     z = spsolve_triangular(unit_upper, w, lower=False, unit_diagonal=True).reshape(w.shape)
-    return z[inverse_perm]
+    return z[np.searchsorted(backward, inverse_perm[wanted])]
 
 
 def _elimination_tree(strict_lower: sp.csc_matrix) -> NDArray[np.int64]:

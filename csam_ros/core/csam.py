@@ -183,11 +183,12 @@ def _local_inputs(
     problem = m.problem
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
     feature_columns = problem.scalar_indices(m.feature_ids)
-    columns = covariance_columns(system, pose_columns)
-    block = columns[pose_columns]
+    k = len(pose_columns)
+    columns = covariance_columns(system, pose_columns, np.r_[pose_columns, feature_columns])
+    block = columns[:k]
     root = upper_sqrt_information(0.5 * (block + block.T))
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
-    cross = columns[feature_columns].reshape(len(m.feature_ids), 2, len(pose_columns))
+    cross = columns[k:].reshape(len(m.feature_ids), 2, k)
     return part, cross
 
 

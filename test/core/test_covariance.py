@@ -101,3 +101,6 @@ def test_covariance_columns_are_the_dense_inverse_columns(solved, backend):
     columns = covariance_columns(system, cols)
     dense = np.linalg.inv(info)[:, cols]
     np.testing.assert_allclose(columns, dense, rtol=1e-8, atol=1e-10 * np.abs(dense).max())
+    rows = problem.scalar_indices(problem.indices([("l", 2), ("x", 40), ("x", 3)]))
+    some = covariance_columns(system, cols, rows)
+    np.testing.assert_allclose(some, dense[rows], rtol=1e-8, atol=1e-10 * np.abs(dense).max())
