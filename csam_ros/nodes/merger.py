@@ -6,6 +6,13 @@ changes it re-solves (at most every ``solve_period`` wall-clock seconds) with th
 :func:`~csam_ros.core.csam.join_maps`, then writes ``summary_path`` (when set) and publishes
 ``/csam/joined_map`` and ``/csam/markers`` (transient local) and ``/csam/status``.
 
+Solves run in one worker thread, off the executor, so subscriptions, services and the status
+keep running during a solve. A solve works on a snapshot of the inputs taken under a lock
+(their dicts are replaced, never mutated, when a message arrives). Input arriving during a
+solve marks the inputs dirty again; the next solve starts after the current one ends, with
+the newest inputs: at most one solve runs and one is pending. ``/csam/status`` says whether a
+solve is running (``solving``) and how long the last one took (``solve_seconds``).
+
 The topic says which robot a message belongs to. Every message is checked whole when it
 arrives (``ros/map_messages.py``); a malformed one, or one naming another robot than its
 topic's, is dropped and counted once under its reason, and the robot's last valid local map
@@ -19,7 +26,10 @@ replaces the old one, and the restart and the poses lost are logged once and cou
 from __future__ import annotations
 
 import sys
+import threading
 import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +42,7 @@ from csam_ros.core.csam import CsamConfig, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
-from csam_ros.core.validation import FAILED_SOLVE, DropCounter
+from csam_ros.core.validation import CALLBACK_ERROR, FAILED_SOLVE, DropCounter
 from csam_ros.nodes.common import (
     declare,
     declare_settings,
@@ -52,6 +62,42 @@ from csam_ros.ros.map_messages import (
 from csam_ros.ros.markers import joined_map_markers
 from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS
 
+SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for a running solve before leaving it behind
+
+
+class SharedDropCounter(DropCounter):
+    """A :class:`DropCounter` the executor and the solve worker may both count into."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._lock = threading.Lock()
+
+    def add(self, reason: str, n: int = 1) -> None:
+        with self._lock:
+            super().add(reason, n)
+
+    def reclassify(self, old: str, new: str) -> None:
+        with self._lock:
+            super().reclassify(old, new)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+    def as_dict(self) -> dict[str, int]:
+        with self._lock:
+            return super().as_dict()
+
+
+@dataclass(frozen=True)
+class SolveInputs:
+    """What one solve works on, taken under the merger's lock: never changed afterwards."""
+
+    maps: tuple[RobotMap, ...]
+    logs: Mapping[str, RendezvousLog]
+    stamps: Mapping[str, int]
+
 
 class Merger(Node):
     """C-SAM merger node (see the module docstring)."""
@@ -69,18 +115,28 @@ class Merger(Node):
         # online, a rendezvous stamp may reach the merger before the observed robot's map has
         # its pose: leave such a measurement out until the next solve instead of failing
         self.config = declare_settings(self, CsamConfig, CsamConfig(skip_missing_poses=True))
-        # the last valid local map (and its message's stamp) and rendezvous measurements
+        # the last valid local map (and its message's stamp) and rendezvous measurements: each
+        # dict is replaced, never mutated, so a solve's snapshot of them stays as it was taken
         self.local_maps: dict[str, RobotMap] = {}
         self.local_map_stamps: dict[str, int] = {}
         self.rendezvous: dict[str, RendezvousLog] = {}
-        self.drops = DropCounter()
+        self.drops: DropCounter = SharedDropCounter()
         self.restarts: dict[str, int] = {}
         self.restart_poses_lost: dict[str, int] = {}
-        self.dirty = False
+        self.dirty = False  # inputs changed since the last solve's snapshot
+        self.solving = False  # a solve is running
         self.last_result: CsamResult | None = None
         self.solves = 0
-        self.solve_seconds = 0.0
+        self.solve_seconds = 0.0  # how long the last solve took
         self.last_error = ""
+        # the node's state above is read and written under _lock; one solve at a time holds
+        # _solve_lock; publications of a solve hold _publish_lock (destroy_node waits on it)
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._solve_lock = threading.Lock()
+        self._publish_lock = threading.Lock()
+        self._requested = False  # the timer asked the worker for a solve
+        self._stopping = False
         on_map = guarded(self, self.drops, self.on_local_map)
         on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
         for robot in self.robots:  # each subscription knows its robot from its topic
@@ -97,6 +153,21 @@ class Merger(Node):
         self.create_timer(
             max(period, 0.01), guarded(self, self.drops, self.on_timer), clock=steady_clock()
         )
+        self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
+        self._worker.start()
+
+    def destroy_node(self) -> None:
+        """Stop the solve worker (a solve still running after ``SHUTDOWN_JOIN_S`` finishes in
+        the background and publishes nothing), then destroy the node."""
+        with self._lock:
+            self._stopping = True
+            self._wake.notify_all()
+        if self._worker is not threading.current_thread():
+            self._worker.join(timeout=SHUTDOWN_JOIN_S)
+        if self._worker.is_alive():
+            self.get_logger().warning("a solve is still running; its result is not published")
+        with self._publish_lock:  # no publication is under way, and none starts from now on
+            super().destroy_node()
 
     def _refuse(self, robot: str, what: str, error: RefusedMessageError) -> None:
         self.drops.add(error.reason)
@@ -109,12 +180,13 @@ class Merger(Node):
         except RefusedMessageError as error:
             self._refuse(robot, "local map", error)
             return
-        old = self.local_maps.get(robot)
-        if old is not None:
-            self._note_restart(robot, old, new)
-        self.local_maps[robot] = new
-        self.local_map_stamps[robot] = time_to_ns(msg.header.stamp)
-        self.dirty = True
+        with self._lock:
+            old = self.local_maps.get(robot)
+            if old is not None:
+                self._note_restart(robot, old, new)
+            self.local_maps = {**self.local_maps, robot: new}
+            self.local_map_stamps = {**self.local_map_stamps, robot: time_to_ns(msg.header.stamp)}
+            self.dirty = True
 
     def _note_restart(self, robot: str, old: RobotMap, new: RobotMap) -> None:
         """Log and count once a new map that starts later or holds fewer poses than the last.
@@ -162,46 +234,95 @@ class Merger(Node):
             )
         if len(log.stamps) == 0 and robot in self.rendezvous:
             return  # a message with no usable measurement never replaces usable ones
-        self.rendezvous[robot] = log
-        self.dirty = True
+        with self._lock:
+            self.rendezvous = {**self.rendezvous, robot: log}
+            self.dirty = True
 
     def on_timer(self) -> None:
-        if self.dirty:
-            self.dirty = False
-            self.solve()
+        """Wake the solve worker when the inputs changed and it is idle; publish the status."""
+        with self._lock:
+            if self.dirty and not self.solving:
+                self._requested = True
+                self._wake.notify()
         self.publish_status()
 
-    def solve(self) -> None:
-        reference = self.robots[0]
-        if reference not in self.local_maps:
-            return
+    def _work(self) -> None:
+        """The solve worker: one solve per request of the timer, until the node stops."""
+        while True:
+            with self._lock:
+                while not (self._requested or self._stopping):
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                self._requested = False
+            try:
+                self.solve_pending()
+            except Exception as error:  # noqa: BLE001 - the worker outlives any one solve
+                self.drops.add(CALLBACK_ERROR)
+                self.get_logger().error(f"solve worker: {type(error).__name__}: {error}")
+
+    def solve_pending(self) -> bool:
+        """Solve on a snapshot of the inputs if they changed since the last one, in the calling
+        thread (the worker's; tests call it to solve synchronously); whether a solve ran."""
+        with self._solve_lock:
+            with self._lock:
+                if not self.dirty or self._stopping:
+                    return False
+                self.dirty = False
+                if self.robots[0] not in self.local_maps:
+                    return False
+                inputs = SolveInputs(
+                    maps=tuple(self.local_maps[r] for r in self.robots if r in self.local_maps),
+                    logs={r: self.rendezvous[r] for r in self.robots if r in self.rendezvous},
+                    stamps=self.local_map_stamps,
+                )
+                self.solving = True
+            try:
+                self._solve(inputs)
+            finally:
+                with self._lock:
+                    self.solving = False
+            return True
+
+    def _solve(self, inputs: SolveInputs) -> None:
+        """Join ``inputs``; record the result (or the failure) and publish it."""
         start = time.perf_counter()
-        maps = [self.local_maps[r] for r in self.robots if r in self.local_maps]
-        logs = {r: self.rendezvous[r] for r in self.robots if r in self.rendezvous}
         try:
-            result = join_maps(maps, logs, self.config)
+            result = join_maps(list(inputs.maps), dict(inputs.logs), self.config)
             fault = _non_finite(result)
             if fault:
                 raise ValueError(f"the joined map has non-finite numbers ({fault})")
         except Exception as err:  # noqa: BLE001 - a solve never takes the merger down
-            self.last_error = f"{type(err).__name__}: {err}"
-            self.drops.add(FAILED_SOLVE)
-            self.get_logger().error(f"C-SAM failed, the last joined map stays: {self.last_error}")
+            with self._lock:
+                self.solve_seconds = time.perf_counter() - start
+                self.last_error = f"{type(err).__name__}: {err}"
+                self.drops.add(FAILED_SOLVE)
+                error = self.last_error
+            self.get_logger().error(f"C-SAM failed, the last joined map stays: {error}")
             return
-        self.last_error = ""
-        self.solve_seconds = time.perf_counter() - start
-        self.solves += 1
-        result.timing_s["merger_solve"] = self.solve_seconds
-        self.last_result = result
-        stamps = dict(self.local_map_stamps)
-        if self.summary_path is not None:
-            RunSummary(result, merger=self.stats()).write(self.summary_path)
-        newest = max(stamps.values())
-        self.joined_pub.publish(joined_map_message(result, newest, stamps, self.robots))
-        self.markers_pub.publish(joined_map_markers(result, self.get_clock().now().to_msg()))
+        seconds = time.perf_counter() - start
+        result.timing_s["merger_solve"] = seconds
+        with self._lock:
+            self.last_error = ""
+            self.solve_seconds = seconds
+            self.solves += 1
+            self.last_result = result
+            stats = self.stats()
+        if self._stopping:
+            return
+        stamps = dict(inputs.stamps)
+        joined = joined_map_message(result, max(stamps.values()), stamps, self.robots)
+        markers = joined_map_markers(result, self.get_clock().now().to_msg())
+        with self._publish_lock:
+            if self._stopping:
+                return
+            if self.summary_path is not None:
+                RunSummary(result, merger=stats).write(self.summary_path)
+            self.joined_pub.publish(joined)
+            self.markers_pub.publish(markers)
 
     def stats(self) -> MergerStats:
-        """What the merger counted so far, as the summary carries it."""
+        """What the merger counted so far, as the summary carries it (call under the lock)."""
         return MergerStats(
             dropped=self.drops.as_dict(),
             solves=self.solves,
@@ -210,6 +331,13 @@ class Merger(Node):
         )
 
     def publish_status(self) -> None:
+        """Publish ``/csam/status``: per robot, and the merger's counts and solve state."""
+        with self._lock:
+            array = self._status()
+        self.status_pub.publish(array)
+
+    def _status(self) -> DiagnosticArray:
+        """The status message of the node's state now (call under the lock)."""
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         result = self.last_result
@@ -243,6 +371,7 @@ class Merger(Node):
             "features": len(result.features) if result is not None else 0,
             "associations": len(result.associations) if result is not None else 0,
             "solve_seconds": round(self.solve_seconds, 4),
+            "solving": self.solving,
             "dropped": self.drops.total,
             "restarts": sum(self.restarts.values()),
             "last_error": self.last_error,
@@ -256,7 +385,7 @@ class Merger(Node):
                 values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
             )
         )
-        self.status_pub.publish(array)
+        return array
 
 
 def _non_finite(result: CsamResult) -> str:

@@ -8,6 +8,7 @@ taken.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -20,6 +21,7 @@ from csam_msgs.msg import (
 )
 from merger_harness import MergerHarness, RunMessages, copied, joined_view, run_messages
 
+import csam_ros.nodes.merger as merger_module
 from csam_ros.core.result import RunSummary
 from csam_ros.ros.conversions import ns_to_time, time_to_ns
 
@@ -230,3 +232,94 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
     assert summary.merger.restart_poses_lost == {"robot2": lost}
     result = harness.merger.last_result
     assert result is not None and len(result.robots["robot2"].stamps) == len(new_map.poses)
+
+
+def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypatch) -> None:
+    """The issue: the merger solved in its executor thread, so while C-SAM ran no status was
+    published and no message taken. Now a solve runs in a worker; input arriving meanwhile is
+    held and solved once, newest, after the running solve ends."""
+    harness.start(good)
+    real_join = merger_module.join_maps
+    started, release = threading.Event(), threading.Event()
+    solved: list[dict[str, int]] = []  # poses per robot of each solve's inputs
+
+    def slow_join(maps: Any, logs: Any, config: Any) -> Any:
+        solved.append({m.name: len(m.stamps) for m in maps})
+        started.set()
+        assert release.wait(60.0), "never released"
+        return real_join(maps, logs, config)
+
+    monkeypatch.setattr(merger_module, "join_maps", slow_join)
+    status: list[dict[str, str]] = []
+    harness.injector.create_subscription(
+        __import__("diagnostic_msgs.msg").msg.DiagnosticArray,
+        "/csam/status",
+        lambda a: status.extend(
+            {kv.key: kv.value for kv in s.values} for s in a.status if s.name == "merger"
+        ),
+        10,
+    )
+    solves = harness.merger.solves
+    harness.merger.dirty = True
+    try:
+        harness.wait(lambda: started.is_set() and harness.merger.solving)
+        seen = len(status)
+        harness.wait(lambda: len(status) > seen + 1 and status[-1]["solving"] == "True")
+
+        restarted = run_messages(restart_at=RESTART_AT)
+        new_map = restarted.local_maps["robot2"]
+        harness.publish("robot2", new_map)
+        harness.wait(
+            lambda: (
+                len(harness.merger.local_maps["robot2"].stamps) == len(new_map.poses)
+                and harness.merger.dirty
+            )
+        )
+        old_log = harness.merger.rendezvous["robot2"]
+        harness.publish("robot2", restarted.rendezvous["robot2"])
+        harness.wait(lambda: harness.merger.rendezvous["robot2"] is not old_log)
+        assert harness.merger.solving and harness.merger.solves == solves
+        assert len(solved) == 1
+    finally:
+        release.set()
+    harness.wait(
+        lambda: (
+            harness.merger.solves == solves + 2
+            and not harness.merger.dirty
+            and not harness.merger.solving
+        )
+    )
+    harness.settle(0.5)
+    assert harness.merger.solves == solves + 2 and len(solved) == 2
+    assert solved[0]["robot2"] == len(good.local_maps["robot2"].poses)
+    assert solved[1]["robot2"] == len(new_map.poses)
+    result = harness.merger.last_result
+    assert result is not None and len(result.robots["robot2"].stamps) == len(new_map.poses)
+    assert harness.merger.drops.total == 0
+
+
+def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkeypatch) -> None:
+    """destroy_node returns while a solve runs; the solve finishes unpublished, unfailed."""
+    harness.start(good)
+    real_join = merger_module.join_maps
+    started, release = threading.Event(), threading.Event()
+
+    def slow_join(maps: Any, logs: Any, config: Any) -> Any:
+        started.set()
+        assert release.wait(60.0), "never released"
+        return real_join(maps, logs, config)
+
+    monkeypatch.setattr(merger_module, "join_maps", slow_join)
+    monkeypatch.setattr(merger_module, "SHUTDOWN_JOIN_S", 0.2)
+    merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
+    merger.dirty = True
+    harness.wait(lambda: started.is_set())
+    merger.destroy_node()
+    worker = merger._worker
+    assert worker.is_alive()
+    release.set()
+    worker.join(60.0)
+    assert not worker.is_alive()
+    assert merger.solves == solves + 1 and merger.drops.total == 0
+    harness.settle(0.3)
+    assert len(harness.joined) == published

@@ -1,7 +1,8 @@
 """Fuzz the merger's boundary: generated LocalMap and RendezvousPoses messages, after good maps.
 
 Every message goes to a real in-process merger through its own (guarded) subscription
-callback, then the merger's timer callback solves. Properties, for every message:
+callback, then the merger solves synchronously (``solve_pending``, what its worker thread
+runs). Properties, for every message:
 
 - no exception reaches ``guarded`` (``callback_error`` stays 0) and no solve fails;
 - a message that leaves the merger's data as it was (refused, or with its bad rows
@@ -348,7 +349,6 @@ class Fuzzer:
         self.merger = harness.merger
         self.harness = harness
         self.callbacks = {s.topic_name: s.callback for s in self.merger.subscriptions}
-        self.timer = next(iter(self.merger.timers)).callback
         self.maps = dict(self.merger.local_maps)
         self.logs = dict(self.merger.rendezvous)
         self.stamps = dict(self.merger.local_map_stamps)
@@ -364,7 +364,7 @@ class Fuzzer:
         kind = "local_map" if isinstance(msg, LocalMap) else "rendezvous_poses"
         dropped = m.drops.total
         self.callbacks[f"/{topic_robot}/{kind}"](msg)
-        self.timer()
+        m.solve_pending()
         counts = m.drops.as_dict()
         assert counts.get("callback_error", 0) == 0, counts
         assert counts.get("failed_solve", 0) == 0, (counts, m.last_error)
@@ -382,7 +382,7 @@ def fuzzer(ros_context, spin) -> Iterator[Fuzzer]:
     harness.merger.dirty = False
     try:
         harness.hold(GOOD)
-        next(iter(harness.merger.timers)).callback()
+        harness.merger.solve_pending()
         assert harness.merger.last_result is not None
         yield Fuzzer(harness)
     finally:
