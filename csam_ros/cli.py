@@ -127,6 +127,21 @@ def _finish(out: Path, summary: RunSummary) -> None:
     print("  summary.json, " + ", ".join(p.name for p in figures))
 
 
+def _print_latency(bag: Path) -> None:
+    """Say how long the live run's local maps took to reach the joined map, and how long the
+    merger's solves took (from the run's bag)."""
+    from csam_ros.bag import BagError
+    from csam_ros.run.lag import read_timeline
+
+    try:
+        timeline = read_timeline(bag, on_damage=_warn)
+    except BagError as err:
+        _warn(f"no lag figures: {err}")
+        return
+    print(f"  {timeline.lag_stats()}")
+    print(f"  {timeline.solve_stats()}")
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from csam_ros.datasets.scenario import load_document, load_scenario
     from csam_ros.run.live import LiveRun, run_live
@@ -165,6 +180,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         merger_params=_csam_params(document),
     )
     _finish(out, replace(run_live(run), scenario=scenario.name))
+    _print_latency(out / "bag")
     return 0
 
 
@@ -284,6 +300,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     except BagError as err:
         raise CliError(str(err)) from None
     _finish(out, replace(summary, source=str(bag), scenario=summary.scenario or bag.resolve().name))
+    if not args.offline:
+        _print_latency(out / "bag")
     return 0
 
 

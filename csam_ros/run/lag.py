@@ -1,0 +1,224 @@
+"""How long a live run's local maps take to reach the joined map, and the merger's solve times.
+
+A local map of robot ``r`` with header stamp ``s`` that arrives (is logged in the run's bag)
+at time ``a`` is *included* by the first joined map logged at a time ``t >= a`` whose base node
+for ``r`` has ``local_map_stamp >= s``; its lag is ``t - a``. A map superseded before any
+joined map used it (the merger took a newer map of that robot first) therefore counts with the
+lag until the first joined map that includes a newer map of that robot. A map that no later
+joined map includes (e.g. the last one published after the merger's last solve) is *never
+included*: counted apart, not in the mean, p95 or max. Times are the recorder's log times, so
+a local map and a joined map that reach the recorder out of order by a few milliseconds are
+measured from the next joined map.
+
+:func:`lag_stats` computes this on plain arrays; :func:`read_timeline` takes them from a
+recorded bag (``bag/`` of a ``csam demo`` or live ``csam replay`` output).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+NOT_USED = -np.inf  # the used stamp of a robot that a joined map holds no local map of
+_CHUNK = 1 << 22  # most (local map x joined map) comparisons held at once
+
+
+@dataclass(frozen=True)
+class LagStats:
+    """Lags [s] from a local map's arrival to the first joined map that includes it."""
+
+    count: int  # local maps included by a joined map (the lags below are over these)
+    mean: float  # NaN when count is 0
+    p95: float  # numpy's linear interpolation
+    max: float
+    never_included: int  # local maps that no later joined map includes
+
+    @classmethod
+    def of(cls, lags: ArrayLike) -> LagStats:
+        """The statistics of per-map lags, NaN marking a map never included."""
+        lags = np.asarray(lags, dtype=float).reshape(-1)
+        done = lags[np.isfinite(lags)]
+        if len(done) == 0:
+            return cls(0, np.nan, np.nan, np.nan, len(lags))
+        return cls(
+            count=len(done),
+            mean=float(done.mean()),
+            p95=float(np.percentile(done, 95)),
+            max=float(done.max()),
+            never_included=len(lags) - len(done),
+        )
+
+    def __str__(self) -> str:
+        never = f", {self.never_included} never included" if self.never_included else ""
+        head = "lag from a local map to the joined map that uses it"
+        if self.count == 0:
+            return f"{head}: no local map included ({self.never_included} local maps)"
+        return (
+            f"{head}: mean {self.mean:.2f} s, p95 {self.p95:.2f} s, max {self.max:.2f} s "
+            f"({self.count} local maps{never})"
+        )
+
+
+@dataclass(frozen=True)
+class SolveStats:
+    """The merger's solves and the solve times [s] its ``/csam/status`` reported."""
+
+    solves: int  # the merger's last count
+    seen: int  # solves whose time a status message carried (one per status at most)
+    mean: float  # NaN when none was seen
+    max: float
+
+    @classmethod
+    def of(cls, solves: int, seconds: ArrayLike) -> SolveStats:
+        seconds = np.asarray(seconds, dtype=float).reshape(-1)
+        if len(seconds) == 0:
+            return cls(solves, 0, np.nan, np.nan)
+        return cls(solves, len(seconds), float(seconds.mean()), float(seconds.max()))
+
+    def __str__(self) -> str:
+        if self.seen == 0:
+            return f"merger: {self.solves} solves (no solve time in /csam/status)"
+        return (
+            f"merger: {self.solves} solves, solve time mean {self.mean:.3f} s, "
+            f"max {self.max:.3f} s ({self.seen} of them in /csam/status)"
+        )
+
+
+def map_lags(
+    arrivals: ArrayLike,
+    stamps: ArrayLike,
+    joined_times: ArrayLike,
+    used_stamps: ArrayLike,
+) -> FloatArray:
+    """Per local map of one robot (``arrivals``, ``stamps``) its lag [s] to the first joined
+    map (``joined_times``, and the stamp of this robot's map each one used: ``used_stamps``,
+    :data:`NOT_USED` for none) logged no earlier and using a stamp at least as new; NaN for a
+    map never included."""
+    a = np.asarray(arrivals, dtype=float).reshape(-1)
+    s = np.asarray(stamps, dtype=float).reshape(-1)
+    t = np.asarray(joined_times, dtype=float).reshape(-1)
+    u = np.asarray(used_stamps, dtype=float).reshape(-1)
+    if a.shape != s.shape or t.shape != u.shape:
+        raise ValueError("arrivals and stamps, joined times and used stamps: equal lengths")
+    order = np.argsort(t, kind="stable")
+    t, u = t[order], u[order]
+    lags = np.full(len(a), np.nan)
+    if len(t) == 0:
+        return lags
+    rows = max(1, _CHUNK // len(t))
+    for k in range(0, len(a), rows):
+        part = slice(k, k + rows)
+        includes = (t[None, :] >= a[part, None]) & (u[None, :] >= s[part, None])
+        first = includes.argmax(axis=1)
+        found = includes[np.arange(len(first)), first]
+        lags[part] = np.where(found, t[first] - a[part], np.nan)
+    return lags
+
+
+def lag_stats(
+    map_arrivals: Mapping[str, ArrayLike],
+    map_stamps: Mapping[str, ArrayLike],
+    joined_times: ArrayLike,
+    used_stamps: Mapping[str, ArrayLike],
+) -> LagStats:
+    """The lags of every robot's local maps (robot -> arrival times and stamps [s]) to the
+    joined maps (their times, and robot -> the stamp each used, :data:`NOT_USED` for none; a
+    robot missing from ``used_stamps`` is in no joined map)."""
+    n = len(np.asarray(joined_times).reshape(-1))
+    lags = [
+        map_lags(
+            map_arrivals[robot],
+            map_stamps[robot],
+            joined_times,
+            used_stamps.get(robot, np.full(n, NOT_USED)),
+        )
+        for robot in map_arrivals
+    ]
+    return LagStats.of(np.concatenate(lags) if lags else np.zeros(0))
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """What a run's bag says about its local maps, joined maps and solves (times [s] since
+    the first message read)."""
+
+    map_arrivals: dict[str, FloatArray]
+    map_stamps: dict[str, FloatArray]
+    joined_times: FloatArray
+    used_stamps: dict[str, FloatArray]
+    solves: int
+    solve_seconds: FloatArray
+
+    def lag_stats(self) -> LagStats:
+        return lag_stats(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
+
+    def solve_stats(self) -> SolveStats:
+        return SolveStats.of(self.solves, self.solve_seconds)
+
+
+def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
+    """The local maps, joined maps and merger status of a recorded run (``on_damage`` as in
+    :func:`~csam_ros.bag.read_bag`)."""
+    from csam_ros.bag import inspect_bag, read_bag_messages
+    from csam_ros.ros.conversions import time_to_ns
+    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, STATUS, parse
+
+    declared = [parse(name) for name in inspect_bag(bag).topics]
+    robots = sorted(d[1] for d in declared if d is not None and d[0] is LOCAL_MAP)
+    topics = [LOCAL_MAP.of(r) for r in robots] + [JOINED_MAP.name, STATUS.name]
+    arrivals: dict[str, list[int]] = {r: [] for r in robots}
+    stamps: dict[str, list[int]] = {r: [] for r in robots}
+    joined: list[int] = []
+    used: list[dict[str, int]] = []
+    solves, solve_seconds = 0, []
+    start: int | None = None
+    for m in read_bag_messages(bag, topics, on_damage=on_damage):
+        start = m.log_time_ns if start is None else start
+        if m.topic == JOINED_MAP.name:
+            joined.append(m.log_time_ns)
+            used.append(
+                {
+                    b.robot: time_to_ns(b.local_map_stamp)
+                    for b in m.message.base_nodes
+                    if not b.alignment.startswith("pending: no local map")
+                }
+            )
+        elif m.topic == STATUS.name:
+            for status in m.message.status:
+                if status.name != "merger":
+                    continue
+                values = {kv.key: kv.value for kv in status.values}
+                try:
+                    count = int(values.get("solves", solves))
+                    seconds_ = float(values.get("solve_seconds", "nan"))
+                except ValueError:
+                    continue
+                if count > solves and np.isfinite(seconds_):
+                    solve_seconds.append(seconds_)
+                solves = max(solves, count)
+        else:
+            robot = parse(m.topic)[1]
+            arrivals[robot].append(m.log_time_ns)
+            stamps[robot].append(time_to_ns(m.message.header.stamp))
+    start = start or 0
+
+    def seconds(ns: list[int], origin: int = 0) -> FloatArray:
+        return (np.asarray(ns, dtype=np.int64).reshape(-1) - origin) / 1e9
+
+    def used_by(robot: str) -> FloatArray:
+        held = np.array([robot in u for u in used], dtype=bool)
+        return np.where(held, seconds([u.get(robot, 0) for u in used]), NOT_USED)
+
+    return Timeline(
+        map_arrivals={r: seconds(arrivals[r], start) for r in robots},
+        map_stamps={r: seconds(stamps[r]) for r in robots},
+        joined_times=seconds(joined, start),
+        used_stamps={r: used_by(r) for r in robots},
+        solves=solves,
+        solve_seconds=np.asarray(solve_seconds, dtype=float),
+    )
