@@ -406,10 +406,14 @@ def align(
     parts: Sequence[RendezvousPart | None],
     measurements: RendezvousSet,
     options: AlignmentOptions | None = None,
+    start: Array | None = None,
 ) -> Alignment:
     """Place every robot connected to the reference (robot 0) and refine by Algorithm 1.
 
     ``parts[r]`` is robot ``r``'s rendezvous part (``None`` if it has no rendezvous poses).
+    ``start`` (R, 3), when given, holds initial base nodes (a previous solution; NaN rows
+    where none): a placed robot with one starts Algorithm 1 there instead of at its pairwise
+    initialisation, which still decides whether it can be placed.
     """
     options = options or AlignmentOptions()
     robots = measurements.robots
@@ -441,6 +445,10 @@ def align(
         placed, status, initial, parents, methods = _place(
             measurements, poses, n_robots, excluded, options
         )
+        if start is not None:
+            known = np.isfinite(start).all(axis=1) & np.isfinite(initial).all(axis=1)
+            known[0] = False
+            initial[known] = start[known]
         result = _refine(parts, measurements, placed, initial, status, options)
         result.parents, result.methods = parents, methods
         if np.all(np.isfinite(result.covariance)):

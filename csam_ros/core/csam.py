@@ -33,6 +33,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +74,7 @@ from csam_ros.core.robust import (
     thin_rendezvous,
 )
 from csam_ros.core.solver import NormalEquations, SolverOptions
+from csam_ros.core.warm_start import WarmStart
 
 Array = NDArray[np.float64]
 
@@ -122,6 +124,11 @@ class CsamConfig:
         node=MERGER,
     )
     associate: bool = setting(True, "false: join through rendezvous rows only", node=MERGER)
+    # measured (python -m csam_ros.bench.merger_replay): no fewer iterations on simulated runs,
+    # other minima of the robust cost on MR.CLAM; a cold solve is the offline one
+    warm_start: bool = setting(
+        False, "start each live solve from the previous one (docs/METHOD.md 6.4)", node=MERGER
+    )
     # rendezvous filters for real data (csam_ros.core.robust; defaults keep everything)
     rendezvous_min_interval: float = setting(
         0.0, "s between kept rendezvous of one ordered robot pair", minimum=0.0, node=SMOOTHER
@@ -173,14 +180,45 @@ class CsamConfig:
         )
 
 
-def _local_inputs(
-    m: RobotMap, system: NormalEquations, rendezvous_poses: NDArray[np.int64]
-) -> tuple[RendezvousPart | None, Array | None]:
-    """A robot's rendezvous part and the cross covariance ``P_l,rho`` (F, 2, k) of its
-    features with its rendezvous poses, both from the covariance columns of those poses."""
-    if len(rendezvous_poses) == 0:
-        return None, None
+@dataclass
+class LocalView:
+    """What a join derives from one local map alone, for its given rendezvous poses: the
+    marginal square-root information of those poses (``part``), the cross covariance
+    ``P_l,rho`` (F, 2, k) of the features with them (``cross``), and on first use the map's
+    marginals from its selected inverse."""
+
+    robot_map: RobotMap
+    system: NormalEquations  # factorised at the map's estimate
+    rendezvous_poses: NDArray[np.int64]
+    part: RendezvousPart | None  # None without rendezvous poses
+    cross: Array | None
+
+    @cached_property
+    def inverse(self) -> SelectedInverse:
+        return SelectedInverse(self.system)
+
+    @cached_property
+    def sigma_phi(self) -> Array:
+        """(N,) marginal heading sigmas of the poses."""
+        headings = self.robot_map.problem.scalar_indices(self.robot_map.pose_ids)[2::3]
+        return np.sqrt(np.maximum(self.inverse.entries(headings, headings), 0.0))
+
+    @cached_property
+    def feature_covariances(self) -> Array:
+        """(F, 2, 2) marginal covariances of the features."""
+        m = self.robot_map
+        if len(m.feature_ids) == 0:
+            return np.zeros((0, 2, 2))
+        return self.inverse.blocks(m.problem, m.feature_ids)
+
+
+def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
+    """The :class:`LocalView` of ``m`` for ``rendezvous_poses``: the rendezvous part and
+    ``P_l,rho`` both come from the covariance columns of those poses."""
     problem = m.problem
+    system = factorize_at_estimate(problem)
+    if len(rendezvous_poses) == 0:
+        return LocalView(m, system, rendezvous_poses, None, None)
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
     feature_columns = problem.scalar_indices(m.feature_ids)
     k = len(pose_columns)
@@ -189,15 +227,38 @@ def _local_inputs(
     root = upper_sqrt_information(0.5 * (block + block.T))
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
     cross = columns[k:].reshape(len(m.feature_ids), 2, k)
-    return part, cross
+    return LocalView(m, system, rendezvous_poses, part, cross)
 
 
-def _map_features(
-    m: RobotMap, part: RendezvousPart | None, cross: Array | None, inverse: SelectedInverse
-) -> MapFeatures | None:
+class LocalViewCache:
+    """:class:`LocalView` per robot, kept while its map is the same object and its rendezvous
+    poses the same (a live merger replaces a map when a new one arrives, never changes it)."""
+
+    def __init__(self) -> None:
+        self._views: dict[str, LocalView] = {}
+        self.reused = 0
+        self.built = 0
+
+    def view(self, m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
+        """The cached view of ``m`` if it is still valid, else a new one (then cached)."""
+        view = self._views.get(m.name)
+        if (
+            view is not None
+            and view.robot_map is m
+            and np.array_equal(view.rendezvous_poses, rendezvous_poses)
+        ):
+            self.reused += 1
+            return view
+        self.built += 1
+        view = self._views[m.name] = local_view(m, rendezvous_poses)
+        return view
+
+
+def _map_features(m: RobotMap, view: LocalView) -> MapFeatures | None:
     """A robot's features with their rendezvous gains ``K = P_l,rho P_rho,rho^-1`` and
-    marginal covariances (the map's own when it carries them, else from its selected
-    ``inverse``), as association takes them."""
+    marginal covariances (the map's own when it carries them, else its view's), as
+    association takes them."""
+    part, cross = view.part, view.cross
     if part is None or cross is None or len(m.feature_ids) == 0:
         return None
     root = part.sqrt_information
@@ -205,7 +266,7 @@ def _map_features(
     if m.feature_covariances is not None:
         covs = np.asarray(m.feature_covariances, dtype=float)
     else:
-        covs = inverse.blocks(m.problem, m.feature_ids)
+        covs = view.feature_covariances
     return MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
 
 
@@ -228,14 +289,27 @@ def join_maps(
     maps: Sequence[RobotMap],
     rendezvous_logs: Mapping[str, RendezvousLog],
     config: CsamConfig | None = None,
+    previous: CsamResult | None = None,
+    cache: LocalViewCache | None = None,
 ) -> CsamResult:
-    """Run C-SAM on solved local maps (the first map's robot is the reference)."""
+    """Run C-SAM on solved local maps (the first map's robot is the reference).
+
+    ``previous``, the result of an earlier join with the same reference, gives the initial
+    values (:mod:`csam_ros.core.warm_start`); ``cache`` keeps each map's
+    :class:`LocalView` between calls. Neither changes the problem solved: converged, the
+    result is the same as without them."""
     config = config or CsamConfig()
     if not maps:
         raise ValueError("join_maps: no local maps")
     names = [m.name for m in maps]
     if len(set(names)) != len(names):
         raise ValueError(f"join_maps: duplicate robot names {names}")
+    cache = cache or LocalViewCache()
+    warm = (
+        WarmStart.from_result(previous)
+        if previous is not None and previous.reference == names[0]
+        else None
+    )
     timing: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -252,7 +326,6 @@ def join_maps(
         config.stamp_tolerance,
         config.skip_missing_poses,
     )
-    systems = [factorize_at_estimate(m.problem) for m in maps]
     rdv_poses = [
         np.unique(
             np.concatenate(
@@ -264,32 +337,28 @@ def join_maps(
         )
         for r in range(len(maps))
     ]
-    parts, crosses = zip(
-        *(_local_inputs(m, s, idx) for m, s, idx in zip(maps, systems, rdv_poses, strict=True)),
-        strict=True,
-    )
+    views = [cache.view(m, idx) for m, idx in zip(maps, rdv_poses, strict=True)]
+    parts = [v.part for v in views]
     lap("local_rendezvous_parts")
 
-    alignment = align(parts, measurements, config.alignment_options())
+    alignment = align(
+        parts,
+        measurements,
+        config.alignment_options(),
+        start=warm.base_node_starts(names) if warm is not None else None,
+    )
     aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
     lap("alignment")
 
     # the local marginals the summary reports and association uses
-    inverses = [SelectedInverse(s) for s in systems]
-    sigma_local = [
-        np.sqrt(np.maximum(inv.entries(h, h), 0.0))
-        for inv, h in (
-            (inv, m.problem.scalar_indices(m.pose_ids)[2::3])
-            for m, inv in zip(maps, inverses, strict=True)
-        )
-    ]
+    sigma_local = [v.sigma_phi for v in views]
     lap("local_marginals")
 
     associations = Associations([], [])
     if config.associate and len(aligned) > 1:
         feats: list[MapFeatures | None] = [None] * len(maps)
         for r in aligned:
-            feats[r] = _map_features(maps[r], parts[r], crosses[r], inverses[r])
+            feats[r] = _map_features(maps[r], views[r])
         associations = associate(
             feats,
             alignment,
@@ -298,6 +367,17 @@ def join_maps(
         )
         lap("association")
 
+    initial_poses: dict[int, Array] = {}
+    initial_features: dict[int, Array] = {}
+    if warm is not None:
+        for r in aligned:
+            m, base = maps[r], alignment.base_nodes[r]
+            initial_poses[r] = warm.pose_start(
+                m.name, m.stamps, m.poses, base, config.stamp_tolerance
+            )
+            initial_features[r] = warm.feature_start(
+                m.name, m.feature_labels, m.feature_positions, base
+            )
     solution = joint_solve(
         maps,
         aligned,
@@ -305,6 +385,8 @@ def join_maps(
         associations.clusters,
         measurements,
         config.solver_options(),
+        initial_poses,
+        initial_features,
     )
     lap("joint_solve")
 
@@ -327,9 +409,7 @@ def join_maps(
             rendezvous_stamps=np.asarray(m.stamps, dtype=float)[rdv_poses[r]],
             feature_labels_local=np.asarray(m.feature_labels, dtype=np.int64),
             features_local=m.feature_positions,
-            feature_covariances_local=inverses[r].blocks(m.problem, m.feature_ids)
-            if len(m.feature_ids)
-            else np.zeros((0, 2, 2)),
+            feature_covariances_local=views[r].feature_covariances,
         )
         if r in aligned:
             poses = joint.values_of(solution.pose_ids[r])

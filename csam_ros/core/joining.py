@@ -22,7 +22,7 @@ measured (tested against GTSAM).
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,13 +118,20 @@ def joint_solve(
     clusters: Sequence[Sequence[tuple[int, int]]],
     measurements: RendezvousSet,
     options: SolverOptions | None = None,
+    initial_poses: Mapping[int, Array] | None = None,
+    initial_features: Mapping[int, Array] | None = None,
 ) -> JointSolution:
     """Build and solve the joint problem of the aligned ``robots`` (module docs).
 
     ``robots`` lists the aligned robot indices, the reference (index 0) first;
-    ``base_nodes[r]`` places ``G_r`` in the reference frame (initial value only); each
-    cluster lists the ``(robot, label)`` members of one associated feature.
+    ``base_nodes[r]`` places ``G_r`` in the reference frame; each cluster lists the
+    ``(robot, label)`` members of one associated feature. Initial values: robot ``r``'s poses
+    (N, 3) and features (F, 2) in the reference frame from ``initial_poses[r]`` and
+    ``initial_features[r]`` where given, else its local map moved by its base node (an
+    associated feature starts at the mean of its members).
     """
+    initial_poses = initial_poses or {}
+    initial_features = initial_features or {}
     robots = list(robots)
     if not robots or robots[0] != 0:
         raise ValueError("joint_solve: the reference robot (index 0) must come first")
@@ -132,7 +139,9 @@ def joint_solve(
     pose_ids: dict[int, IntArray] = {}
     for r in robots:
         m = maps[r]
-        initial = se2.compose(np.broadcast_to(base_nodes[r], (len(m.pose_ids), 3)), m.poses)
+        initial = initial_poses.get(r)
+        if initial is None:
+            initial = se2.compose(np.broadcast_to(base_nodes[r], (len(m.pose_ids), 3)), m.poses)
         pose_ids[r] = problem.add_variables(
             POSE, [(m.name, "pose", i) for i in range(len(m.pose_ids))], initial
         )
@@ -140,7 +149,9 @@ def joint_solve(
     # features: one unknown per cluster, then one per remaining feature, robot by robot
     label_index = {r: {int(lab): k for k, lab in enumerate(maps[r].feature_labels)} for r in robots}
     global_xy = {
-        r: se2.transform_point(
+        r: initial_features[r]
+        if r in initial_features
+        else se2.transform_point(
             np.broadcast_to(base_nodes[r], (len(maps[r].feature_ids), 3)),
             maps[r].feature_positions,
         )

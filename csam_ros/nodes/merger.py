@@ -38,7 +38,7 @@ from csam_msgs.msg import LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
-from csam_ros.core.csam import CsamConfig, join_maps
+from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
@@ -126,6 +126,7 @@ class Merger(Node):
         self.dirty = False  # inputs changed since the last solve's snapshot
         self.solving = False  # a solve is running
         self.last_result: CsamResult | None = None
+        self.local_views = LocalViewCache()  # the solve worker's alone
         self.solves = 0
         self.solve_seconds = 0.0  # how long the last solve took
         self.last_error = ""
@@ -288,7 +289,13 @@ class Merger(Node):
         """Join ``inputs``; record the result (or the failure) and publish it."""
         start = time.perf_counter()
         try:
-            result = join_maps(list(inputs.maps), dict(inputs.logs), self.config)
+            result = join_maps(
+                list(inputs.maps),
+                dict(inputs.logs),
+                self.config,
+                previous=self.last_result if self.config.warm_start else None,
+                cache=self.local_views,
+            )
             fault = _non_finite(result)
             if fault:
                 raise ValueError(f"the joined map has non-finite numbers ({fault})")

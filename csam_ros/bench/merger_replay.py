@@ -1,0 +1,134 @@
+"""The merger's solves replayed from a recorded live run, cold against warm:
+``python -m csam_ros.bench.merger_replay BAG [--config FILE] [--every S]``.
+
+A live run's bag holds every local map and rendezvous poses message the merger received
+(``/<robot>/local_map``, ``/<robot>/rendezvous_poses``). Read in log-time order, the inputs are
+taken every ``--every`` seconds of log time (and at the end), and each is joined twice by the
+core: cold (:func:`~csam_ros.core.csam.join_maps` from scratch) and warm (from the previous
+warm result, with the local views kept between solves, as the merger does). The table gives
+each solve's time and iterations and the largest difference between the warm and the cold
+joined map (poses and features); the last line the distribution of the solve times.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from csam_ros.bag.reader import inspect_bag, read_bag_messages  # noqa: E402
+from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps  # noqa: E402
+from csam_ros.core.joining import RobotMap  # noqa: E402
+from csam_ros.core.result import CsamResult  # noqa: E402
+from csam_ros.ros.map_messages import (  # noqa: E402
+    rendezvous_log_from_message,
+    robot_map_from_message,
+)
+
+
+def difference(a: CsamResult, b: CsamResult) -> float:
+    """Largest difference (m or rad) between two results' joined poses and features; inf
+    when they join different robots or features."""
+    if a.joined_robots() != b.joined_robots() or len(a.features) != len(b.features):
+        return float("inf")
+    worst = 0.0
+    for name in a.joined_robots():
+        pa, pb = a.robots[name].poses_joined, b.robots[name].poses_joined
+        d = np.abs(np.asarray(pa) - np.asarray(pb))
+        d[:, 2] = np.abs((d[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+        worst = max(worst, float(d.max(initial=0.0)))
+    xy_b = {tuple(f.members): f.xy for f in b.features}
+    for f in a.features:
+        other = xy_b.get(tuple(f.members))
+        if other is None:
+            return float("inf")
+        worst = max(worst, float(np.abs(np.asarray(f.xy) - np.asarray(other)).max()))
+    return worst
+
+
+def snapshots(bag: Path, every: float):
+    """(s since the first message, the maps in first-heard order, the rendezvous messages,
+    the robots) every ``every`` s of log time."""
+    robots = sorted(
+        name.split("/")[1] for name in inspect_bag(bag).topics if name.endswith("/local_map")
+    )
+    topics = [f"/{r}/{t}" for r in robots for t in ("local_map", "rendezvous_poses")]
+    maps: dict[str, RobotMap] = {}
+    rendezvous: dict[str, object] = {}
+    first = next_t = None
+    t = 0.0
+    for message in read_bag_messages(bag, topics):
+        first = message.log_time_ns if first is None else first
+        t = (message.log_time_ns - first) / 1e9
+        robot, kind = message.topic.split("/")[1:3]
+        if kind == "local_map":
+            maps[robot] = robot_map_from_message(message.message, robot)
+        else:
+            rendezvous[robot] = message.message
+        if next_t is None:
+            next_t = t + every
+        if t >= next_t:
+            yield t, dict(maps), dict(rendezvous), robots
+            next_t = t + every
+    yield t, dict(maps), dict(rendezvous), robots
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("bag", type=Path)
+    parser.add_argument("--config", help="YAML file with a csam: section (config/mrclam.yaml)")
+    parser.add_argument("--every", type=float, default=60.0, help="s of log time between solves")
+    parser.add_argument("--reference", default="", help="reference robot (default: the first)")
+    args = parser.parse_args()
+    config = CsamConfig.from_file(args.config) if args.config else CsamConfig()
+    config = replace(config, skip_missing_poses=True)  # as the merger
+    cache = LocalViewCache()
+    warm: CsamResult | None = None
+    print(
+        f"{'t':>7} {'poses':>6} {'cold':>7} {'it1':>4} {'itJ':>4} "
+        f"{'warm':>7} {'it1':>4} {'itJ':>4} {'reused':>6} {'warm-cold':>9}"
+    )
+    cold_s, warm_s = [], []
+    for t, maps, messages, robots in snapshots(args.bag, args.every):
+        reference = args.reference or robots[0]
+        if reference not in maps:
+            continue
+        order = [reference] + [r for r in maps if r != reference]
+        ordered = [maps[r] for r in order]
+        logs = {
+            r: rendezvous_log_from_message(m, r, robots, maps[r].stamps, config.stamp_tolerance)
+            for r, m in messages.items()
+            if r in maps
+        }
+        start = time.perf_counter()
+        cold = join_maps(ordered, logs, config)
+        cold_s.append(time.perf_counter() - start)
+        reused = cache.reused
+        start = time.perf_counter()
+        warm = join_maps(ordered, logs, config, previous=warm, cache=cache)
+        warm_s.append(time.perf_counter() - start)
+        st_c, st_w = cold.statistics, warm.statistics
+        print(
+            f"{t:7.1f} {sum(len(m.stamps) for m in ordered):6d} "
+            f"{cold_s[-1]:6.2f}s {st_c['algorithm1_iterations']:4.0f} "
+            f"{st_c['joint_iterations']:4.0f} {warm_s[-1]:6.2f}s "
+            f"{st_w['algorithm1_iterations']:4.0f} {st_w['joint_iterations']:4.0f} "
+            f"{cache.reused - reused:6d} {difference(cold, warm):9.1e}",
+            flush=True,
+        )
+    for name, s in (("cold", cold_s), ("warm", warm_s)):
+        print(
+            f"{name}: {len(s)} solves, mean {np.mean(s):.2f} s, p95 "
+            f"{np.percentile(s, 95):.2f} s, max {np.max(s):.2f} s"
+        )
+
+
+if __name__ == "__main__":
+    main()

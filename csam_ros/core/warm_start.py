@@ -1,0 +1,115 @@
+"""Starting a join from the last one: initial values from the previous solve.
+
+A live merger joins maps that grow a little between solves. :func:`~csam_ros.core.csam.
+join_maps` takes the previous :class:`~csam_ros.core.result.CsamResult` as a
+:class:`WarmStart`: initial values only, the problem solved is the same, so converged a
+warm join equals a cold one on the same inputs.
+
+Initial values (docs/METHOD.md section 6.4):
+
+- Algorithm 1 starts each robot that was aligned before at its previous base node ``b_r``
+  (the pairwise initialisation still decides whether it can be placed at all);
+- the joint solve starts each pose at its local pose moved by the correction
+  ``C = x_joined (+) x_local^-1`` the previous join made at the same stamp, so that what the
+  smoother changed in the local map since (it re-solves as data arrives) is carried over; a
+  new pose takes the correction of the nearest earlier pose held before (the nearest later
+  one when there is none), so a trajectory that grew at its end continues smoothly;
+- each feature starts at its previous joined position plus its local change since, rotated
+  into the reference frame, when it was in the joined map, else at its local position moved
+  by the base node.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from csam_ros.core import se2
+from csam_ros.core.result import CsamResult
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """The previous join's estimates, by robot name, stamp and feature member."""
+
+    reference: str
+    base_nodes: Mapping[str, Array]  # Algorithm 1 base node of each robot aligned before
+    corrections: Mapping[str, tuple[Array, Array]]  # robot -> (stamps, C = joined (+) local^-1)
+    features: Mapping[str, tuple[Array, Array]]  # "robot/label" -> (joined, local) position
+
+    @classmethod
+    def from_result(cls, result: CsamResult) -> WarmStart:
+        """The estimates of a result (only its joined robots and features)."""
+        base_nodes: dict[str, Array] = {}
+        corrections: dict[str, tuple[Array, Array]] = {}
+        local: dict[str, Array] = {}
+        for name, robot in result.robots.items():
+            if not robot.joined or robot.poses_joined is None:
+                continue
+            joined = np.asarray(robot.poses_joined, dtype=float)
+            correction = se2.compose(joined, se2.inverse(robot.poses_local))
+            corrections[name] = (np.asarray(robot.stamps, dtype=float), correction)
+            if robot.alignment_base_node is not None:
+                base_nodes[name] = np.asarray(robot.alignment_base_node, dtype=float)
+            for label, xy in zip(robot.feature_labels_local, robot.features_local, strict=True):
+                local[f"{name}/{int(label)}"] = np.asarray(xy, dtype=float)
+        features = {
+            m: (np.asarray(f.xy, dtype=float), local[m])
+            for f in result.features
+            for m in f.members
+            if m in local
+        }
+        return cls(result.reference, base_nodes, corrections, features)
+
+    def base_node_starts(self, names: Sequence[str]) -> Array:
+        """(R, 3) previous base nodes of ``names`` in order, NaN rows for robots without."""
+        starts = np.full((len(names), 3), np.nan)
+        for r, name in enumerate(names):
+            if name in self.base_nodes:
+                starts[r] = self.base_nodes[name]
+        return starts
+
+    def pose_start(
+        self, name: str, stamps: Array, local_poses: Array, base_node: Array, tolerance: float
+    ) -> Array:
+        """(N, 3) initial joined poses of robot ``name`` (module docs)."""
+        if name not in self.corrections:
+            return se2.compose(np.broadcast_to(base_node, local_poses.shape), local_poses)
+        before_stamps, before = self.corrections[name]
+        held = _matching(before_stamps, np.asarray(stamps, dtype=float), tolerance)
+        matched = np.flatnonzero(held >= 0)
+        if len(matched) == 0:
+            return se2.compose(np.broadcast_to(base_node, local_poses.shape), local_poses)
+        nearest = np.searchsorted(matched, np.arange(len(held)), side="right") - 1
+        correction = before[held[matched[np.maximum(nearest, 0)]]]
+        return se2.compose(correction, local_poses)
+
+    def feature_start(
+        self, name: str, labels: IntArray, local_xy: Array, base_node: Array
+    ) -> Array:
+        """(F, 2) initial joined positions of robot ``name``'s features (module docs)."""
+        start = se2.transform_point(np.broadcast_to(base_node, (len(labels), 3)), local_xy)
+        c, s = np.cos(base_node[2]), np.sin(base_node[2])
+        for i, label in enumerate(labels):
+            before = self.features.get(f"{name}/{int(label)}")
+            if before is not None:
+                joined, local = before
+                dx, dy = local_xy[i] - local
+                start[i] = joined + [c * dx - s * dy, s * dx + c * dy]
+        return start
+
+
+def _matching(before: Array, now: Array, tolerance: float) -> IntArray:
+    """For each stamp of ``now`` the index of the equal one in sorted ``before``, else -1."""
+    if len(before) == 0:
+        return np.full(len(now), -1, dtype=np.int64)
+    right = np.minimum(np.searchsorted(before, now), len(before) - 1)
+    left = np.maximum(right - 1, 0)
+    nearest = np.where(np.abs(before[left] - now) < np.abs(before[right] - now), left, right)
+    return np.where(np.abs(before[nearest] - now) <= tolerance, nearest, -1).astype(np.int64)

@@ -1,0 +1,163 @@
+"""Warm starts: a join started from the previous one equals a cold join on the same inputs."""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+
+from csam_ros.core import se2
+from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps, robot_map_from_local_map
+from csam_ros.core.joining import RobotMap
+from csam_ros.core.local_map import build_local_map
+from csam_ros.core.log import MultiRobotLog, RendezvousLog
+from csam_ros.core.rendezvous import required_stamps
+from csam_ros.core.result import CsamResult
+from csam_ros.core.simulation import simulate
+from csam_ros.core.warm_start import WarmStart
+from csam_ros.datasets.scenario import load_scenario
+
+
+def _until(sub, t: float):
+    """A log of stamped arrays (a dataclass of equal-length fields) cut at ``t``."""
+    keep = np.asarray(sub.stamps) <= t
+    return replace(
+        sub,
+        **{
+            f.name: [v for v, k in zip(getattr(sub, f.name), keep, strict=True) if k]
+            if isinstance(getattr(sub, f.name), list)
+            else np.asarray(getattr(sub, f.name))[keep]
+            for f in fields(sub)
+        },
+    )
+
+
+def _maps_until(log: MultiRobotLog, t: float) -> tuple[list[RobotMap], dict[str, RendezvousLog]]:
+    """The robots' local maps and rendezvous logs of the run up to ``t``."""
+    robots = {
+        n: replace(
+            r,
+            odometry=_until(r.odometry, t),
+            features=_until(r.features, t),
+            rendezvous=_until(r.rendezvous, t),
+        )
+        for n, r in log.robots.items()
+    }
+    logs = {n: r.rendezvous for n, r in robots.items()}
+    stamps = required_stamps(logs)
+    maps = [robot_map_from_local_map(build_local_map(r, stamps[n])) for n, r in robots.items()]
+    return maps, logs
+
+
+def _largest_difference(a: CsamResult, b: CsamResult) -> float:
+    assert a.joined_robots() == b.joined_robots()
+    assert [f.members for f in a.features] == [f.members for f in b.features]
+    worst = 0.0
+    for name in a.joined_robots():
+        d = a.robots[name].poses_joined - b.robots[name].poses_joined
+        d[:, 2] = se2.wrap_angle(d[:, 2])
+        worst = max(worst, float(np.abs(d).max()))
+        worst = max(worst, float(np.abs(a.robots[name].base_node - b.robots[name].base_node).max()))
+    for fa, fb in zip(a.features, b.features, strict=True):
+        worst = max(worst, float(np.abs(fa.xy - fb.xy).max()), float(np.abs(fa.cov - fb.cov).max()))
+    return worst
+
+
+@pytest.mark.parametrize("scenario", ["map_joining", "chain"])
+def test_warm_equals_cold_over_growing_maps(scenario: str) -> None:
+    log = simulate(load_scenario(scenario), 1)
+    first = min(r.rendezvous.stamps.min() for r in log.robots.values() if len(r.rendezvous.stamps))
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    config = CsamConfig(skip_missing_poses=True)
+    cache = LocalViewCache()
+    warm: CsamResult | None = None
+    for t in np.arange(first + 2.0, end, 3.0):  # a solve every 3 s, as a merger does
+        maps, logs = _maps_until(log, float(t))
+        cold = join_maps(maps, logs, config)
+        warm = join_maps(maps, logs, config, previous=warm, cache=cache)
+        assert _largest_difference(cold, warm) < 1e-6, t
+    assert len(warm.joined_robots()) == len(log.robots)
+    assert cache.reused == 0  # every map grew between solves
+
+
+def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = _maps_until(log, float(end))
+    cache = LocalViewCache()
+    first = join_maps(maps, logs, previous=None, cache=cache)
+    assert (cache.built, cache.reused) == (2, 0)
+    again = join_maps(maps, logs, previous=first, cache=cache)
+    assert (cache.built, cache.reused) == (2, 2)
+    assert _largest_difference(first, again) < 1e-9
+    assert again.statistics["joint_iterations"] <= 2
+    # a new map object of one robot is a new view for that robot only
+    maps[1] = replace(maps[1])
+    join_maps(maps, logs, previous=again, cache=cache)
+    assert (cache.built, cache.reused) == (3, 3)
+
+
+def test_a_previous_result_of_another_reference_is_not_used() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = _maps_until(log, float(end))
+    other = join_maps(maps[::-1], logs)
+    cold = join_maps(maps, logs)
+    warm = join_maps(maps, logs, previous=other)
+    assert warm.reference == maps[0].name
+    assert _largest_difference(cold, warm) < 1e-9
+    assert warm.statistics["joint_iterations"] == cold.statistics["joint_iterations"]
+
+
+def _previous(stamps: np.ndarray, corrections: np.ndarray) -> WarmStart:
+    feature = (np.array([1.0, 2.0]), np.array([0.5, 0.5]))  # joined, local
+    return WarmStart("robot1", {}, {"robot2": (stamps, corrections)}, {"robot2/4": feature})
+
+
+def test_pose_start_carries_the_previous_corrections_to_the_new_local_poses() -> None:
+    corrections = np.array([[2.0, -1.0, 0.3], [2.1, -1.05, 0.31]])  # joined (+) local^-1
+    local = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.2, 0.2], [3.0, 0.5, 0.3]])
+    previous = _previous(np.array([0.0, 0.5]), corrections)
+    start = previous.pose_start("robot2", np.array([0.0, 0.5, 1.0, 1.5]), local, np.zeros(3), 1e-6)
+    # held poses: their own correction; new poses: that of the last held pose
+    expected = se2.compose(corrections[[0, 1, 1, 1]], local)
+    np.testing.assert_allclose(start, expected, atol=1e-12)
+    # a robot never joined before starts at its local map moved by the base node
+    base = np.array([1.0, 1.0, 0.5])
+    np.testing.assert_allclose(
+        previous.pose_start("robot3", np.zeros(4), local, base, 1e-6),
+        se2.compose(np.broadcast_to(base, (4, 3)), local),
+    )
+
+
+def test_pose_start_before_the_first_held_pose_uses_the_nearest_later_one() -> None:
+    local = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    correction = np.array([[5.0, 5.0, 0.5]])
+    previous = _previous(np.array([2.0]), correction)
+    start = previous.pose_start("robot2", np.array([1.0, 2.0, 3.0]), local, np.zeros(3), 1e-6)
+    np.testing.assert_allclose(start, se2.compose(correction[[0, 0, 0]], local), atol=1e-12)
+
+
+def test_feature_start_moves_the_joined_position_by_the_local_change() -> None:
+    previous = _previous(np.zeros(1), np.zeros((1, 3)))
+    base = np.array([0.0, 0.0, np.pi / 2])
+    start = previous.feature_start(
+        "robot2", np.array([4, 5]), np.array([[0.6, 0.5], [1.0, 0.0]]), base
+    )
+    # robot2/4 moved 0.1 along its x, which is the reference frame's y
+    np.testing.assert_allclose(start, [[1.0, 2.1], [0.0, 1.0]], atol=1e-12)
+
+
+def test_from_result_keeps_what_a_restart_needs() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = _maps_until(log, float(end))
+    result = join_maps(maps, logs)
+    warm = WarmStart.from_result(result)
+    robot = result.robots["robot2"]
+    stamps, corrections = warm.corrections["robot2"]
+    np.testing.assert_allclose(se2.compose(corrections, robot.poses_local), robot.poses_joined)
+    np.testing.assert_allclose(warm.base_nodes["robot2"], robot.alignment_base_node)
+    assert "robot1" not in warm.base_nodes  # the reference has none
+    assert len(warm.features) == sum(len(f.members) for f in result.features)
