@@ -18,6 +18,7 @@ from csam_ros.run.live import LiveRunError
 if TYPE_CHECKING:
     from csam_ros.core.log import GroundTruth
     from csam_ros.core.result import RunSummary
+    from csam_ros.run.live import LiveRun
 
 RUNS_DIR = Path("runs")
 
@@ -127,9 +128,9 @@ def _finish(out: Path, summary: RunSummary) -> None:
     print("  summary.json, " + ", ".join(p.name for p in figures))
 
 
-def _print_latency(bag: Path) -> None:
+def _print_latency(bag: Path, summary: RunSummary) -> None:
     """Say how long the live run's local maps took to reach the joined map, and how long the
-    merger's solves took (from the run's bag)."""
+    merger's solves took (from the run's bag; the merger's count from its summary)."""
     from csam_ros.bag import BagError
     from csam_ros.run.lag import read_timeline
 
@@ -139,35 +140,31 @@ def _print_latency(bag: Path) -> None:
         _warn(f"no lag figures: {err}")
         return
     print(f"  {timeline.lag_stats()}")
-    print(f"  {timeline.solve_stats()}")
+    print(f"  {timeline.solve_stats(summary.merger.solves if summary.merger else None)}")
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
+def demo_live_run(scenario_name: str | Path, out: Path, seed: int, rate: float) -> LiveRun:
+    """The live run of ``csam demo``: the simulator playing a scenario (a name in config/ or
+    a YAML file, whose ``csam:``, ``local_map:``, ``input:`` and ``merger:`` sections
+    configure the nodes) into smoothers and a merger, recorded to ``out/bag``."""
     from csam_ros.datasets.scenario import load_document, load_scenario
-    from csam_ros.run.live import LiveRun, run_live
+    from csam_ros.run.live import LiveRun
 
-    scenario = load_scenario(args.scenario)
-    document = load_document(args.scenario)
-    out = _fresh_dir(args.out, scenario.name)
-    robots = [r.name for r in scenario.robots]
+    scenario = load_scenario(scenario_name)
+    document = load_document(scenario_name)
     fov = max(np.rad2deg(r.feature_sensor.field_of_view) for r in scenario.robots)
-    seed = scenario.seed if args.seed is None else args.seed
-    print(
-        f"csam demo: scenario {scenario.name} ({len(robots)} robots), seed {seed}, "
-        f"rate {args.rate}, output {out}/"
-    )
-    run = LiveRun(
+    return LiveRun(
         out_dir=out,
-        robots=robots,
+        robots=[r.name for r in scenario.robots],
         source_name="simulator",
         source_argv=[executable("simulator")],
         source_ros_args=[
             "-p",
-            f"scenario:={args.scenario}",
+            f"scenario:={scenario_name}",
             "-p",
             f"seed:={seed}",
             "-p",
-            f"rate:={args.rate}",
+            f"rate:={rate}",
             "-p",
             "exit_when_done:=true",
             # every sensor topic: the recorder and at least the robot's own smoother
@@ -179,8 +176,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
         smoother_params={"field_of_view_deg": float(fov), **_smoother_params(document)},
         merger_params=_csam_params(document),
     )
-    _finish(out, replace(run_live(run), scenario=scenario.name))
-    _print_latency(out / "bag")
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.run.live import run_live
+
+    scenario = load_scenario(args.scenario)
+    out = _fresh_dir(args.out, scenario.name)
+    seed = scenario.seed if args.seed is None else args.seed
+    print(
+        f"csam demo: scenario {scenario.name} ({len(scenario.robots)} robots), seed {seed}, "
+        f"rate {args.rate}, output {out}/"
+    )
+    run = demo_live_run(args.scenario, out, seed, args.rate)
+    summary = run_live(run)
+    _finish(out, replace(summary, scenario=scenario.name))
+    _print_latency(out / "bag", summary)
     return 0
 
 
@@ -301,7 +313,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise CliError(str(err)) from None
     _finish(out, replace(summary, source=str(bag), scenario=summary.scenario or bag.resolve().name))
     if not args.offline:
-        _print_latency(out / "bag")
+        _print_latency(out / "bag", summary)
     return 0
 
 

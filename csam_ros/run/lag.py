@@ -6,9 +6,10 @@ for ``r`` has ``local_map_stamp >= s``; its lag is ``t - a``. A map superseded b
 joined map used it (the merger took a newer map of that robot first) therefore counts with the
 lag until the first joined map that includes a newer map of that robot. A map that no later
 joined map includes (e.g. the last one published after the merger's last solve) is *never
-included*: counted apart, not in the mean, p95 or max. Times are the recorder's log times, so
-a local map and a joined map that reach the recorder out of order by a few milliseconds are
-measured from the next joined map.
+included*: counted apart, not in the mean, p95 or max. Times are the recorder's log times (its
+wall clock at reception): a local map and a joined map that reach the recorder out of order
+are measured from the next joined map, and a recorder that falls behind (many robots on few
+cores) records both late, in bursts, which blurs the lags by its delay.
 
 :func:`lag_stats` computes this on plain arrays; :func:`read_timeline` takes them from a
 recorded bag (``bag/`` of a ``csam demo`` or live ``csam replay`` output).
@@ -68,8 +69,8 @@ class LagStats:
 class SolveStats:
     """The merger's solves and the solve times [s] its ``/csam/status`` reported."""
 
-    solves: int  # the merger's last count
-    seen: int  # solves whose time a status message carried (one per status at most)
+    solves: int  # the merger's count
+    seen: int  # solves whose time a recorded status message carried (one per status at most)
     mean: float  # NaN when none was seen
     max: float
 
@@ -157,8 +158,10 @@ class Timeline:
     def lag_stats(self) -> LagStats:
         return lag_stats(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
 
-    def solve_stats(self) -> SolveStats:
-        return SolveStats.of(self.solves, self.solve_seconds)
+    def solve_stats(self, solves: int | None = None) -> SolveStats:
+        """The solve times in the bag; ``solves`` is the merger's own count where known
+        (summary.json): the last statuses of a run may not be in the bag."""
+        return SolveStats.of(self.solves if solves is None else solves, self.solve_seconds)
 
 
 def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:

@@ -158,6 +158,7 @@ def test_read_timeline_of_a_small_bag(tmp_path: Path) -> None:
     solves = timeline.solve_stats()
     assert (solves.solves, solves.seen) == (3, 2)
     assert solves.max == pytest.approx(0.75)
+    assert timeline.solve_stats(solves=4).solves == 4  # the merger's own count, where known
 
 
 def test_read_timeline_of_a_recorded_live_run() -> None:
