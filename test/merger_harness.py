@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -102,7 +103,7 @@ class MergerHarness:
 
         from csam_ros.nodes.common import publisher
         from csam_ros.nodes.merger import Merger
-        from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, RENDEZVOUS_POSES
+        from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, RENDEZVOUS_POSES, STATUS
 
         self.spin = spin
         overrides = {"robots": ROBOTS, "solve_period": 0.02, **parameters}
@@ -118,6 +119,10 @@ class MergerHarness:
         self.joined: list[JoinedMap] = []
         self.injector.create_subscription(
             JOINED_MAP.msgtype, JOINED_MAP.of(), self.joined.append, JOINED_MAP.qos
+        )
+        self.status: list[DiagnosticArray] = []
+        self.injector.create_subscription(
+            STATUS.msgtype, STATUS.of(), self.status.append, STATUS.qos
         )
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.merger)
@@ -172,6 +177,14 @@ class MergerHarness:
         self.wait(lambda: self.merger.drops.total >= before + drops)
         self.settle(0.2)
         return self.merger.drops.as_dict()
+
+
+def status_values(array: DiagnosticArray, name: str) -> dict[str, str] | None:
+    """The values of the status entry ``name`` (``merger``, ``merger/<robot>``), if there."""
+    for status in array.status:
+        if status.name == name:
+            return {kv.key: kv.value for kv in status.values}
+    return None
 
 
 def copied(msg: Any) -> Any:

@@ -1,10 +1,16 @@
 """merger: joins every robot's local map by C-SAM and publishes the joined map.
 
 Subscribes to ``/<robot>/local_map`` and ``/<robot>/rendezvous_poses`` (transient local) of
-every robot in ``robots`` (the first one is the reference). When a local map or rendezvous part
-changes it re-solves (at most every ``solve_period`` wall-clock seconds) with the core's
-:func:`~csam_ros.core.csam.join_maps`, then writes ``summary_path`` (when set) and publishes
-``/csam/joined_map`` and ``/csam/markers`` (transient local) and ``/csam/status``.
+every robot found on the ROS graph publishing a local map (checked every second), or only of
+those in ``robots`` when that allow-list is set (they are subscribed from the start). The
+reference is ``reference`` (else the first of ``robots``) if it has a map, else the first
+robot heard from; the choice is kept once made and named in ``/csam/status``, the joined map
+and the summary. When a local map or rendezvous part changes it re-solves (at most every
+``solve_period`` wall-clock seconds) with the core's :func:`~csam_ros.core.csam.join_maps`,
+then writes ``summary_path`` (when set) and publishes ``/csam/joined_map`` and
+``/csam/markers`` (transient local) and ``/csam/status``. A robot without a new map for
+``stale_after`` seconds is reported stale there; its last map stays joined. A map delivered
+again unchanged starts no solve.
 
 Solves run in one worker thread, off the executor, so subscriptions, services and the status
 keep running during a solve. A solve works on a snapshot of the inputs taken under a lock
@@ -36,6 +42,7 @@ from typing import Any
 import numpy as np
 from csam_msgs.msg import LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
@@ -62,6 +69,7 @@ from csam_ros.ros.map_messages import (
 from csam_ros.ros.markers import joined_map_markers
 from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS
 
+DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
 SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for a running solve before leaving it behind
 
 
@@ -104,8 +112,32 @@ class Merger(Node):
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__("merger", **node_options)
-        self.robots: list[str] = list(
-            declare(self, "robots", ["robot1", "robot2"], "robot names; the first is the reference")
+        # an empty list has no element type: ROS reads `robots:=[]` as a byte array, so the
+        # parameter takes any type and is checked here
+        allowed = self.declare_parameter(
+            "robots",
+            None,
+            ParameterDescriptor(
+                description="allow-list of robot names (empty or unset: every robot that "
+                "publishes a local map); its first is the reference when `reference` is empty",
+                dynamic_typing=True,
+            ),
+        ).value
+        if allowed is not None and not (
+            isinstance(allowed, list | tuple) and all(isinstance(r, str) and r for r in allowed)
+        ):
+            raise ValueError(f"parameter robots: expected a list of robot names, got {allowed!r}")
+        self.allowed: list[str] = list(allowed or [])
+        reference = declare(
+            self, "reference", "", "reference robot if it has a map, else the first one heard"
+        )
+        self.configured_reference = reference or (self.allowed[0] if self.allowed else "")
+        self.stale_after = declare(
+            self,
+            "stale_after",
+            30.0,
+            "wall-clock s without a local map after which a robot is reported stale (0: never)",
+            0.0,
         )
         summary = declare(self, "summary_path", "", "write summary.json here after each solve")
         self.summary_path = Path(summary) if summary else None
@@ -118,6 +150,12 @@ class Merger(Node):
         # the last valid local map (and its message's stamp) and rendezvous measurements: each
         # dict is replaced, never mutated, so a solve's snapshot of them stays as it was taken
         self.local_maps: dict[str, RobotMap] = {}
+        self.robots: list[str] = []  # subscribed to, in the order found
+        self.heard: list[str] = []  # robots in the order their first local map arrived
+        self.reference = ""  # chosen at the first solve, then kept
+        self.map_arrival: dict[str, float] = {}  # steady clock s of each robot's last map
+        self._ignored: set[str] = set()  # robots on the graph outside the allow-list
+        self._late_reference_logged = False
         self.local_map_stamps: dict[str, int] = {}
         self.rendezvous: dict[str, RendezvousLog] = {}
         self.drops: DropCounter = SharedDropCounter()
@@ -138,21 +176,18 @@ class Merger(Node):
         self._publish_lock = threading.Lock()
         self._requested = False  # the timer asked the worker for a solve
         self._stopping = False
-        on_map = guarded(self, self.drops, self.on_local_map)
-        on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
-        for robot in self.robots:  # each subscription knows its robot from its topic
-            subscribe(self, LOCAL_MAP, lambda m, r=robot: on_map(r, m), LOCAL_MAP.of(robot))
-            subscribe(
-                self,
-                RENDEZVOUS_POSES,
-                lambda m, r=robot: on_rendezvous(r, m),
-                RENDEZVOUS_POSES.of(robot),
-            )
+        self._on_map = guarded(self, self.drops, self.on_local_map)
+        self._on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
+        for robot in self.allowed:  # listed robots' latched maps may come before discovery
+            self._subscribe(robot)
         self.joined_pub = publisher(self, JOINED_MAP)
         self.markers_pub = publisher(self, MARKERS)
         self.status_pub = publisher(self, STATUS)
         self.create_timer(
             max(period, 0.01), guarded(self, self.drops, self.on_timer), clock=steady_clock()
+        )
+        self.create_timer(
+            DISCOVERY_PERIOD_S, guarded(self, self.drops, self.discover), clock=steady_clock()
         )
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
         self._worker.start()
@@ -170,6 +205,33 @@ class Merger(Node):
         with self._publish_lock:  # no publication is under way, and none starts from now on
             super().destroy_node()
 
+    def _subscribe(self, robot: str) -> None:
+        """Subscribe to ``robot``'s local map and rendezvous poses (the topic names it)."""
+        subscribe(self, LOCAL_MAP, lambda m: self._on_map(robot, m), LOCAL_MAP.of(robot))
+        subscribe(
+            self,
+            RENDEZVOUS_POSES,
+            lambda m: self._on_rendezvous(robot, m),
+            RENDEZVOUS_POSES.of(robot),
+        )
+        with self._lock:
+            self.robots = [*self.robots, robot]
+
+    def discover(self) -> None:
+        """Subscribe to every robot newly seen publishing a local map on the ROS graph
+        (``/<robot>/local_map``), unless an allow-list leaves it out (logged once)."""
+        for name, types in self.get_topic_names_and_types():
+            robot = LOCAL_MAP.robot_of(name)
+            if robot is None or LOCAL_MAP.type_name not in types or robot in self.robots:
+                continue
+            if self.allowed and robot not in self.allowed:
+                if robot not in self._ignored:
+                    self._ignored.add(robot)
+                    self.get_logger().info(f"{robot} publishes a local map but is not in robots")
+                continue
+            self.get_logger().info(f"{robot} found: joining its local map")
+            self._subscribe(robot)
+
     def _refuse(self, robot: str, what: str, error: RefusedMessageError) -> None:
         self.drops.add(error.reason)
         self.get_logger().warning(f"dropped a {what} on {robot}'s topic ({error.reason}): {error}")
@@ -185,8 +247,14 @@ class Merger(Node):
             old = self.local_maps.get(robot)
             if old is not None:
                 self._note_restart(robot, old, new)
+            self.map_arrival[robot] = time.monotonic()
+            stamp = time_to_ns(msg.header.stamp)
+            if old is not None and self.local_map_stamps[robot] == stamp and _same_map(old, new):
+                return  # delivered again: nothing to solve
+            if robot not in self.heard:
+                self.heard = [*self.heard, robot]
             self.local_maps = {**self.local_maps, robot: new}
-            self.local_map_stamps = {**self.local_map_stamps, robot: time_to_ns(msg.header.stamp)}
+            self.local_map_stamps = {**self.local_map_stamps, robot: stamp}
             self.dirty = True
 
     def _note_restart(self, robot: str, old: RobotMap, new: RobotMap) -> None:
@@ -219,7 +287,9 @@ class Merger(Node):
             log = rendezvous_log_from_message(
                 msg,
                 robot,
-                self.robots,
+                # without an allow-list, a robot heard from later is joined then: its rows
+                # stay, and the core leaves them out until its map is there
+                self.allowed or None,
                 robot_map.stamps if robot_map is not None else None,
                 self.config.stamp_tolerance,
                 rows,
@@ -270,11 +340,13 @@ class Merger(Node):
                 if not self.dirty or self._stopping:
                     return False
                 self.dirty = False
-                if self.robots[0] not in self.local_maps:
+                if not self.heard:
                     return False
+                self._choose_reference()
+                order = [self.reference] + [r for r in self.heard if r != self.reference]
                 inputs = SolveInputs(
-                    maps=tuple(self.local_maps[r] for r in self.robots if r in self.local_maps),
-                    logs={r: self.rendezvous[r] for r in self.robots if r in self.rendezvous},
+                    maps=tuple(self.local_maps[r] for r in order),
+                    logs={r: self.rendezvous[r] for r in order if r in self.rendezvous},
                     stamps=self.local_map_stamps,
                 )
                 self.solving = True
@@ -284,6 +356,23 @@ class Merger(Node):
                 with self._lock:
                     self.solving = False
             return True
+
+    def _choose_reference(self) -> None:
+        """The configured reference if it has a map, else the first robot heard from; kept
+        once chosen (call under the lock, with a map heard)."""
+        configured = self.configured_reference
+        if self.reference:
+            late = configured and configured != self.reference and configured in self.local_maps
+            if late and not self._late_reference_logged:
+                self._late_reference_logged = True
+                self.get_logger().warning(
+                    f"{configured} came after {self.reference} was made the reference; "
+                    f"{self.reference} stays the reference"
+                )
+            return
+        self.reference = configured if configured in self.local_maps else self.heard[0]
+        how = "configured" if self.reference == configured else "first robot heard from"
+        self.get_logger().info(f"reference robot: {self.reference} ({how})")
 
     def _solve(self, inputs: SolveInputs) -> None:
         """Join ``inputs``; record the result (or the failure) and publish it."""
@@ -318,7 +407,7 @@ class Merger(Node):
         if self._stopping:
             return
         stamps = dict(inputs.stamps)
-        joined = joined_map_message(result, max(stamps.values()), stamps, self.robots)
+        joined = joined_map_message(result, max(stamps.values()), stamps, list(self.robots))
         markers = joined_map_markers(result, self.get_clock().now().to_msg())
         with self._publish_lock:
             if self._stopping:
@@ -348,17 +437,23 @@ class Merger(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         result = self.last_result
+        now = time.monotonic()
         for robot in self.robots:
             r = result.robots.get(robot) if result is not None else None
+            arrival = self.map_arrival.get(robot)
+            since = now - arrival if arrival is not None else None
+            stale = since is not None and 0.0 < self.stale_after < since
             if robot not in self.local_maps:
                 alignment = "pending: no local map received"
             elif r is None:
                 alignment = "pending: not solved yet"
             else:
                 alignment = r.alignment
-            ok = alignment in ("reference", "aligned")
+            ok = alignment in ("reference", "aligned") and not stale
             values = {
                 "alignment": alignment,
+                "stale": stale,
+                "seconds_since_map": round(since, 1) if since is not None else "",
                 "poses": len(r.stamps) if r is not None else 0,
                 "solve_seconds": round(self.solve_seconds, 4),
                 "restarts": self.restarts.get(robot, 0),
@@ -369,11 +464,14 @@ class Merger(Node):
                     level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
                     name=f"merger/{robot}",
                     hardware_id=robot,
-                    message=alignment,
+                    message=f"{alignment} (stale: no local map for {since:.0f} s)"
+                    if stale
+                    else alignment,
                     values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
                 )
             )
         values = {
+            "reference": self.reference,
             "solves": self.solves,
             "features": len(result.features) if result is not None else 0,
             "associations": len(result.associations) if result is not None else 0,
@@ -393,6 +491,17 @@ class Merger(Node):
             )
         )
         return array
+
+
+def _same_map(a: RobotMap, b: RobotMap) -> bool:
+    """Whether two local maps hold the same poses, features and factors (a map delivered
+    again)."""
+    return (
+        np.array_equal(a.stamps, b.stamps)
+        and np.array_equal(a.problem.values, b.problem.values)
+        and np.array_equal(a.feature_labels, b.feature_labels)
+        and len(a.problem.factors) == len(b.problem.factors)
+    )
 
 
 def _non_finite(result: CsamResult) -> str:

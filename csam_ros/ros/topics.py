@@ -67,6 +67,19 @@ class Topic:
     def subscription_qos(self) -> QoSProfile:
         return self.subscription or self.qos
 
+    @property
+    def type_name(self) -> str:
+        """The message type as the ROS graph names it, e.g. ``csam_msgs/msg/LocalMap``."""
+        return f"{self.msgtype.__module__.split('.')[0]}/msg/{self.msgtype.__name__}"
+
+    def robot_of(self, name: str) -> str | None:
+        """The robot whose instance of this per-robot topic ``name`` is (``/<robot>/<topic>``,
+        one namespace level), else None."""
+        parts = name.split("/")
+        if len(parts) == 3 and parts[0] == "" and parts[1] and parts[2] == self.name:
+            return parts[1]
+        return None
+
     def of(self, robot: str | None = None) -> str:
         """The absolute name: of ``robot`` for a per-robot topic, else the global name."""
         if self.per_robot:

@@ -243,11 +243,11 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypa
     started, release = threading.Event(), threading.Event()
     solved: list[dict[str, int]] = []  # poses per robot of each solve's inputs
 
-    def slow_join(maps: Any, logs: Any, config: Any) -> Any:
+    def slow_join(maps: Any, logs: Any, config: Any, **options: Any) -> Any:
         solved.append({m.name: len(m.stamps) for m in maps})
         started.set()
         assert release.wait(60.0), "never released"
-        return real_join(maps, logs, config)
+        return real_join(maps, logs, config, **options)
 
     monkeypatch.setattr(merger_module, "join_maps", slow_join)
     status: list[dict[str, str]] = []
@@ -304,10 +304,10 @@ def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkey
     real_join = merger_module.join_maps
     started, release = threading.Event(), threading.Event()
 
-    def slow_join(maps: Any, logs: Any, config: Any) -> Any:
+    def slow_join(maps: Any, logs: Any, config: Any, **options: Any) -> Any:
         started.set()
         assert release.wait(60.0), "never released"
-        return real_join(maps, logs, config)
+        return real_join(maps, logs, config, **options)
 
     monkeypatch.setattr(merger_module, "join_maps", slow_join)
     monkeypatch.setattr(merger_module, "SHUTDOWN_JOIN_S", 0.2)

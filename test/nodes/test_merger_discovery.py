@@ -1,0 +1,110 @@
+"""Robots found, not listed: the merger joins every robot that publishes a local map, picks
+its reference once, honours an allow-list, and reports robots gone quiet."""
+
+from __future__ import annotations
+
+import pytest
+from merger_harness import ROBOTS, MergerHarness, RunMessages, run_messages, status_values
+
+
+@pytest.fixture(scope="module")
+def good() -> RunMessages:
+    return run_messages()
+
+
+@pytest.fixture
+def make(ros_context, spin):
+    made: list[MergerHarness] = []
+
+    def build(**parameters) -> MergerHarness:
+        made.append(MergerHarness(ros_context, spin, **parameters))
+        return made[-1]
+
+    yield build
+    for h in made:
+        h.close()
+
+
+def _send(h: MergerHarness, good: RunMessages, robot: str) -> None:
+    h.publish(robot, good.rendezvous[robot])
+    h.publish(robot, good.local_maps[robot])
+
+
+def _joined_robots(h: MergerHarness) -> set[str]:
+    return {t.robot for t in h.joined[-1].trajectories} if h.joined else set()
+
+
+def _last_status(h: MergerHarness, name: str) -> dict[str, str] | None:
+    for array in reversed(h.status):
+        values = status_values(array, name)
+        if values is not None:
+            return values
+    return None
+
+
+def test_robots_not_listed_are_found_and_joined(make, good) -> None:
+    h = make(robots=[])
+    assert h.merger.robots == []
+    # the injector's publishers are on the graph: both robots are found before any map
+    h.wait(lambda: set(h.merger.robots) == set(ROBOTS))
+    _send(h, good, "robot1")
+    h.wait(lambda: "robot1" in h.merger.local_maps and len(h.joined) > 0)
+    assert _joined_robots(h) == {"robot1"}
+    # a robot that starts publishing later joins at its first usable rendezvous
+    _send(h, good, "robot2")
+    h.wait(lambda: _joined_robots(h) == set(ROBOTS))
+    assert h.joined[-1].reference_robot == "robot1"
+    aligned = {n.robot: n.alignment for n in h.joined[-1].base_nodes}
+    assert aligned == {"robot1": "reference", "robot2": "aligned"}
+
+
+def test_an_absent_reference_is_replaced_and_the_choice_kept(make, good) -> None:
+    h = make(robots=[], reference="robot1")
+    _send(h, good, "robot2")  # robot1, the configured reference, is not there yet
+    h.wait(lambda: len(h.joined) > 0)
+    assert h.joined[-1].reference_robot == "robot2"
+    h.wait(lambda: (_last_status(h, "merger") or {}).get("reference") == "robot2")
+    _send(h, good, "robot1")
+    h.wait(lambda: _joined_robots(h) == set(ROBOTS))
+    assert h.joined[-1].reference_robot == "robot2"
+    assert h.merger.last_result is not None and h.merger.last_result.reference == "robot2"
+
+
+def test_an_allow_list_leaves_other_robots_out(make, good) -> None:
+    h = make(robots=["robot1"])
+    _send(h, good, "robot2")
+    _send(h, good, "robot1")
+    h.wait(lambda: len(h.joined) > 0 and "robot2" in h.merger._ignored)
+    h.settle(0.3)
+    assert h.merger.robots == ["robot1"]
+    assert "robot2" not in h.merger.local_maps
+    assert _joined_robots(h) == {"robot1"}
+
+
+def test_a_quiet_robot_is_reported_stale_and_stays_joined(make, good) -> None:
+    h = make(stale_after=0.5)
+    h.start(good)
+    h.wait(lambda: (_last_status(h, "merger/robot2") or {}).get("stale") == "True")
+    assert float(_last_status(h, "merger/robot2")["seconds_since_map"]) >= 0.5
+    assert _joined_robots(h) == set(ROBOTS)
+    # a new map makes it fresh again
+    fresh = len(h.status)
+    h.publish("robot2", good.local_maps["robot2"])
+    h.wait(
+        lambda: any(
+            (status_values(a, "merger/robot2") or {}).get("stale") == "False"
+            for a in h.status[fresh:]
+        )
+    )
+
+
+def test_a_map_delivered_twice_changes_nothing(make, good) -> None:
+    h = make()
+    h.start(good)
+    solves, joined = h.merger.solves, len(h.joined)
+    arrivals = dict(h.merger.map_arrival)
+    h.publish("robot2", good.local_maps["robot2"])
+    h.wait(lambda: h.merger.map_arrival["robot2"] > arrivals["robot2"])
+    h.settle(0.3)
+    assert not h.merger.dirty
+    assert (h.merger.solves, len(h.joined)) == (solves, joined)
