@@ -9,12 +9,13 @@ real :class:`~csam_ros.nodes.merger.Merger` over DDS and reads its joined map.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from csam_msgs.msg import JoinedMap, LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray
+from log_slices import robot_log_between
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -39,38 +40,13 @@ class RunMessages:
     logs: dict[str, RobotLog]
 
 
-def _log_from(log: RobotLog, start: float) -> RobotLog:
-    """``log`` from ``start`` on: what a smoother restarted at ``start`` measures."""
-
-    def part(data: Any) -> Any:
-        keep = np.asarray(data.stamps) >= start
-        return replace(
-            data,
-            **{
-                f.name: (
-                    [v for v, k in zip(getattr(data, f.name), keep, strict=True) if k]
-                    if isinstance(getattr(data, f.name), list)
-                    else np.asarray(getattr(data, f.name))[keep]
-                )
-                for f in fields(data)
-            },
-        )
-
-    return replace(
-        log,
-        odometry=part(log.odometry),
-        features=part(log.features),
-        rendezvous=part(log.rendezvous),
-    )
-
-
 def run_messages(restart_at: float | None = None) -> RunMessages:
     """The smoothers' last messages of map_joining (seed 2); with ``restart_at``, robot2's
     smoother restarted at that time, so its map and measurements hold only what came after."""
     log = simulate(load_scenario("map_joining"), seed=2)
     logs = dict(log.robots)
     if restart_at is not None:
-        logs["robot2"] = _log_from(logs["robot2"], restart_at)
+        logs["robot2"] = robot_log_between(logs["robot2"], start=restart_at)
     stamps = required_stamps({n: r.rendezvous for n, r in logs.items()})
     maps, rendezvous = {}, {}
     for name, robot_log in logs.items():

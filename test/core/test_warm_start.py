@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from log_slices import robot_log_between
 
 from csam_ros.core import se2
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps, robot_map_from_local_map
@@ -19,31 +20,9 @@ from csam_ros.core.warm_start import WarmStart
 from csam_ros.datasets.scenario import load_scenario
 
 
-def _until(sub, t: float):
-    """A log of stamped arrays (a dataclass of equal-length fields) cut at ``t``."""
-    keep = np.asarray(sub.stamps) <= t
-    return replace(
-        sub,
-        **{
-            f.name: [v for v, k in zip(getattr(sub, f.name), keep, strict=True) if k]
-            if isinstance(getattr(sub, f.name), list)
-            else np.asarray(getattr(sub, f.name))[keep]
-            for f in fields(sub)
-        },
-    )
-
-
 def _maps_until(log: MultiRobotLog, t: float) -> tuple[list[RobotMap], dict[str, RendezvousLog]]:
     """The robots' local maps and rendezvous logs of the run up to ``t``."""
-    robots = {
-        n: replace(
-            r,
-            odometry=_until(r.odometry, t),
-            features=_until(r.features, t),
-            rendezvous=_until(r.rendezvous, t),
-        )
-        for n, r in log.robots.items()
-    }
+    robots = {n: robot_log_between(r, end=t) for n, r in log.robots.items()}
     logs = {n: r.rendezvous for n, r in robots.items()}
     stamps = required_stamps(logs)
     maps = [robot_map_from_local_map(build_local_map(r, stamps[n])) for n, r in robots.items()]
