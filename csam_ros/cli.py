@@ -143,7 +143,9 @@ def _print_latency(bag: Path, summary: RunSummary) -> None:
     print(f"  {timeline.solve_stats(summary.merger.solves if summary.merger else None)}")
 
 
-def demo_live_run(scenario_name: str | Path, out: Path, seed: int, rate: float) -> LiveRun:
+def demo_live_run(
+    scenario_name: str | Path, out: Path, seed: int, rate: float, isolated: bool = False
+) -> LiveRun:
     """The live run of ``csam demo``: the simulator playing a scenario (a name in config/ or
     a YAML file, whose ``csam:``, ``local_map:``, ``input:`` and ``merger:`` sections
     configure the nodes) into smoothers and a merger, recorded to ``out/bag``."""
@@ -175,6 +177,7 @@ def demo_live_run(scenario_name: str | Path, out: Path, seed: int, rate: float) 
         ],
         smoother_params={"field_of_view_deg": float(fov), **_smoother_params(document)},
         merger_params=_csam_params(document),
+        isolated=isolated,
     )
 
 
@@ -189,7 +192,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"csam demo: scenario {scenario.name} ({len(scenario.robots)} robots), seed {seed}, "
         f"rate {args.rate}, output {out}/"
     )
-    run = demo_live_run(args.scenario, out, seed, args.rate)
+    run = demo_live_run(args.scenario, out, seed, args.rate, args.isolated)
     summary = run_live(run)
     _finish(out, replace(summary, scenario=scenario.name))
     _print_latency(out / "bag", summary)
@@ -307,6 +310,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 merger_params=merger_params,
                 # the playback itself plus a margin (a replay at --rate 0 is not paced)
                 timeout_s=600.0 + (1.2 * duration / args.rate if args.rate > 0 else duration),
+                isolated=args.isolated,
             )
             summary = run_live(run)
     except BagError as err:
@@ -502,6 +506,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+ISOLATED_HELP = (
+    "run the nodes on a private ROS domain, discovery on this host only (default: the "
+    "caller's ROS_DOMAIN_ID and discovery range, where RViz, Foxglove or ros2 topic echo see "
+    "the run)"
+)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="csam", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -520,6 +531,7 @@ def parser() -> argparse.ArgumentParser:
         default=8.0,
         help="simulation speed relative to real time (0: as fast as possible)",
     )
+    demo.add_argument("--isolated", action="store_true", help=ISOLATED_HELP)
     demo.set_defaults(func=cmd_demo)
 
     replay = sub.add_parser("replay", help="run a recorded bag's sensor topics through C-SAM")
@@ -536,6 +548,7 @@ def parser() -> argparse.ArgumentParser:
         type=Path,
         help="YAML with csam:, local_map:, merger: and input: sections (e.g. config/mrclam.yaml)",
     )
+    replay.add_argument("--isolated", action="store_true", help=ISOLATED_HELP)
     replay.set_defaults(func=cmd_replay)
 
     imp = sub.add_parser("import", help="convert a data set into a bag of sensor topics")

@@ -152,9 +152,45 @@ def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
             assert not (tmp_path / "never").exists()
 
 
+def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
+    tmp_path: Path, ros_context, ros_domain: int, spin
+) -> None:
+    """A subscriber in another process on the caller's domain (this session's) receives the
+    demo's joined map; an --isolated demo runs on another domain."""
+    import rclpy
+
+    from csam_ros.ros.topics import JOINED_MAP
+
+    node = rclpy.create_node("watcher", context=ros_context)
+    received: list = []
+    node.create_subscription(JOINED_MAP.msgtype, JOINED_MAP.of(), received.append, JOINED_MAP.qos)
+    executor = rclpy.executors.SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    try:
+        for flag, seen in (([], True), (["--isolated"], False)):
+            out = tmp_path / ("isolated" if flag else "visible")
+            received.clear()
+            demo = subprocess.Popen(
+                [*CSAM, "demo", "--rate", "0", *flag, "--out", str(out)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                cwd=REPO,
+            )
+            spin(executor, lambda d=demo: d.poll() is not None, 240)
+            output = demo.communicate(timeout=60)[0]
+            assert demo.returncode == 0, output
+            assert bool(received) == seen, output
+            domain = f"ROS_DOMAIN_ID {ros_domain}" in output
+            assert domain == seen, output
+    finally:
+        node.destroy_node()
+        executor.shutdown()
+
+
 def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
     bag = REPO / "bags" / "map_joining"
-    live = csam("replay", bag, "--rate", "4", "--out", tmp_path / "live")
+    live = csam("replay", bag, "--rate", "4", "--isolated", "--out", tmp_path / "live")
     assert live.returncode == 0, live.stdout + live.stderr
     offline = csam("replay", bag, "--offline", "--out", tmp_path / "offline")
     assert offline.returncode == 0, offline.stderr

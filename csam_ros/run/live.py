@@ -9,6 +9,7 @@ finalises the bag) and every process is gone. The merger writes ``summary.json``
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,9 @@ class LiveRun:
     merger_params: dict[str, object] = field(default_factory=dict)
     extra_topics: list[str] = field(default_factory=list)
     timeout_s: float = 600.0
+    # False: the caller's ROS environment (ROS_DOMAIN_ID, discovery range), so other ROS
+    # tools see the run; True: a private domain with discovery on this host only (tests)
+    isolated: bool = False
 
 
 def _param(name: str, value: object) -> list[str]:
@@ -52,15 +56,22 @@ def _param(name: str, value: object) -> list[str]:
 def run_live(run: LiveRun, progress=print) -> RunSummary:
     """Run the nodes; returns the merger's final summary (``out_dir/summary.json``)."""
     run.out_dir.mkdir(parents=True, exist_ok=True)
-    summary_path = run.out_dir / "summary.json"
+    if not run.isolated:
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        progress(f"  on ROS_DOMAIN_ID {domain}: other ROS tools there see the run")
+        return _run_with(run, dict(os.environ), progress)
     with reserve_domain_id() as reservation:
-        env = isolated_environment(reservation.domain_id)
         isolate_this_process(reservation.domain_id)
-        group = ProcessGroup(run.out_dir / "logs", env)
-        try:
-            return _run(run, group, summary_path, progress)
-        finally:
-            group.stop_all()
+        progress(f"  isolated on ROS_DOMAIN_ID {reservation.domain_id}, this host only")
+        return _run_with(run, isolated_environment(reservation.domain_id), progress)
+
+
+def _run_with(run: LiveRun, env: dict[str, str], progress) -> RunSummary:
+    group = ProcessGroup(run.out_dir / "logs", env)
+    try:
+        return _run(run, group, run.out_dir / "summary.json", progress)
+    finally:
+        group.stop_all()
 
 
 def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> RunSummary:
