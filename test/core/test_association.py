@@ -21,9 +21,7 @@ from csam_ros.core.association import (
     _stack,
     associate,
 )
-from csam_ros.core.covariance import factorize_at_estimate
-from csam_ros.core.csam import _local_inputs, _map_features, robot_map_from_local_map
-from csam_ros.core.joining import SelectedInverse
+from csam_ros.core.csam import _map_features, local_view, robot_map_from_local_map
 from csam_ros.core.local_map import build_local_map
 from csam_ros.core.rendezvous import collect, required_stamps
 from csam_ros.core.simulation import simulate
@@ -44,11 +42,9 @@ def _stage(scenario: str, seed: int):
                 [meas.observer_pose[meas.observer == r], meas.observed_pose[meas.observed == r]]
             )
         )
-        system = factorize_at_estimate(m.problem)
-        part, cross = _local_inputs(m, system, idx)
-        feat = _map_features(m, part, cross, SelectedInverse(system))
-        parts.append(part)
-        feats.append(feat)
+        view = local_view(m, idx)
+        parts.append(view.part)
+        feats.append(_map_features(m, view))
     alignment = align(parts, meas)
     roots = [p.sqrt_information for p in parts]
     return log, maps, alignment, feats, roots
