@@ -9,7 +9,8 @@ real :class:`~csam_ros.nodes.merger.Merger` over DDS and reads its joined map.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -40,10 +41,26 @@ class RunMessages:
     logs: dict[str, RobotLog]
 
 
-def run_messages(restart_at: float | None = None) -> RunMessages:
+def run_messages(
+    restart_at: float | None = None, names: Mapping[str, str] | None = None
+) -> RunMessages:
     """The smoothers' last messages of map_joining (seed 2); with ``restart_at``, robot2's
-    smoother restarted at that time, so its map and measurements hold only what came after."""
-    log = simulate(load_scenario("map_joining"), seed=2)
+    smoother restarted at that time, so its map and measurements hold only what came after;
+    with ``names``, the robots renamed (robot1 and robot2 to their names there)."""
+    scenario = load_scenario("map_joining")
+    if names is not None:
+        scenario = replace(
+            scenario,
+            robots=tuple(
+                replace(
+                    r,
+                    name=names[r.name],
+                    observes=None if r.observes is None else tuple(names[o] for o in r.observes),
+                )
+                for r in scenario.robots
+            ),
+        )
+    log = simulate(scenario, seed=2)
     logs = dict(log.robots)
     if restart_at is not None:
         logs["robot2"] = robot_log_between(logs["robot2"], start=restart_at)

@@ -5,10 +5,12 @@ every robot found on the ROS graph publishing a local map (checked every second)
 those in ``robots`` when that allow-list is set (they are subscribed from the start). The
 reference is ``reference`` (else the first of ``robots``) if it has a map, else the first
 robot heard from; the choice is kept once made and named in ``/csam/status``, the joined map
-and the summary. When a local map or rendezvous part changes it re-solves (at most every
-``solve_period`` wall-clock seconds) with the core's :func:`~csam_ros.core.csam.join_maps`,
-then writes ``summary_path`` (when set) and publishes ``/csam/joined_map`` and
-``/csam/markers`` (transient local) and ``/csam/status``. A robot without a new map for
+and the summary. Smoothers' first maps come in any order, so the first solve waits up to
+``reference_wait`` seconds after the first map for the configured reference's. When a local
+map or rendezvous part changes it re-solves (at most every ``solve_period`` wall-clock
+seconds) with the core's :func:`~csam_ros.core.csam.join_maps`, then writes
+``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
+(transient local) and ``/csam/status``. A robot without a new map for
 ``stale_after`` seconds is reported stale there; its last map stays joined. A map delivered
 again unchanged starts no solve.
 
@@ -105,6 +107,7 @@ class SolveInputs:
     maps: tuple[RobotMap, ...]
     logs: Mapping[str, RendezvousLog]
     stamps: Mapping[str, int]
+    robots: tuple[str, ...]  # every known robot, in the solve's order
 
 
 class Merger(Node):
@@ -132,6 +135,14 @@ class Merger(Node):
             self, "reference", "", "reference robot if it has a map, else the first one heard"
         )
         self.configured_reference = reference or (self.allowed[0] if self.allowed else "")
+        self.reference_wait = declare(
+            self,
+            "reference_wait",
+            5.0,
+            "wall-clock s the first solve waits, after the first local map, for the configured "
+            "reference's (0: none)",
+            0.0,
+        )
         self.stale_after = declare(
             self,
             "stale_after",
@@ -153,6 +164,7 @@ class Merger(Node):
         self.robots: list[str] = []  # subscribed to, in the order found
         self.heard: list[str] = []  # robots in the order their first local map arrived
         self.reference = ""  # chosen at the first solve, then kept
+        self._first_heard_at = 0.0  # steady clock s of the first local map
         self.map_arrival: dict[str, float] = {}  # steady clock s of each robot's last map
         self._ignored: set[str] = set()  # robots on the graph outside the allow-list
         self._late_reference_logged = False
@@ -252,6 +264,8 @@ class Merger(Node):
             if old is not None and self.local_map_stamps[robot] == stamp and _same_map(old, new):
                 return  # delivered again: nothing to solve
             if robot not in self.heard:
+                if not self.heard:
+                    self._first_heard_at = time.monotonic()
                 self.heard = [*self.heard, robot]
             self.local_maps = {**self.local_maps, robot: new}
             self.local_map_stamps = {**self.local_map_stamps, robot: stamp}
@@ -342,12 +356,15 @@ class Merger(Node):
                 self.dirty = False
                 if not self.heard:
                     return False
-                self._choose_reference()
+                if not self._choose_reference():
+                    self.dirty = True  # the timer asks again
+                    return False
                 order = [self.reference] + [r for r in self.heard if r != self.reference]
                 inputs = SolveInputs(
                     maps=tuple(self.local_maps[r] for r in order),
                     logs={r: self.rendezvous[r] for r in order if r in self.rendezvous},
                     stamps=self.local_map_stamps,
+                    robots=(*order, *(r for r in self.robots if r not in order)),
                 )
                 self.solving = True
             try:
@@ -357,9 +374,10 @@ class Merger(Node):
                     self.solving = False
             return True
 
-    def _choose_reference(self) -> None:
-        """The configured reference if it has a map, else the first robot heard from; kept
-        once chosen (call under the lock, with a map heard)."""
+    def _choose_reference(self) -> bool:
+        """The configured reference if it has a map, else, once ``reference_wait`` has passed
+        since the first map, the first robot heard from; kept once chosen. Whether there is
+        one (call under the lock, with a map heard)."""
         configured = self.configured_reference
         if self.reference:
             late = configured and configured != self.reference and configured in self.local_maps
@@ -369,10 +387,20 @@ class Merger(Node):
                     f"{configured} came after {self.reference} was made the reference; "
                     f"{self.reference} stays the reference"
                 )
-            return
+            return True
+        absent = configured and configured not in self.local_maps
+        if absent and time.monotonic() - self._first_heard_at < self.reference_wait:
+            return False
         self.reference = configured if configured in self.local_maps else self.heard[0]
-        how = "configured" if self.reference == configured else "first robot heard from"
-        self.get_logger().info(f"reference robot: {self.reference} ({how})")
+        if absent:
+            self.get_logger().warning(
+                f"{configured} has no local map {self.reference_wait:g} s after the first one: "
+                f"{self.reference}, the first robot heard from, is the reference"
+            )
+        else:
+            how = "configured" if self.reference == configured else "first robot heard from"
+            self.get_logger().info(f"reference robot: {self.reference} ({how})")
+        return True
 
     def _solve(self, inputs: SolveInputs) -> None:
         """Join ``inputs``; record the result (or the failure) and publish it."""
@@ -407,7 +435,7 @@ class Merger(Node):
         if self._stopping:
             return
         stamps = dict(inputs.stamps)
-        joined = joined_map_message(result, max(stamps.values()), stamps, list(self.robots))
+        joined = joined_map_message(result, max(stamps.values()), stamps, inputs.robots)
         markers = joined_map_markers(result, self.get_clock().now().to_msg())
         with self._publish_lock:
             if self._stopping:

@@ -5,11 +5,21 @@ from __future__ import annotations
 
 import pytest
 from merger_harness import ROBOTS, MergerHarness, RunMessages, run_messages, status_values
+from rclpy.publisher import Publisher
+
+from csam_ros.nodes.common import publisher
+from csam_ros.ros.topics import LOCAL_MAP, RENDEZVOUS_POSES
 
 
 @pytest.fixture(scope="module")
 def good() -> RunMessages:
     return run_messages()
+
+
+@pytest.fixture(scope="module")
+def renamed() -> RunMessages:
+    """The same run with robots no test lists: robotA and robotB."""
+    return run_messages(names={"robot1": "robotA", "robot2": "robotB"})
 
 
 @pytest.fixture
@@ -59,7 +69,7 @@ def test_robots_not_listed_are_found_and_joined(make, good) -> None:
 
 
 def test_an_absent_reference_is_replaced_and_the_choice_kept(make, good) -> None:
-    h = make(robots=[], reference="robot1")
+    h = make(robots=[], reference="robot1", reference_wait=0.5)
     _send(h, good, "robot2")  # robot1, the configured reference, is not there yet
     h.wait(lambda: len(h.joined) > 0)
     assert h.joined[-1].reference_robot == "robot2"
@@ -108,3 +118,53 @@ def test_a_map_delivered_twice_changes_nothing(make, good) -> None:
     h.settle(0.3)
     assert not h.merger.dirty
     assert (h.merger.solves, len(h.joined)) == (solves, joined)
+
+
+def _publishers(h: MergerHarness, robot: str) -> tuple[Publisher, Publisher]:
+    """Publishers of ``robot``'s local map and rendezvous poses: from now on on the graph."""
+    return (
+        publisher(h.injector, LOCAL_MAP, LOCAL_MAP.of(robot)),
+        publisher(h.injector, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of(robot)),
+    )
+
+
+def test_robots_appearing_later_on_the_graph_join(make, renamed) -> None:
+    """Names known nowhere in advance; robotB's topics appear after robotA's map was joined."""
+    h = make(robots=[])
+    maps_a, rendezvous_a = _publishers(h, "robotA")
+    h.wait(lambda: "robotA" in h.merger.robots)
+    assert "robotB" not in h.merger.robots
+    rendezvous_a.publish(renamed.rendezvous["robotA"])
+    maps_a.publish(renamed.local_maps["robotA"])
+    h.wait(lambda: _joined_robots(h) == {"robotA"})
+    maps_b, rendezvous_b = _publishers(h, "robotB")
+    h.wait(lambda: "robotB" in h.merger.robots)
+    rendezvous_b.publish(renamed.rendezvous["robotB"])
+    maps_b.publish(renamed.local_maps["robotB"])
+    h.wait(lambda: _joined_robots(h) == {"robotA", "robotB"})
+    joined = h.joined[-1]
+    assert joined.reference_robot == "robotA"
+    nodes = [(n.robot, n.alignment) for n in joined.base_nodes]
+    # the solve's order; the harness's robot1 and robot2 publishers were found too, mapless
+    assert nodes[:2] == [("robotA", "reference"), ("robotB", "aligned")]
+    assert {r for r, _ in nodes[2:]} == set(ROBOTS)
+    assert all(a.startswith("pending") for _, a in nodes[2:])
+    h.wait(lambda: (_last_status(h, "merger/robotB") or {}).get("alignment") == "aligned")
+    assert (_last_status(h, "merger") or {}).get("reference") == "robotA"
+    assert (_last_status(h, "merger/robot1") or {}).get("alignment") == (
+        "pending: no local map received"
+    )
+
+
+def test_the_configured_reference_is_awaited(make, good) -> None:
+    """Smoothers' first maps come in any order: robot2's coming first does not make it the
+    reference while robot1, the first of robots, may still come."""
+    h = make(reference_wait=3600.0)
+    _send(h, good, "robot2")
+    h.wait(lambda: "robot2" in h.merger.local_maps)
+    assert not h.merger.solve_pending()
+    assert h.merger.reference == "" and h.merger.dirty and not h.joined
+    _send(h, good, "robot1")
+    h.wait(lambda: _joined_robots(h) == set(ROBOTS))
+    assert h.joined[-1].reference_robot == "robot1"
+    assert [n.robot for n in h.joined[-1].base_nodes] == ROBOTS
