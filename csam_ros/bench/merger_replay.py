@@ -64,6 +64,7 @@ def snapshots(bag: Path, every: float):
     rendezvous: dict[str, object] = {}
     first = next_t = None
     t = 0.0
+    pending = False  # inputs changed since the last snapshot
     for message in read_bag_messages(bag, topics):
         first = message.log_time_ns if first is None else first
         t = (message.log_time_ns - first) / 1e9
@@ -72,12 +73,14 @@ def snapshots(bag: Path, every: float):
             maps[robot] = robot_map_from_message(message.message, robot)
         else:
             rendezvous[robot] = message.message
+        pending = True
         if next_t is None:
             next_t = t + every
         if t >= next_t:
             yield t, dict(maps), dict(rendezvous), robots
-            next_t = t + every
-    yield t, dict(maps), dict(rendezvous), robots
+            next_t, pending = t + every, False
+    if pending:
+        yield t, dict(maps), dict(rendezvous), robots
 
 
 def main() -> None:

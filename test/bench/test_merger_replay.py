@@ -1,0 +1,36 @@
+"""The merger-replay benchmark as a command, on a live demo's bag: every solve joined cold
+and warm, the two equal on this Gaussian scenario."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _run(*args: str | Path) -> str:
+    done = subprocess.run(
+        [sys.executable, "-m", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done.stdout
+
+
+def test_merger_replay_joins_a_live_run_cold_and_warm_alike(tmp_path: Path) -> None:
+    _run("csam_ros.cli", "demo", "--rate", "0", "--isolated", "--out", tmp_path / "demo")
+    printed = _run("csam_ros.bench.merger_replay", tmp_path / "demo" / "bag", "--every", "0.2")
+    lines = printed.splitlines()
+    assert lines[0].split() == [
+        "t", "poses", "cold", "it1", "itJ", "warm", "it1", "itJ", "reused", "warm-cold",
+    ]  # fmt: skip
+    rows = [line.split() for line in lines[1:] if not line.startswith(("cold", "warm"))]
+    assert len(rows) >= 3
+    assert all(float(row[-1]) < 1e-6 for row in rows), printed
+    solves = [line for line in lines if line.startswith(("cold:", "warm:"))]
+    assert [s.split()[1] for s in solves] == [str(len(rows))] * 2, printed
