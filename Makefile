@@ -11,6 +11,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 BUILD := build/csam_msgs
 MSG_SOURCES := $(wildcard msg_defs/msg/*.msg) msg_defs/CMakeLists.txt msg_defs/package.xml
+TF2_BUILD := build/tf2_msgs
+TF2_SOURCES := $(wildcard tf2_msg_defs/msg/*.msg) tf2_msg_defs/CMakeLists.txt tf2_msg_defs/package.xml
 RUN_ARGS ?=
 PYTEST_ARGS ?=
 # MR.CLAM Dataset 1 for the tests on real data (skipped without it): CSAM_MRCLAM_DIR, by
@@ -58,7 +60,14 @@ $(VENV)/.msgs-installed: $(VENV)/.deps-installed $(MSG_SOURCES) scripts/build_ms
 	scripts/build_msgs.sh $(VENV) $(BUILD)
 	@touch $@
 
-$(VENV)/.csam-installed: $(VENV)/.msgs-installed setup.py setup.cfg package.xml scripts/install_layout.sh
+# /tf's type: built from tf2_msg_defs/ only where no tf2_msgs is installed (the wheels have none)
+$(VENV)/.tf2-msgs-installed: $(VENV)/.deps-installed $(TF2_SOURCES) scripts/build_msgs.sh
+	@if $(PY) -c "import tf2_msgs.msg" 2>/dev/null && [ ! -f $(TF2_BUILD)/install_manifest.txt ]; \
+	then echo "tf2_msgs: installed already, not built"; \
+	else scripts/build_msgs.sh $(VENV) $(TF2_BUILD) tf2_msg_defs; fi
+	@touch $@
+
+$(VENV)/.csam-installed: $(VENV)/.msgs-installed $(VENV)/.tf2-msgs-installed setup.py setup.cfg package.xml scripts/install_layout.sh
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . $(QUIET_PIP)
 	scripts/install_layout.sh $(VENV)
 	@touch $@

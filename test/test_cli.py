@@ -152,24 +152,40 @@ def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
             assert not (tmp_path / "never").exists()
 
 
+def _planar(t) -> np.ndarray:
+    """(x, y, yaw) of a geometry_msgs Transform about z."""
+    r = t.rotation
+    return np.array([t.translation.x, t.translation.y, 2 * np.arctan2(r.z, r.w)])
+
+
 def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
     tmp_path: Path, ros_context, ros_domain: int, spin
 ) -> None:
-    """A subscriber in another process on the caller's domain (this session's) receives the
-    demo's joined map; an --isolated demo runs on another domain."""
+    """A process on the caller's domain (this session's) receives the demo's joined map and
+    frames; robot2's latest pose composed from /tf is the joined map's. An --isolated demo
+    runs on another domain."""
     import rclpy
 
-    from csam_ros.ros.topics import JOINED_MAP
+    from csam_ros.core import se2
+    from csam_ros.ros.topics import JOINED_MAP, TF
 
     node = rclpy.create_node("watcher", context=ros_context)
     received: list = []
+    frames: dict[tuple[str, str], np.ndarray] = {}
+
+    def on_tf(msg) -> None:
+        for t in msg.transforms:
+            frames[(t.header.frame_id, t.child_frame_id)] = _planar(t.transform)
+
     node.create_subscription(JOINED_MAP.msgtype, JOINED_MAP.of(), received.append, JOINED_MAP.qos)
+    node.create_subscription(TF.msgtype, TF.of(), on_tf, TF.qos)
     executor = rclpy.executors.SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     try:
         for flag, seen in (([], True), (["--isolated"], False)):
             out = tmp_path / ("isolated" if flag else "visible")
             received.clear()
+            frames.clear()
             demo = subprocess.Popen(
                 [*CSAM, "demo", "--rate", "0", *flag, "--out", str(out)],
                 stdout=subprocess.PIPE,
@@ -181,8 +197,15 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
             output = demo.communicate(timeout=60)[0]
             assert demo.returncode == 0, output
             assert bool(received) == seen, output
+            assert bool(frames) == seen, output
             domain = f"ROS_DOMAIN_ID {ros_domain}" in output
             assert domain == seen, output
+            if seen:
+                joined = {t.robot: t for t in received[-1].trajectories}["robot2"].poses[-1]
+                composed = se2.compose(
+                    frames[("robot1/map", "robot2/map")], frames[("robot2/map", "robot2/base_link")]
+                )
+                np.testing.assert_allclose(composed, [joined.x, joined.y, joined.theta], atol=1e-9)
     finally:
         node.destroy_node()
         executor.shutdown()

@@ -10,7 +10,8 @@ and the summary. Smoothers' first maps come in any order, so the first solve wai
 map or rendezvous part changes it re-solves (at most every ``solve_period`` wall-clock
 seconds) with the core's :func:`~csam_ros.core.csam.join_maps`, then writes
 ``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
-(transient local) and ``/csam/status``. A robot without a new map for
+(transient local), ``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot
+(:func:`robot_map_transforms`) and ``/csam/status``. A robot without a new map for
 ``stale_after`` seconds is reported stale there; its last map stays joined. A map delivered
 again unchanged starts no solve.
 
@@ -46,7 +47,9 @@ from csam_msgs.msg import LocalMap, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
+from tf2_msgs.msg import TFMessage
 
+from csam_ros.core import se2
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
@@ -61,7 +64,7 @@ from csam_ros.nodes.common import (
     steady_clock,
     subscribe,
 )
-from csam_ros.ros.conversions import time_to_ns
+from csam_ros.ros.conversions import tf_message, time_to_ns
 from csam_ros.ros.map_messages import (
     RefusedMessageError,
     joined_map_message,
@@ -69,7 +72,7 @@ from csam_ros.ros.map_messages import (
     robot_map_from_message,
 )
 from csam_ros.ros.markers import joined_map_markers
-from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS
+from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS, TF
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
 SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for a running solve before leaving it behind
@@ -195,6 +198,7 @@ class Merger(Node):
         self.joined_pub = publisher(self, JOINED_MAP)
         self.markers_pub = publisher(self, MARKERS)
         self.status_pub = publisher(self, STATUS)
+        self.tf_pub = publisher(self, TF)
         self.create_timer(
             max(period, 0.01), guarded(self, self.drops, self.on_timer), clock=steady_clock()
         )
@@ -444,6 +448,7 @@ class Merger(Node):
                 RunSummary(result, merger=stats).write(self.summary_path)
             self.joined_pub.publish(joined)
             self.markers_pub.publish(markers)
+            self.tf_pub.publish(robot_map_transforms(result, time_to_ns(joined.header.stamp)))
 
     def stats(self) -> MergerStats:
         """What the merger counted so far, as the summary carries it (call under the lock)."""
@@ -519,6 +524,20 @@ class Merger(Node):
             )
         )
         return array
+
+
+def robot_map_transforms(result: CsamResult, stamp_ns: int) -> TFMessage:
+    """``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot: the transform that
+    takes the robot's latest local pose to its joined pose, so that with the smoother's
+    ``<robot>/map -> <robot>/base_link`` the robot is where the joined map has it now (as
+    REP-105's ``map -> odom`` corrects odometry). At the first pose it is the base node; the
+    joint solve bends a local map slightly, so the two differ a little later on."""
+    transforms = []
+    for name, robot in result.robots.items():
+        if robot.alignment == "aligned" and robot.poses_joined is not None:
+            latest = se2.compose(robot.poses_joined[-1], se2.inverse(robot.poses_local[-1]))
+            transforms.append((result.reference_frame, f"{name}/map", latest))
+    return tf_message(transforms, stamp_ns)
 
 
 def _same_map(a: RobotMap, b: RobotMap) -> bool:

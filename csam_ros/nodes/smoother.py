@@ -3,7 +3,8 @@
 Subscribes to ``odom``, ``features`` and ``rendezvous`` (relative names: run it with
 ``-r __ns:=/robot1``) and to every peer's ``/<peer>/rendezvous`` so that it holds a pose at the
 stamp of every rendezvous measurement that involves its robot. Publishes ``local_map``,
-``rendezvous_poses`` and ``path`` every ``publish_period`` seconds (of the node's clock, so sim
+``rendezvous_poses``, ``path`` and ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest
+pose every ``publish_period`` seconds (of the node's clock, so sim
 time under ``use_sim_time``) when new data arrived, and when asked through ``~/flush``
 (std_srvs/Trigger; the reply's message is the published local map's stamp in nanoseconds).
 Every field of every sensor message is checked against the ``input:`` bounds
@@ -48,6 +49,7 @@ from csam_ros.ros.conversions import (
     rendezvous_from_message,
     rendezvous_log_from_chunks,
     stamp_to_ns,
+    tf_message,
     time_to_ns,
     yaw_quaternion,
 )
@@ -60,6 +62,7 @@ from csam_ros.ros.topics import (
     RENDEZVOUS,
     RENDEZVOUS_POSES,
     STATUS,
+    TF,
 )
 
 
@@ -119,6 +122,7 @@ class Smoother(Node):
         self.local_map_pub = publisher(self, LOCAL_MAP)
         self.rendezvous_pub = publisher(self, RENDEZVOUS_POSES)
         self.path_pub = publisher(self, PATH)
+        self.tf_pub = publisher(self, TF)
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
         self.create_timer(self.publish_period, guarded(self, self.drops, self.on_timer))
@@ -221,6 +225,8 @@ class Smoother(Node):
         self.local_map_pub.publish(msg)
         self.rendezvous_pub.publish(self.rendezvous_poses(robot_map, stamp_ns))
         self.path_pub.publish(self.path(stamp_ns))
+        latest = (f"{self.robot}/map", f"{self.robot}/base_link", self.map.poses[-1])
+        self.tf_pub.publish(tf_message([latest], stamp_to_ns(self.map.stamps[-1])))
         self.published_ns = stamp_ns
 
     def rendezvous_poses(self, robot_map: RobotMap, stamp_ns: int) -> RendezvousPoses:

@@ -12,7 +12,7 @@ omega in the body frame with their variances), ``/<robot>/features``, ``/<robot>
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,8 +25,9 @@ from csam_msgs.msg import (
     RendezvousObservation,
     RendezvousObservations,
 )
-from geometry_msgs.msg import Quaternion
+from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
+from tf2_msgs.msg import TFMessage
 
 from csam_ros.core.log import (
     FeatureLog,
@@ -71,6 +72,21 @@ def time_to_seconds(stamp: Time) -> float:
 def yaw_quaternion(yaw: float) -> Quaternion:
     """The orientation of a planar pose: rotation by ``yaw`` [rad] about z."""
     return Quaternion(z=float(np.sin(yaw / 2)), w=float(np.cos(yaw / 2)))
+
+
+def tf_message(transforms: Sequence[tuple[str, str, np.ndarray]], stamp_ns: int) -> TFMessage:
+    """``/tf`` of planar transforms ``(parent, child, pose)``: frame ``child`` at ``pose``
+    (x, y, yaw) in frame ``parent``, all at ``stamp_ns``."""
+    msg = TFMessage()
+    for parent, child, pose in transforms:
+        t = TransformStamped()
+        t.header.stamp = ns_to_time(stamp_ns)
+        t.header.frame_id = parent
+        t.child_frame_id = child
+        t.transform.translation.x, t.transform.translation.y = float(pose[0]), float(pose[1])
+        t.transform.rotation = yaw_quaternion(float(pose[2]))
+        msg.transforms.append(t)
+    return msg
 
 
 def odometry_message(robot: str, stamp_ns: int, inputs: np.ndarray, sigmas: np.ndarray) -> Odometry:

@@ -28,6 +28,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 from rosgraph_msgs.msg import Clock
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 SENSOR_DATA = qos_profile_sensor_data
@@ -102,6 +103,9 @@ PATH = Topic("path", Path, LATCHED)
 JOINED_MAP = Topic("/csam/joined_map", JoinedMap, LATCHED)
 MARKERS = Topic("/csam/markers", MarkerArray, LATCHED)
 STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
+# REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/base_link
+# (smoothers); reliable and volatile with a deep queue, as tf2's broadcasters
+TF = Topic("/tf", TFMessage, QoSProfile(depth=100))
 CLOCK = Topic("/clock", Clock, SHALLOW)
 
 TOPICS: tuple[Topic, ...] = (
@@ -116,6 +120,7 @@ TOPICS: tuple[Topic, ...] = (
     JOINED_MAP,
     MARKERS,
     STATUS,
+    TF,
     CLOCK,
 )
 _GLOBAL = {t.name: t for t in TOPICS if not t.per_robot}
