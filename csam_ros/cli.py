@@ -122,7 +122,7 @@ def _finish(out: Path, summary: RunSummary) -> None:
     for name, r in result.robots.items():
         print(f"  {name}: {r.alignment}, {len(r.stamps)} poses")
     for note in result.notes:
-        if ": no local map: " in note:  # a robot left out of the offline run (core.csam)
+        if ": no local map: " in note or " not converged: " in note:  # from core.csam
             print(f"  {note}")
     print(f"  {len(result.features)} features, {len(result.associations)} associations")
     print("  summary.json, " + ", ".join(p.name for p in figures))

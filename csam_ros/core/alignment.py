@@ -224,6 +224,8 @@ class Alignment:
     covariance: Array  # joint covariance of the state
     iterations: int = 0
     final_cost: float = 0.0
+    converged: bool = True  # False: Algorithm 1 stopped at its iteration limit or failed
+    stop_reason: str = ""
     parents: dict[int, int] = field(default_factory=dict)  # robot -> robot it was placed from
     methods: dict[int, str] = field(default_factory=dict)
 
@@ -617,6 +619,8 @@ def _refine(
         covariance=cov,
         iterations=report.iterations if report else 0,
         final_cost=report.final_cost if report else float("inf"),
+        converged=report.converged if report else False,
+        stop_reason=report.reason if report else "singular system",
     )
 
 

@@ -440,10 +440,23 @@ def join_maps(
         )
         for mt in associations.matches
     ]
+    report = solution.report
+    if not alignment.converged:
+        notes.append(
+            f"Algorithm 1 not converged: {alignment.stop_reason} after "
+            f"{alignment.iterations} iterations (cost {alignment.final_cost:.6g})"
+        )
+    if not report.converged:
+        notes.append(
+            f"joint solve not converged: {report.reason} after {report.iterations} "
+            f"iterations (cost {report.final_cost:.6g})"
+        )
     statistics = {
         "algorithm1_iterations": alignment.iterations,
-        "joint_iterations": solution.report.iterations,
-        "joint_final_cost": solution.report.final_cost,
+        "algorithm1_converged": float(alignment.converged),
+        "joint_iterations": report.iterations,
+        "joint_converged": float(report.converged),
+        "joint_final_cost": report.final_cost,
         "association_candidates": associations.candidates,
         "association_gated": associations.gated,
         "association_rejected_conflicts": associations.rejected_conflicts,

@@ -299,6 +299,15 @@ class CsamResult:
         """The reference robot (the frame's owner)."""
         return self.reference_frame.rpartition("/")[0]
 
+    @property
+    def converged(self) -> bool:
+        """False when Algorithm 1 or the joint solve stopped unconverged (the notes say how);
+        True in summaries written before convergence was recorded."""
+        return all(
+            self.statistics.get(key, 1.0) == 1.0
+            for key in ("algorithm1_converged", "joint_converged")
+        )
+
     def joined_robots(self) -> set[str]:
         """The robots in the joined map (the reference and the aligned ones)."""
         return {name for name, robot in self.robots.items() if robot.joined}

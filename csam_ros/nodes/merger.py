@@ -430,6 +430,10 @@ class Merger(Node):
             return
         seconds = time.perf_counter() - start
         result.timing_s["merger_solve"] = seconds
+        if not result.converged:
+            for note in result.notes:
+                if " not converged: " in note:
+                    self.get_logger().warning(note)
         with self._lock:
             self.last_error = ""
             self.solve_seconds = seconds
@@ -510,16 +514,25 @@ class Merger(Node):
             "associations": len(result.associations) if result is not None else 0,
             "solve_seconds": round(self.solve_seconds, 4),
             "solving": self.solving,
+            "converged": result.converged if result is not None else "",
             "dropped": self.drops.total,
             "restarts": sum(self.restarts.values()),
             "last_error": self.last_error,
             **{f"dropped/{k}": v for k, v in self.drops.as_dict().items()},
         }
+        level, message = (
+            DiagnosticStatus.OK,
+            f"{self.solves} solves, {values['associations']} associations",
+        )
+        if self.last_error:
+            level = DiagnosticStatus.ERROR
+        elif result is not None and not result.converged:
+            level, message = DiagnosticStatus.WARN, f"{message}; the last solve did not converge"
         array.status.append(
             DiagnosticStatus(
-                level=DiagnosticStatus.OK if not self.last_error else DiagnosticStatus.ERROR,
+                level=level,
                 name="merger",
-                message=f"{values['solves']} solves, {values['associations']} associations",
+                message=message,
                 values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
             )
         )

@@ -279,3 +279,19 @@ def test_real_data_settings_and_errors() -> None:
         LocalMapConfig.from_dict({"key_intervall": 1.0})
     with pytest.raises(ValueError, match="batch_window"):
         LocalMapConfig.from_dict({"batch_window": "long"})
+
+
+def test_an_unconverged_solve_is_reported_never_silent(map_joining) -> None:
+    log, converged = map_joining
+    assert converged.converged
+    assert converged.statistics["joint_converged"] == 1.0
+    assert not [n for n in converged.notes if "not converged" in n]
+
+    config = CsamConfig(max_iterations=1)
+    result = run_csam(log, config)
+    assert not result.converged
+    assert result.statistics["joint_converged"] == 0.0
+    (note,) = [n for n in result.notes if n.startswith("joint solve not converged")]
+    assert "maximum iterations reached after 1 iterations" in note
+    again = CsamResult.from_dict(json.loads(json.dumps(result.to_dict())))
+    assert not again.converged and note in again.notes

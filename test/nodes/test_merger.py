@@ -19,7 +19,15 @@ from csam_msgs.msg import (
     RendezvousObservations,
     RendezvousPoses,
 )
-from merger_harness import MergerHarness, RunMessages, copied, joined_view, run_messages
+from diagnostic_msgs.msg import DiagnosticStatus
+from merger_harness import (
+    MergerHarness,
+    RunMessages,
+    copied,
+    joined_view,
+    run_messages,
+    status_values,
+)
 
 import csam_ros.nodes.merger as merger_module
 from csam_ros.core.result import RunSummary
@@ -323,3 +331,26 @@ def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkey
     assert merger.solves == solves + 1 and merger.drops.total == 0
     harness.settle(0.3)
     assert len(harness.joined) == published
+
+
+def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
+    ros_context, spin, good, tmp_path
+) -> None:
+    summary_path = tmp_path / "summary.json"
+    h = MergerHarness(ros_context, spin, summary_path=str(summary_path), max_iterations=1)
+    try:
+        h.start(good)
+        h.wait(
+            lambda: (
+                bool(h.status)
+                and (status_values(h.status[-1], "merger") or {}).get("converged") == "False"
+            )
+        )
+        (merger,) = [s for s in h.status[-1].status if s.name == "merger"]
+        assert merger.level == DiagnosticStatus.WARN
+        assert "did not converge" in merger.message
+        summary = RunSummary.read(summary_path)
+        assert not summary.result.converged
+        assert any(n.startswith("joint solve not converged") for n in summary.result.notes)
+    finally:
+        h.close()
