@@ -161,6 +161,33 @@ class UpdateReport:
     seconds: float
 
 
+@dataclass
+class LocalMapState:
+    """Everything a :class:`LocalMap` holds: its data (odometry, feature observations as
+    Cartesian points with square-root information, requested stamps) and its solved state
+    (key poses, odometry factors, landmarks), so that :meth:`LocalMap.from_state` gives back
+    the same map, estimate included, with no solve."""
+
+    odometry_stamps: Array  # (N,)
+    odometry_inputs: Array  # (N, 3)
+    odometry_sigmas: Array  # (N, 3)
+    feature_stamps: Array  # (K,) the first ``integrated_features`` integrated, in stamp order
+    feature_labels: IntArray  # (K,)
+    feature_points: Array  # (K, 2)
+    feature_sqrt_information: Array  # (K, 2, 2)
+    requested: Array  # (R,) requested pose stamps
+    keys: Array  # (P,) key pose stamps
+    key_values: Array  # (P, 3)
+    relative: Array  # (P - 1, 3) odometry between keys
+    relative_sqrt_information: Array  # (P - 1, 3, 3)
+    landmark_labels: IntArray  # (L,)
+    landmark_values: Array  # (L, 2)
+    integrated_features: int
+    dropped_features: int
+    last_solved_odometry: float  # -inf: never solved
+    solved: bool  # whether the map has a solved problem (poses to publish)
+
+
 class LocalMap:
     """Square-root smoothing of one robot's poses and landmarks (see the module docstring)."""
 
@@ -482,6 +509,86 @@ class LocalMap:
         self._system = None
         self._inverse = None
         return report
+
+    # -- state --------------------------------------------------------------------------------
+
+    def state(self) -> LocalMapState:
+        """Everything this map holds, as arrays (buffered data merged in first, as
+        :meth:`update` would)."""
+        self._consolidate()
+        return LocalMapState(
+            self._odo_t.copy(),
+            self._odo_u.copy(),
+            self._odo_q.copy(),
+            self._feat_t.copy(),
+            self._feat_label.copy(),
+            self._feat_z.copy(),
+            self._feat_w.copy(),
+            np.asarray(self._requested, dtype=float),
+            self._keys.copy(),
+            self._key_values.copy(),
+            self._rel.copy(),
+            self._rel_w.copy(),
+            np.array(self._landmark_labels, dtype=np.int64),
+            self._landmark_values.copy(),
+            self._integrated_features,
+            self._dropped_features,
+            float(self._last_solved_odometry),
+            self._problem is not None,
+        )
+
+    @classmethod
+    def from_state(
+        cls, name: str, state: LocalMapState, options: LocalMapOptions | None = None
+    ) -> LocalMap:
+        """The map of :meth:`state`, at its saved estimate (its problem rebuilt, not
+        solved). ValueError when the arrays do not fit together."""
+        s = state
+        p, k, n_lm = len(s.keys), len(s.feature_stamps), len(s.landmark_labels)
+        shapes = {
+            "odometry_inputs": (s.odometry_inputs, (len(s.odometry_stamps), 3)),
+            "odometry_sigmas": (s.odometry_sigmas, (len(s.odometry_stamps), 3)),
+            "feature_labels": (s.feature_labels, (k,)),
+            "feature_points": (s.feature_points, (k, 2)),
+            "feature_sqrt_information": (s.feature_sqrt_information, (k, 2, 2)),
+            "key_values": (s.key_values, (p, 3)),
+            "relative": (s.relative, (max(p - 1, 0), 3)),
+            "relative_sqrt_information": (s.relative_sqrt_information, (max(p - 1, 0), 3, 3)),
+            "landmark_values": (s.landmark_values, (n_lm, 2)),
+        }
+        for field_name, (value, shape) in shapes.items():
+            if np.shape(value) != shape:
+                raise ValueError(f"{name}: {field_name} has shape {np.shape(value)}, not {shape}")
+        if not 0 <= s.integrated_features <= k:
+            raise ValueError(f"{name}: {s.integrated_features} integrated of {k} features")
+        if s.solved and p == 0:
+            raise ValueError(f"{name}: a solved map without key poses")
+        local = cls(name, options)
+        local._odo_t, local._odo_u, local._odo_q = (
+            np.asarray(s.odometry_stamps, dtype=float),
+            np.asarray(s.odometry_inputs, dtype=float),
+            np.asarray(s.odometry_sigmas, dtype=float),
+        )
+        local._feat_t = np.asarray(s.feature_stamps, dtype=float)
+        local._feat_label = np.asarray(s.feature_labels, dtype=np.int64)
+        local._feat_z = np.asarray(s.feature_points, dtype=float)
+        local._feat_w = np.asarray(s.feature_sqrt_information, dtype=float)
+        local._requested = np.asarray(s.requested, dtype=float).tolist()
+        local._keys = np.asarray(s.keys, dtype=float)
+        local._key_values = np.asarray(s.key_values, dtype=float)
+        local._rel = np.asarray(s.relative, dtype=float).reshape(-1, 3)
+        local._rel_w = np.asarray(s.relative_sqrt_information, dtype=float).reshape(-1, 3, 3)
+        local._landmark_labels = [int(v) for v in s.landmark_labels]
+        local._landmark_index = {lab: i for i, lab in enumerate(local._landmark_labels)}
+        if len(local._landmark_index) != n_lm:
+            raise ValueError(f"{name}: repeated landmark labels")
+        local._landmark_values = np.asarray(s.landmark_values, dtype=float).reshape(-1, 2)
+        local._integrated_features = int(s.integrated_features)
+        local._dropped_features = int(s.dropped_features)
+        local._last_solved_odometry = float(s.last_solved_odometry)
+        if s.solved:
+            local._problem = local._build_problem()
+        return local
 
     # -- results ------------------------------------------------------------------------------
 
