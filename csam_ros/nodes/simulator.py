@@ -3,6 +3,10 @@
 Publishes per robot ``/<robot>/odom``, ``/<robot>/features``, ``/<robot>/rendezvous`` and
 ``/<robot>/ground_truth``, the features' truth on ``/sim/features_truth`` (transient local) and
 ``/clock``. The whole run is simulated by the core at start; the node only paces it out.
+
+With robots on their own hosts, each host runs a simulator of the same scenario and seed that
+publishes only its own robots' topics (``emit_robots``); exactly one of them publishes /clock
+and the truth (``publish_clock``), so the run has one source of sim time.
 """
 
 from __future__ import annotations
@@ -19,7 +23,14 @@ from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.nodes.common import declare, publisher, run_node, steady_clock
 from csam_ros.ros.conversions import log_to_messages, ns_to_time
-from csam_ros.ros.topics import CLOCK, declaration, sensor_topics
+from csam_ros.ros.topics import (
+    CLOCK,
+    FEATURES_TRUTH,
+    TOPICS,
+    declaration,
+    robot_topics,
+    sensor_topics,
+)
 
 
 class Simulator(Node):
@@ -74,21 +85,47 @@ class Simulator(Node):
         self.exit_when_done = declare(
             self, "exit_when_done", False, "shut down once everything is published"
         )
+        emit = [
+            r
+            for r in declare(
+                self,
+                "emit_robots",
+                [""],
+                "robots whose topics this simulator publishes (robots on their own hosts); "
+                "empty: every robot of the scenario",
+            )
+            if r
+        ]
+        publish_clock = declare(
+            self,
+            "publish_clock",
+            True,
+            "publish /clock and the features' truth: one simulator per run does, the run's "
+            "single source of sim time",
+        )
         scenario = load_scenario(scenario_name)
-        self.robots = [r.name for r in scenario.robots]
+        names = [r.name for r in scenario.robots]
+        unknown = sorted(set(emit) - set(names))
+        if unknown:
+            raise ValueError(f"emit_robots: {unknown} not in scenario {scenario.name} ({names})")
+        self.robots = emit or names
         log = simulate(scenario, None if seed < 0 else seed)
-        self.messages = log_to_messages(log)
+        emitted = set(robot_topics(self.robots, TOPICS))
+        if publish_clock:
+            emitted.add(FEATURES_TRUTH.name)
+        self.messages = [m for m in log_to_messages(log) if m.topic in emitted]
         self.topic_publishers: dict[str, Publisher] = {}
         for m in self.messages:
             if m.topic not in self.topic_publishers:
                 self.topic_publishers[m.topic] = publisher(self, declaration(m.topic), m.topic)
-        self.clock = publisher(self, CLOCK)
+        self.clock = publisher(self, CLOCK) if publish_clock else None
         self.next_index = 0
         self.start_stamp_ns = self.messages[0].stamp_ns if self.messages else 0
         self.end_stamp_ns = self.messages[-1].stamp_ns if self.messages else 0
         self.wall_start: float | None = None
         self.get_logger().info(
-            f"scenario {scenario.name}: {len(self.robots)} robots, {len(self.messages)} messages, "
+            f"scenario {scenario.name}: {len(self.robots)} of {len(names)} robots "
+            f"({', '.join(self.robots)}), {len(self.messages)} messages, "
             f"{(self.end_stamp_ns - self.start_stamp_ns) / 1e9:.1f} s at rate {self.rate}"
         )
         # the simulator is the clock source: pace by the steady wall clock, never by /clock
@@ -133,7 +170,9 @@ class Simulator(Node):
             self.next_index += 1
             published += 1
         now_ns = self.messages[self.next_index - 1].stamp_ns if self.next_index else horizon
-        self.clock.publish(Clock(clock=ns_to_time(min(max(now_ns, horizon), self.end_stamp_ns))))
+        if self.clock is not None:
+            now = min(max(now_ns, horizon), self.end_stamp_ns)
+            self.clock.publish(Clock(clock=ns_to_time(now)))
         if self.next_index == len(self.messages):
             self.timer.cancel()
             self.get_logger().info("all messages published")
