@@ -380,7 +380,7 @@ BAD_INPUT = {
     ),
     "mrclam_missing_landmarks": (
         lambda t: _dataset(t, "Landmark_Groundtruth.dat", None),
-        "missing Landmark_Groundtruth.dat",
+        "Landmark_Groundtruth.dat: missing",
     ),
     "mrclam_robots_not_numbers": (
         lambda t: [*_dataset(t), "--robots", "abc"],

@@ -7,9 +7,16 @@ A data set directory holds ``Barcodes.dat`` (subject, barcode), ``Landmark_Groun
 
 Policies (every dropped or repaired row is counted in :class:`ImportReport`, with the first
 offending lines quoted in ``ImportReport.notes``; no row ever raises; a required file,
-``Barcodes.dat``, ``Landmark_Groundtruth.dat`` or a selected robot's ``RobotN_Odometry.dat``,
-that is missing, unreadable or without one valid row raises :class:`MrclamFormatError` naming
-it, quoting its first dropped line; a missing or empty measurement file is counted):
+``Barcodes.dat``, ``Landmark_Groundtruth.dat`` or a selected robot's ``RobotN_Odometry.dat``
+or ``RobotN_Measurement.dat``, that is missing, unreadable or without one valid row raises
+:class:`MrclamFormatError` naming it, quoting its first dropped line; so does a
+``RobotN_Measurement.dat`` without its ``RobotN_Odometry.dat``):
+
+- Files. A file whose last line has no newline was cut inside that line (every file of the
+  data set ends with one): the line is dropped and counted (``<kind>_cut_last_line``). Rows
+  dropped from ``Barcodes.dat`` and ``Landmark_Groundtruth.dat`` are counted in
+  ``ImportReport.table_counts``. Other files of the directory (``RobotN_Groundtruth.dat``: the
+  robots' own ground truth is not used) are not read and listed in ``ImportReport.unread``.
 
 - Stamps. Log stamps are seconds relative to ``ImportReport.epoch``, the earliest valid stamp
   in any robot file of the data set (all robots, whatever the selection), so a window
@@ -75,8 +82,9 @@ FloatArray = NDArray[np.float64]
 
 BARCODES_FILE = "Barcodes.dat"
 LANDMARKS_FILE = "Landmark_Groundtruth.dat"
-_ROBOT_FILE = re.compile(r"^Robot(\d+)_Odometry\.dat$")
+_ROBOT_FILE = re.compile(r"^Robot(\d+)_(Odometry|Measurement)\.dat$")
 _MAX_NOTES = 40
+_NOTES_SHOWN = 10  # of the notes, in ImportReport.summary
 
 
 def default_dataset_dir() -> Path | None:
@@ -172,6 +180,9 @@ class ImportReport:
     notes: list[str] = field(default_factory=list)  # first offending lines, "file:line: why"
     truth_corrections: list[str] = field(default_factory=list)
     range_scale: dict[str, float] = field(default_factory=dict)  # robot -> measured / true
+    table_counts: dict[str, int] = field(default_factory=dict)  # Barcodes, Landmark_Groundtruth
+    unread: list[str] = field(default_factory=list)  # files of the directory not read
+    occlusion: dict[str, float] = field(default_factory=dict)  # robot -> s of data occluded
 
     def total(self, reason: str) -> int:
         """Sum of one count over all robots."""
@@ -189,6 +200,9 @@ class ImportReport:
             "notes": list(self.notes),
             "truth_corrections": list(self.truth_corrections),
             "range_scale": dict(self.range_scale),
+            "table_counts": dict(self.table_counts),
+            "unread": list(self.unread),
+            "occlusion": dict(self.occlusion),
         }
 
     def summary(self) -> str:
@@ -202,6 +216,20 @@ class ImportReport:
         if self.range_scale:
             scales = " ".join(f"{self.range_scale.get(r, 1.0):>8.4f}" for r in self.robots)
             lines.append(f"  {scales}  range scale (measured / true; ranges divided by it)")
+        if self.table_counts:
+            counts = ", ".join(f"{n} {k}" for k, n in sorted(self.table_counts.items()) if n)
+            lines.append(f"  {BARCODES_FILE} and {LANDMARKS_FILE}: {counts}")
+        if self.unread:
+            lines.append(f"  not read: {', '.join(self.unread)} (only the files above are used)")
+        shown = self.notes[:_NOTES_SHOWN]
+        if shown:
+            more = (
+                f", {len(self.notes) - len(shown)} more in the report"
+                if self.notes[len(shown) :]
+                else ""
+            )
+            lines.append(f"  first dropped or repaired lines ({len(shown)}{more}):")
+            lines += [f"    {note}" for note in shown]
         return "\n".join(lines)
 
 
@@ -210,12 +238,15 @@ class _Counter:
 
     def __init__(self, robots: list[str]) -> None:
         self.counts: dict[str, dict[str, int]] = {r: {} for r in robots}
+        self.tables: dict[str, int] = {}  # robot None: Barcodes.dat, Landmark_Groundtruth.dat
         self.notes: list[str] = []
 
     def add(self, robot: str | None, reason: str, n: int, note: str | None = None) -> None:
         if n <= 0:
             return
-        if robot is not None and robot in self.counts:
+        if robot is None:
+            self.tables[reason] = self.tables.get(reason, 0) + int(n)
+        elif robot in self.counts:
             self.counts[robot][reason] = self.counts[robot].get(reason, 0) + int(n)
         if note is not None:
             self.note(note)
@@ -239,17 +270,25 @@ def _read_table(
     """Parse whitespace-separated numeric rows; drop and count malformed ones.
 
     Comment lines (``#``) and blank lines are skipped. Counted reasons:
-    ``{prefix}_wrong_columns``, ``{prefix}_non_numeric``, ``{prefix}_non_finite``.
+    ``{prefix}_wrong_columns``, ``{prefix}_non_numeric``, ``{prefix}_non_finite``,
+    ``{prefix}_cut_last_line`` (a last line without newline: the file was cut inside it).
     """
-    try:
-        text = path.read_bytes().decode("utf-8", errors="replace")
-    except OSError as err:
-        raise MrclamFormatError(f"{path}: cannot read: {err.strerror or err}") from None
+    text = _read_text(path)
+    lines_of_text = text.splitlines()
+    cut = bool(text) and not text.endswith(("\n", "\r"))
     rows: list[list[str]] = []
     line_numbers: list[int] = []
-    for number, line in enumerate(text.splitlines(), start=1):
+    for number, line in enumerate(lines_of_text, start=1):
         tokens = line.split()
         if not tokens or tokens[0].startswith("#"):
+            continue
+        if cut and number == len(lines_of_text):
+            counter.add(
+                robot,
+                f"{prefix}_cut_last_line",
+                1,
+                f"{path.name}:{number}: the file ends inside this line (cut short?): dropped",
+            )
             continue
         if len(tokens) != ncols:
             counter.add(
@@ -281,6 +320,16 @@ def _read_table(
         counter.note(f"{path.name}:{number}: NaN or inf")
     counter.add(robot, f"{prefix}_non_finite", int((~finite).sum()))
     return _Table(values[finite], lines[finite])
+
+
+def _read_text(path: Path) -> str:
+    """A data set file's text (undecodable bytes replaced: their rows fail to parse)."""
+    if not path.is_file():
+        raise MrclamFormatError(f"{path}: missing")
+    try:
+        return path.read_bytes().decode("utf-8", errors="replace")
+    except OSError as err:
+        raise MrclamFormatError(f"{path}: cannot read: {err.strerror or err}") from None
 
 
 def _parse_slow(rows: list[list[str]], ncols: int) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -318,7 +367,7 @@ def _sort_by_stamp(table: _Table, counter: _Counter, robot: str, prefix: str, na
 def _no_rows(path: Path, what: str, counter: _Counter) -> MrclamFormatError:
     """The error of a required file without one usable row, quoting the first dropped line."""
     first = next((n for n in counter.notes if n.startswith(f"{path.name}:")), None)
-    text = path.read_bytes().decode("utf-8", errors="replace")
+    text = _read_text(path)
     if not any(line.split() and not line.lstrip().startswith("#") for line in text.splitlines()):
         why = " (the file is empty or holds only comments)"
     elif first is not None:
@@ -375,30 +424,48 @@ class _RobotFiles:
     measurements: _Table
 
 
-def _robot_numbers(directory: Path) -> list[int]:
-    numbers = []
+def _robot_files(directory: Path) -> tuple[list[int], list[int], list[str]]:
+    """Robot numbers with an odometry file, with any robot file, and the names of the other
+    files of the directory (not read)."""
+    odometry, robots, unread = set(), set(), []
     for path in directory.iterdir():
         match = _ROBOT_FILE.match(path.name)
         if match:
-            numbers.append(int(match.group(1)))
-    return sorted(numbers)
+            robots.add(int(match.group(1)))
+            if match.group(2) == "Odometry":
+                odometry.add(int(match.group(1)))
+        elif path.name not in (BARCODES_FILE, LANDMARKS_FILE) and not path.name.startswith("."):
+            unread.append(path.name)
+    return sorted(odometry), sorted(robots), sorted(unread)
 
 
-def _read_robot(directory: Path, number: int, counter: _Counter) -> _RobotFiles:
+_NO_ROWS = _Table(np.zeros((0, 4)), np.zeros(0, dtype=np.int64))
+
+
+def _read_robot(directory: Path, number: int, counter: _Counter, selected: bool) -> _RobotFiles:
+    """A robot's two files; a selected robot needs both with a valid row each (an unselected
+    one only gives its stamps to the epoch)."""
     name = f"robot{number}"
     odometry_path = directory / f"Robot{number}_Odometry.dat"
     measurement_path = directory / f"Robot{number}_Measurement.dat"
-    odometry = _read_table(odometry_path, 3, counter, name, "odometry")
-    odometry = _sort_by_stamp(odometry, counter, name, "odometry", odometry_path.name)
-    if measurement_path.exists():
-        measurements = _read_table(measurement_path, 4, counter, name, "measurement")
-        measurements = _sort_by_stamp(
-            measurements, counter, name, "measurement", measurement_path.name
-        )
-    else:
-        counter.add(name, "measurement_file_missing", 1, f"{measurement_path.name}: missing")
-        measurements = _Table(np.zeros((0, 4)), np.zeros(0, dtype=np.int64))
-    return _RobotFiles(odometry, measurements)
+    tables = []
+    for path, ncols, prefix in (
+        (odometry_path, 3, "odometry"),
+        (measurement_path, 4, "measurement"),
+    ):
+        if not selected and not path.is_file():
+            tables.append(_NO_ROWS)
+            continue
+        if not path.is_file():
+            other = measurement_path if path == odometry_path else odometry_path
+            raise MrclamFormatError(
+                f"{path}: missing ({other.name} is there; leave robot {number} out with --robots)"
+            )
+        table = _read_table(path, ncols, counter, name, prefix)
+        if selected and table.values.shape[0] == 0:
+            raise _no_rows(path, prefix, counter)
+        tables.append(_sort_by_stamp(table, counter, name, prefix, path.name))
+    return _RobotFiles(*tables)
 
 
 def _odometry_log(
@@ -470,10 +537,18 @@ def import_mrclam(
         raise MrclamFormatError(f"MR.CLAM data set directory {directory} does not exist")
     for required in (BARCODES_FILE, LANDMARKS_FILE):
         if not (directory / required).is_file():
-            raise MrclamFormatError(f"{directory}: missing {required}")
-    available = _robot_numbers(directory)
+            raise MrclamFormatError(f"{directory / required}: missing")
+    available, robot_numbers, unread = _robot_files(directory)
     if not available:
         raise MrclamFormatError(f"{directory}: no RobotN_Odometry.dat file")
+    if robots is None:
+        missing = sorted(set(robot_numbers) - set(available))
+        if missing:
+            raise MrclamFormatError(
+                f"{directory / f'Robot{missing[0]}_Odometry.dat'}: missing "
+                f"(Robot{missing[0]}_Measurement.dat is there; leave robot {missing[0]} out "
+                "with --robots)"
+            )
     selected = available if robots is None else sorted({int(r) for r in robots})
     missing = [r for r in selected if r not in available]
     if missing:
@@ -501,11 +576,11 @@ def import_mrclam(
         landmark_xy[rows] = landmark_xy[rows[::-1]]
         corrections.append(f"true positions of landmark subjects {a} and {b} exchanged")
     files = {
-        r: _read_robot(directory, r, counter if r in selected else _Counter([])) for r in available
+        r: _read_robot(directory, r, counter, True)
+        if r in selected
+        else _read_robot(directory, r, _Counter([]), False)
+        for r in robot_numbers
     }
-    for r in selected:
-        if files[r].odometry.values.shape[0] == 0:
-            raise _no_rows(directory / f"Robot{r}_Odometry.dat", "odometry", counter)
     first_stamps = [
         t.values[0, 0]
         for f in files.values()
@@ -532,7 +607,7 @@ def import_mrclam(
         name: _local_labels(landmark_subjects, number, label_seed)
         for number, name in zip(selected, names, strict=True)
     }
-    robot_subjects = set(available)
+    robot_subjects = set(robot_numbers)
     logs: dict[str, RobotLog] = {}
     for number, name in zip(selected, names, strict=True):
         features, rendezvous = _measurement_logs(
@@ -566,6 +641,8 @@ def import_mrclam(
         notes=counter.notes,
         truth_corrections=corrections,
         range_scale={f"robot{r}": scales[r] for r in selected if r in scales},
+        table_counts=dict(counter.tables),
+        unread=unread,
     )
     return MultiRobotLog(logs, truth), report
 

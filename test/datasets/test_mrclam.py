@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from csam_ros.datasets.mrclam import (
 
 DATASET = default_dataset_dir()
 ROOT = Path(__file__).resolve().parents[2]
+SEEN = ["1000.5 72 2.0 0.1"]  # a robot's one measurement (a robot without any is refused)
 
 
 def test_clean_import_labels_and_truth(tmp_path: Path) -> None:
@@ -66,7 +68,9 @@ def test_clean_import_labels_and_truth(tmp_path: Path) -> None:
 
 
 def test_labels_differ_between_seeds_but_are_deterministic(tmp_path: Path) -> None:
-    d = write_dataset(tmp_path / "ds", {1: clean_odometry(), 2: clean_odometry()}, {})
+    d = write_dataset(
+        tmp_path / "ds", {1: clean_odometry(), 2: clean_odometry()}, {1: SEEN, 2: SEEN}
+    )
     a, _ = import_mrclam(d, label_seed=0)
     b, _ = import_mrclam(d, label_seed=0)
     c, _ = import_mrclam(d, label_seed=1)
@@ -82,7 +86,7 @@ def test_malformed_odometry_rows_counted(tmp_path: Path) -> None:
     rows[3] = "1001.500 nan 0.0"  # NaN
     rows[4] = "1002.000 0.1 inf"  # inf
     rows.insert(5, "")  # blank line: skipped, not counted
-    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: SEEN})
     log, report = import_mrclam(d)
     counts = report.counts["robot1"]
     assert counts["odometry_wrong_columns"] == 1
@@ -113,7 +117,7 @@ def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
     d = write_dataset(
         tmp_path / "ds",
         {1: clean_odometry(), 2: clean_odometry(), 3: clean_odometry()},
-        {1: meas},
+        {1: meas, 2: SEEN},  # robot3, not selected, has no measurement file
     )
     log, report = import_mrclam(d, robots=[1, 2])
     c = report.counts["robot1"]
@@ -139,7 +143,7 @@ def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
 
 def test_duplicate_odometry_stamps_keep_last(tmp_path: Path) -> None:
     rows = ["1000.0 0.1 0.0", "1001.0 0.2 0.0", "1001.0 0.3 0.0", "1002.0 0.4 0.0"]
-    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: SEEN})
     log, report = import_mrclam(d)
     odo = log.robots["robot1"].odometry
     assert report.counts["robot1"]["odometry_duplicate_stamps"] == 1
@@ -170,7 +174,7 @@ def test_constant_velocity_straight_line_distance(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     stamps = 1000.0 + np.cumsum(rng.uniform(0.005, 0.05, 400))
     rows = [f"{t:.4f} 0.25 0.0" for t in stamps]
-    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: SEEN})
     log, _ = import_mrclam(d, start=1.0, duration=3.0)
     odo = log.robots["robot1"].odometry
     assert odo.stamps[0] == pytest.approx(1.0)
@@ -182,7 +186,7 @@ def test_constant_velocity_straight_line_distance(tmp_path: Path) -> None:
 
 def test_piecewise_velocity_uses_the_row_active_before_each_sample(tmp_path: Path) -> None:
     rows = ["1000.0 1.0 0.1", "1001.0 2.0 0.2", "1003.0 5.0 0.3"]
-    d = write_dataset(tmp_path / "ds", {1: rows}, {1: []})
+    d = write_dataset(tmp_path / "ds", {1: rows}, {1: SEEN})
     log, _ = import_mrclam(d)
     odo = log.robots["robot1"].odometry
     # the last row has no end: not extrapolated
@@ -221,7 +225,7 @@ def test_rendezvous_to_robot_without_odometry_then(tmp_path: Path) -> None:
     d = write_dataset(
         tmp_path / "ds",
         {1: clean_odometry(), 2: clean_odometry(t0=1003.0)},
-        {1: ["1001.0 14 2.0 0.1", "1004.0 14 2.0 0.1"]},
+        {1: ["1001.0 14 2.0 0.1", "1004.0 14 2.0 0.1"], 2: ["1004.0 72 2.0 0.1"]},
     )
     log, report = import_mrclam(d)
     assert report.counts["robot1"]["measurement_observed_outside_window"] == 1
@@ -229,7 +233,7 @@ def test_rendezvous_to_robot_without_odometry_then(tmp_path: Path) -> None:
 
 
 def test_bad_requests_raise_clear_errors(tmp_path: Path) -> None:
-    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {1: []})
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {1: SEEN})
     with pytest.raises(MrclamFormatError, match=r"robots \[4\]"):
         import_mrclam(d, robots=[1, 4])
     with pytest.raises(MrclamFormatError, match="no odometry in the window"):
@@ -238,13 +242,6 @@ def test_bad_requests_raise_clear_errors(tmp_path: Path) -> None:
         import_mrclam(d, duration=-1.0)
     with pytest.raises(MrclamFormatError, match="does not exist"):
         import_mrclam(tmp_path / "nowhere")
-
-
-def test_missing_measurement_file_counted(tmp_path: Path) -> None:
-    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {})
-    log, report = import_mrclam(d)
-    assert report.counts["robot1"]["measurement_file_missing"] == 1
-    assert log.robots["robot1"].features.stamps.size == 0
 
 
 def test_config_file_loads() -> None:
@@ -256,7 +253,7 @@ def test_config_file_loads() -> None:
 
 
 def test_landmark_swaps_exchange_truth_positions(tmp_path: Path) -> None:
-    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {1: []})
+    d = write_dataset(tmp_path / "ds", {1: clean_odometry()}, {1: SEEN})
     log, report = import_mrclam(d, landmark_swaps=[(6, 8)])
     ids = log.truth.feature_ids.tolist()
     np.testing.assert_allclose(log.truth.feature_positions[ids.index(6)], LANDMARKS[8])
@@ -305,3 +302,123 @@ def test_real_dataset_imports() -> None:
         assert 700 <= robot.rendezvous.stamps.size <= 2000
         assert np.all(np.diff(robot.odometry.stamps) > 0)
     assert report.end - report.start == pytest.approx(1490.6, abs=0.1)
+
+
+# Each file kind of a data set, as `csam import mrclam` sees it (the robots' own ground truth,
+# RobotN_Groundtruth.dat, is not read: the data sets here do not ship it).
+FILE_KINDS = [
+    "Barcodes.dat",
+    "Landmark_Groundtruth.dat",
+    "Robot1_Odometry.dat",
+    "Robot1_Measurement.dat",
+]
+
+
+def _import(directory: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> tuple:
+    """``csam import mrclam`` in this process: exit code, stdout, stderr."""
+    from mrclam_files import PLAIN_CONFIG
+
+    from csam_ros.cli import main
+
+    config = tmp_path / "plain.yaml"
+    config.write_text(PLAIN_CONFIG)
+    out = tmp_path / "bag"
+    code = main(["import", "mrclam", str(directory), "--config", str(config), "--out", str(out)])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.mark.parametrize("damage", ["missing", "empty", "comments only"])
+@pytest.mark.parametrize("name", FILE_KINDS)
+def test_a_missing_or_empty_file_is_refused_by_name(
+    name: str, damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every file the import reads, missing or without a data row: one line naming it, exit
+    code 2, no bag (an empty odometry file once died in an IndexError; a missing or empty
+    measurement file was imported as a robot that saw nothing)."""
+    from mrclam_files import small_dataset
+
+    directory = small_dataset(tmp_path / "ds")
+    path = directory / name
+    path.unlink()
+    if damage != "missing":
+        path.write_text("" if damage == "empty" else "# a comment only\n")
+    code, out, err = _import(directory, tmp_path, capsys)
+    assert code == 2, out + err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    why = "missing" if damage == "missing" else "no valid "
+    assert err.startswith(f"csam import: {path}: {why}"), err
+    if damage != "missing":
+        assert "(the file is empty or holds only comments)" in err
+    assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.parametrize("name", FILE_KINDS)
+def test_a_file_cut_inside_a_line_drops_that_line_and_says_so(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A file cut inside its last line (no newline at its end): that line is dropped, counted
+    and quoted in the import's printout, never silently taken with a cut number."""
+    from mrclam_files import small_dataset
+
+    directory = small_dataset(tmp_path / "ds")
+    path = directory / name
+    data = path.read_bytes()
+    path.write_bytes(data[:-3])  # "...0.05\n" -> "...0." : still a number
+    lines = data.decode().splitlines()
+    code, out, err = _import(directory, tmp_path, capsys)
+    assert code == 0, err
+    prefix = {
+        "Barcodes.dat": "barcode",
+        "Landmark_Groundtruth.dat": "landmark",
+        "Robot1_Odometry.dat": "odometry",
+        "Robot1_Measurement.dat": "measurement",
+    }[name]
+    assert f"{name}:{len(lines)}: the file ends inside this line (cut short?): dropped" in out
+    if name.startswith("Robot1"):
+        assert re.search(rf"^\s+1\s+0\s+{prefix}_cut_last_line$", out, re.M), out
+    else:
+        assert f"1 {prefix}_cut_last_line" in out, out
+    _, report = import_mrclam(directory)
+    counts = report.counts["robot1"] if name.startswith("Robot1") else report.table_counts
+    assert counts[f"{prefix}_cut_last_line"] == 1
+    whole = small_dataset(tmp_path / "whole")
+    _, complete = import_mrclam(whole)
+    assert complete.total(f"{prefix}_cut_last_line") == 0 and not complete.table_counts.get(
+        f"{prefix}_cut_last_line"
+    )
+
+
+@pytest.mark.parametrize("content", ["", "# x y theta\n", "1000.0 0.0 0.0 0.0\n1000"])
+def test_robot_ground_truth_files_are_not_read_and_said_so(
+    content: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """RobotN_Groundtruth.dat (in the original distribution, not used here) empty, with a
+    comment only or cut: the import is the same as without it, and names it as not read."""
+    from mrclam_files import small_dataset
+
+    directory = small_dataset(tmp_path / "ds")
+    plain, _ = import_mrclam(directory)
+    (directory / "Robot1_Groundtruth.dat").write_text(content)
+    code, out, err = _import(directory, tmp_path, capsys)
+    assert code == 0, err
+    assert "not read: Robot1_Groundtruth.dat" in out
+    log, report = import_mrclam(directory)
+    assert report.unread == ["Robot1_Groundtruth.dat"]
+    for name, robot in log.robots.items():
+        np.testing.assert_array_equal(robot.odometry.stamps, plain.robots[name].odometry.stamps)
+        np.testing.assert_array_equal(robot.features.ranges, plain.robots[name].features.ranges)
+
+
+def test_a_robot_with_only_one_of_its_files_is_refused_unless_left_out(tmp_path: Path) -> None:
+    """A measurement file without its odometry file names the missing file; leaving the
+    robot out with ``robots`` imports the others (its barcode still counts as a robot's)."""
+    from mrclam_files import small_dataset
+
+    directory = small_dataset(tmp_path / "ds")
+    (directory / "Robot2_Odometry.dat").unlink()
+    with pytest.raises(MrclamFormatError, match=r"Robot2_Odometry.dat: missing \(Robot2_Meas"):
+        import_mrclam(directory)
+    log, report = import_mrclam(directory, robots=[1])
+    assert list(log.robots) == ["robot1"]
+    assert report.counts["robot1"]["measurement_unselected_robot"] == 1  # robot1 saw robot2
