@@ -603,3 +603,36 @@ def test_evaluate_opens_only_a_bag_as_the_summary_source(tmp_path: Path) -> None
         assert len(bad.stderr.strip().splitlines()) == 1 and "Traceback" not in bad.stderr
         assert f"{source} (the source named in summary.json) is not a readable bag" in bad.stderr
     assert not (tmp_path / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("mode", ["offline", "live"])
+def test_replay_of_a_bag_cut_in_half_says_what_it_recovered(mode: str, tmp_path: Path) -> None:
+    """A recorded bag whose .mcap file is cut at half its bytes replays its readable part
+    (live and offline) and says, in one warning line, that the file was cut, how many of the
+    messages in metadata.yaml it read and up to which log time; the run ends normally."""
+    import shutil
+
+    from csam_ros.bag import read_bag
+
+    bag = tmp_path / "map_joining"
+    shutil.copytree(BAG, bag)
+    mcap = bag / "bag_0.mcap"
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2])
+    stamps = [m.log_time_ns for m in read_bag(bag, on_damage=lambda _: None)]
+    last = stamps[-1]
+    args = ["--offline"] if mode == "offline" else ["--rate", "4", "--isolated"]
+    done = csam("replay", bag, *args, "--out", tmp_path / "out")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    warnings = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1, done.stderr
+    assert f"{mcap} is cut short" in warnings[0]
+    assert (
+        f"read {len(stamps)} message(s) of the 1335 in metadata.yaml, up to log time "
+        f"{last // 10**9}.{last % 10**9:09d} s" in warnings[0]
+    ), warnings[0]
+    result = RunSummary.read(tmp_path / "out" / "summary.json").result
+    assert sorted(result.robots) == ["robot1", "robot2"]
+    for robot in result.robots.values():  # the readable part: the whole bag gives 70 poses
+        assert robot.alignment in ("reference", "aligned") and 0 < len(robot.stamps) < 70

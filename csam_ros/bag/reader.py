@@ -174,16 +174,50 @@ def _lost(scan: McapScan, lost: dict[int, int] | None) -> str:
     return ", ".join(f"{n} message(s) of {scan.topic_of(k)}" for k, n in sorted(lost.items()))
 
 
-def file_warnings(scan: McapScan) -> list[str]:
-    """One line for each thing wrong with a scanned file: cut short, a skipped chunk (its
-    offset, why, the messages lost), bytes that do not read, messages without a channel."""
+def log_time_text(ns: int) -> str:
+    """A log time [ns] as exact seconds, e.g. ``1795354445.656958706 s``."""
+    return f"{ns // 10**9}.{ns % 10**9:09d} s"
+
+
+def cut_summary(scan: McapScan, listed: int | None = None) -> str:
+    """What a file cut short still gives: its readable messages (against ``listed``, the count
+    metadata.yaml gives for the file, when that is more) and the log time they reach."""
+    read = sum(scan.counts().values())
+    text = f"{read} message(s)"
+    if listed is not None and listed > read:
+        text += f" of the {listed} in metadata.yaml"
+    span = scan.span()
+    if span is not None:
+        text += (
+            f", up to log time {log_time_text(span[1])} "
+            f"({(span[1] - span[0]) * 1e-9:.3f} s after its first)"
+        )
+    return text
+
+
+def _listed_counts(path: Path, metadata: dict[str, Any] | None) -> dict[Path, int]:
+    """The message count of each file as metadata.yaml's ``files`` section gives it (written
+    when the recording ended; an entry that does not read is left out)."""
+    counts: dict[Path, int] = {}
+    for entry in (metadata or {}).get("files") or []:
+        try:
+            counts[path / str(entry["path"])] = int(entry["message_count"])
+        except (KeyError, TypeError, ValueError):
+            continue
+    return counts
+
+
+def file_warnings(scan: McapScan, listed: int | None = None) -> list[str]:
+    """One line for each thing wrong with a scanned file: cut short (the messages read and
+    the log time they reach; ``listed``: metadata.yaml's count for the file), a skipped
+    chunk (its offset, why, the messages lost), bytes that do not read, messages without a
+    channel."""
     warnings = []
     if scan.cut_at is not None:
-        counts = scan.counts()
         chunks = sum(1 for c in scan.chunks if c.ok)
         warnings.append(
-            f"{scan.path} is cut short (no MCAP footer: its recording was killed?); "
-            f"read {sum(counts.values())} message(s) in {chunks} complete chunk(s) up to byte "
+            f"{scan.path} is cut short (no MCAP footer: its recording was killed or the file "
+            f"cut?); read {cut_summary(scan, listed)} in {chunks} complete chunk(s) up to byte "
             f"{scan.cut_at} of {scan.size}; `csam bag recover` rewrites it complete"
         )
     for chunk in scan.skipped:
@@ -219,7 +253,8 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
     for file in files:
         _check_magic(file)
     scans = [_scan(file) for file in files]
-    warnings = [line for scan in scans for line in file_warnings(scan)]
+    listed = _listed_counts(path, metadata)
+    warnings = [line for scan in scans for line in file_warnings(scan, listed.get(scan.path))]
 
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
@@ -308,8 +343,9 @@ def read_bag(
         _check_magic(file)
     report = on_damage if on_damage is not None else LOGGER.warning
     scans = [_scan(file) for file in files]
+    listed = _listed_counts(path, metadata)
     for scan in scans:
-        for line in file_warnings(scan):
+        for line in file_warnings(scan, listed.get(scan.path)):
             report(line)
     wanted = set(topics) if topics is not None else None
     streams = [_iter_scan(scan, wanted, report) for scan in scans]

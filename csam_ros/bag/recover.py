@@ -21,8 +21,10 @@ from .reader import (
     _bag_files,
     _check_magic,
     _iter_scan,
+    _listed_counts,
     _load_metadata,
     _scan,
+    cut_summary,
     file_warnings,
     inspect_bag,
 )
@@ -38,6 +40,7 @@ class RecoveryReport:
     out: Path
     messages: dict[str, int]  # per topic, as written to ``out``
     cut_files: list[Path] = field(default_factory=list)  # files that had no footer / index
+    cut_reads: list[str] = field(default_factory=list)  # per cut file: messages and log time read
     skipped_chunks: list[str] = field(default_factory=list)  # one line per damaged chunk
     warnings: list[str] = field(default_factory=list)  # everything else found wrong
     dropped_topics: dict[str, str] = field(default_factory=dict)  # topic -> why not copied
@@ -50,7 +53,11 @@ class RecoveryReport:
         """The report as printed by ``csam bag recover``."""
         lines = [f"recovered {self.message_count} message(s) of {self.source} into {self.out}/"]
         lines += [f"  {topic}: {n}" for topic, n in sorted(self.messages.items())]
-        lines += [f"  {file}: cut short, read up to its last chunk" for file in self.cut_files]
+        reads = self.cut_reads or [""] * len(self.cut_files)
+        lines += [
+            f"  {file}: cut short, read up to its last chunk" + (f": {read}" if read else "")
+            for file, read in zip(self.cut_files, reads, strict=True)
+        ]
         lines += [f"  {line}" for line in self.skipped_chunks + self.warnings]
         lines += [f"  {topic} not copied: {why}" for topic, why in self.dropped_topics.items()]
         return lines
@@ -111,6 +118,7 @@ def recover_bag(
     for file in files:
         _check_magic(file)
     scans = [_scan(file) for file in files]
+    listed = _listed_counts(source, metadata)
     hashes = {name: topic.type_hash for name, topic in info.topics.items()}
     definitions, dropped = _definitions(scans, hashes)
     if not definitions:
@@ -120,6 +128,7 @@ def recover_bag(
     for scan in scans:
         if scan.cut_at is not None:
             report.cut_files.append(scan.path)
+            report.cut_reads.append(cut_summary(scan, listed.get(scan.path)))
         elif not scan.complete:
             report.warnings.append(f"{scan.path}: its index was unreadable")
         report.skipped_chunks += [w for w in file_warnings(scan) if ": chunk at offset" in w]

@@ -490,3 +490,33 @@ def test_metadata_may_not_name_files_outside_the_bag(tmp_path: Path, sample_bag:
             inspect_bag(path)
         with pytest.raises(BagError, match="outside the bag directory"):
             list(read_bag(path))
+
+
+def test_a_bag_cut_at_half_its_bytes_says_how_much_it_read_and_up_to_when(
+    tmp_path: Path,
+) -> None:
+    """A complete bag whose .mcap file is cut at half its bytes (metadata.yaml intact): the
+    readers return the messages of its complete chunks and say, in one line, that the file
+    was cut, how many of the messages metadata.yaml lists were read and the last log time
+    they reach; ``recover_bag`` says the same."""
+    from csam_ros.bag import recover_bag
+
+    mcap = _counter_bag(tmp_path / "half", n=200)
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2])
+    lines: list[str] = []
+    stamps = [m.log_time_ns for m in read_bag(mcap.parent, on_damage=lines.append)]
+    assert 0 < len(stamps) < 200 and stamps == [i * SECOND for i in range(len(stamps))]
+    last = f"{stamps[-1] // SECOND}.000000000 s"
+    expected = (
+        f"read {len(stamps)} message(s) of the 200 in metadata.yaml, up to log time {last} "
+        f"({stamps[-1] / SECOND:.3f} s after its first)"
+    )
+    assert len(lines) == 1 and f"{mcap} is cut short" in lines[0] and expected in lines[0]
+    assert inspect_bag(mcap.parent).warnings == lines
+    report = recover_bag(mcap.parent, tmp_path / "recovered")
+    assert report.messages == {"/counter": len(stamps)}
+    assert any(expected[5:] in line for line in report.lines()), report.lines()
+    # the .mcap file alone has no metadata.yaml: the count read, without a total
+    alone = inspect_bag(mcap).warnings
+    assert len(alone) == 1 and f"read {len(stamps)} message(s), up to log time {last}" in alone[0]
