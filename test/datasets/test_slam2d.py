@@ -120,3 +120,32 @@ def test_disconnected_pose_is_reported(tmp_path):
     (tmp_path / "d.txt").write_text("ODOMETRY 0 1 1 0 0 1 0 0 1 0 1\nLANDMARK 5 0 1 1 1 0 1\n")
     with pytest.raises(ValueError, match="pose 5 is not connected"):
         initial_values(read_slam2d(tmp_path / "d.txt"))
+
+
+@pytest.mark.parametrize("kind", ["mcap bag", "gzip of a valid file", "text then NUL bytes"])
+def test_import_of_a_binary_file_is_one_line(kind, tmp_path, capsys):
+    """`csam import slam2d` given a binary file (it once ended in a UnicodeDecodeError
+    traceback): one line naming the file and line, exit code 2, no bag."""
+    import gzip
+    from pathlib import Path
+
+    from csam_ros.cli import main
+
+    good = "ODOMETRY 0 1 1 0 0 1 0 0 1 0 1\nLANDMARK 0 7 2 1 0.01 0 0.01\n"
+    path = tmp_path / "data.txt"
+    if kind == "mcap bag":
+        repo = Path(__file__).resolve().parents[2]
+        path.write_bytes((repo / "bags" / "map_joining" / "bag_0.mcap").read_bytes()[:4096])
+        expected = f"{path}:1: not UTF-8 text (byte 0x89 at column 1): a 2D SLAM file is text"
+    elif kind == "gzip of a valid file":
+        path.write_bytes(gzip.compress(good.encode()))
+        expected = f"{path}:1: not UTF-8 text (byte 0x8b at column 2)"
+    else:
+        path.write_bytes(good.encode() + b"\x00\x00\x00\x00\n")
+        expected = f"{path}:3: unknown record"
+    code = main(["import", "slam2d", str(path), "--out", str(tmp_path / "bag")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"csam import: {expected}"), err
+    assert not (tmp_path / "bag").exists()
