@@ -415,13 +415,22 @@ def cmd_import(args: argparse.Namespace) -> int:
         raise CliError(f"{args.out} exists: an import never overwrites a bag")
     if args.format == "mrclam":
         from csam_ros.core.config_file import ConfigFileError, resolve_config_path
-        from csam_ros.datasets.mrclam import MrclamFormatError, import_mrclam, load_config
+        from csam_ros.datasets.mrclam import (
+            MrclamFormatError,
+            import_mrclam,
+            load_config,
+            parse_occlusion,
+        )
 
         try:
             config = load_config(resolve_config_path(args.config or "mrclam"))
         except (ConfigFileError, OSError, ValueError) as err:
             raise CliError(f"--config: {err}") from None
         robots = _robot_numbers(args.robots)
+        try:
+            occlusion = parse_occlusion(args.occlude) if args.occlude is not None else None
+        except ValueError as err:
+            raise CliError(f"--occlude: {err}") from None
         try:
             log, report = import_mrclam(
                 args.source,
@@ -431,6 +440,7 @@ def cmd_import(args: argparse.Namespace) -> int:
                 noise=config["noise"],
                 landmark_swaps=[tuple(p) for p in config.get("landmark_swaps") or ()],
                 range_scale=config.get("range_scale"),
+                occlusion=occlusion,
             )
         except (MrclamFormatError, ValueError) as err:
             raise CliError(str(err)) from None
@@ -438,6 +448,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     else:
         from csam_ros.datasets.slam2d import Slam2dFormatError
         from csam_ros.datasets.slam2d_log import read_slam2d_log
+
+        if args.occlude is not None:
+            raise CliError("--occlude is an option of import mrclam")
 
         try:
             log = read_slam2d_log(args.source)
@@ -563,6 +576,13 @@ def parser() -> argparse.ArgumentParser:
         type=Path,
         help="MR.CLAM: config with the noise model, range scales and truth swaps "
         "(default: the installed mrclam.yaml; see csam calibrate)",
+    )
+    imp.add_argument(
+        "--occlude",
+        metavar="ROBOT:START-END[,...]|stress",
+        help="MR.CLAM: drop a robot's landmark observations (not those of other robots) over "
+        "windows of seconds after the data set's first stamp; 'stress': the robot that sees "
+        "landmarks least often, every other 90 s window from 90 s on (half its run)",
     )
     imp.set_defaults(func=cmd_import)
 

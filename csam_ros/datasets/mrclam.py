@@ -182,7 +182,7 @@ class ImportReport:
     range_scale: dict[str, float] = field(default_factory=dict)  # robot -> measured / true
     table_counts: dict[str, int] = field(default_factory=dict)  # Barcodes, Landmark_Groundtruth
     unread: list[str] = field(default_factory=list)  # files of the directory not read
-    occlusion: dict[str, float] = field(default_factory=dict)  # robot -> s of data occluded
+    occlusion: dict[str, list[list[float]]] = field(default_factory=dict)  # robot -> windows
 
     def total(self, reason: str) -> int:
         """Sum of one count over all robots."""
@@ -219,6 +219,14 @@ class ImportReport:
         if self.table_counts:
             counts = ", ".join(f"{n} {k}" for k, n in sorted(self.table_counts.items()) if n)
             lines.append(f"  {BARCODES_FILE} and {LANDMARKS_FILE}: {counts}")
+        for robot, windows in self.occlusion.items():
+            spans = " ".join(f"[{a:.0f}, {b:.0f})" for a, b in windows)
+            total = sum(b - a for a, b in windows)
+            lines.append(
+                f"  occluded: {robot}'s landmark observations in {spans} s ({total:.0f} s; "
+                f"{self.counts.get(robot, {}).get('measurement_occluded', 0)} dropped, "
+                "its rendezvous kept)"
+            )
         if self.unread:
             lines.append(f"  not read: {', '.join(self.unread)} (only the files above are used)")
         shown = self.notes[:_NOTES_SHOWN]
@@ -522,6 +530,7 @@ def import_mrclam(
     label_seed: int = 0,
     landmark_swaps: Sequence[tuple[int, int]] = (),
     range_scale: Mapping[int, float] | None = None,
+    occlusion: str | Sequence[tuple[int, float, float]] | None = None,
 ) -> tuple[MultiRobotLog, ImportReport]:
     """Read an MR.CLAM data set directory into a :class:`MultiRobotLog`.
 
@@ -530,7 +539,8 @@ def import_mrclam(
     (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
     label -> subject map) and the :class:`ImportReport`. ``landmark_swaps`` lists pairs of
     landmark subjects whose true positions are exchanged, ``range_scale`` each robot's ratio of
-    measured to true range (module docstring).
+    measured to true range (module docstring). ``occlusion`` drops landmark observations:
+    :data:`STRESS` or windows ``(robot number, start, end)`` (:func:`occlude_landmarks`).
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -623,6 +633,7 @@ def import_mrclam(
             counter,
         )
         logs[name] = RobotLog(name, odometry[name], features, rendezvous)
+    occluded = occlude_landmarks(logs, occlusion, counter) if occlusion else {}
 
     truth = GroundTruth(
         feature_ids=landmark_subjects,
@@ -643,8 +654,89 @@ def import_mrclam(
         range_scale={f"robot{r}": scales[r] for r in selected if r in scales},
         table_counts=dict(counter.tables),
         unread=unread,
+        occlusion=occluded,
     )
     return MultiRobotLog(logs, truth), report
+
+
+# Occlusion stress (``csam import mrclam --occlude``): a repeatable way to make the data hard.
+STRESS = "stress"
+STRESS_PERIOD = 90.0  # s: the stress case occludes every other window of this length
+_WINDOW = re.compile(r"^\s*(\d+)\s*:\s*(\d+(?:\.\d*)?)\s*-\s*(\d+(?:\.\d*)?)\s*$")
+
+
+def parse_occlusion(text: str) -> str | list[tuple[int, float, float]]:
+    """``--occlude``'s value: :data:`STRESS`, or ``ROBOT:START-END[,ROBOT:START-END...]``
+    (robot number, seconds after the data set's first stamp, ``START < END``). ValueError
+    naming the part that does not read."""
+    if text.strip() == STRESS:
+        return STRESS
+    windows = []
+    for part in text.split(","):
+        match = _WINDOW.match(part)
+        if match is None:
+            raise ValueError(
+                f"{part.strip()!r} is not ROBOT:START-END (e.g. 4:90-180, seconds after the "
+                f"data set's first stamp) or {STRESS!r}"
+            )
+        robot, begin, end = int(match.group(1)), float(match.group(2)), float(match.group(3))
+        if not end > begin:
+            raise ValueError(f"{part.strip()!r}: the window must end after it starts")
+        windows.append((robot, begin, end))
+    return windows
+
+
+def stress_windows(logs: Mapping[str, RobotLog]) -> list[tuple[int, float, float]]:
+    """The stress case: the robot that sees landmarks least often (observations per second of
+    its odometry span) loses them in every other :data:`STRESS_PERIOD` window from one period
+    after its start on: about half of its run, in windows of 90 s."""
+
+    def rate(log: RobotLog) -> float:
+        span = log.odometry.stamps[-1] - log.odometry.stamps[0]
+        return log.features.stamps.size / span if span > 0 else 0.0
+
+    name = min(logs, key=lambda n: (rate(logs[n]), n))
+    first, last = logs[name].odometry.stamps[[0, -1]]
+    starts = np.arange(first + STRESS_PERIOD, last, 2 * STRESS_PERIOD)
+    return [(int(name[5:]), float(a), float(min(a + STRESS_PERIOD, last))) for a in starts]
+
+
+def occlude_landmarks(
+    logs: dict[str, RobotLog],
+    occlusion: str | Sequence[tuple[int, float, float]],
+    counter: _Counter,
+) -> dict[str, list[list[float]]]:
+    """Drop the landmark (feature) observations of ``robotN`` stamped inside each window
+    ``(N, start, end)`` (``[start, end)``, s after the data set's first stamp), or in the
+    :func:`stress_windows` for :data:`STRESS`; count them ``measurement_occluded``. Its
+    observations of other robots (rendezvous) are kept: the stress is on the local maps. Returns
+    robot -> its windows."""
+    windows = stress_windows(logs) if occlusion == STRESS else list(occlusion)
+    occluded: dict[str, list[list[float]]] = {}
+    for number, begin, end in windows:
+        name = f"robot{int(number)}"
+        if name not in logs:
+            raise ValueError(f"occlusion: robot {number} is not imported ({', '.join(logs)})")
+        occluded.setdefault(name, []).append([float(begin), float(end)])
+    for name, spans in occluded.items():
+        f = logs[name].features
+        hidden = np.zeros(f.stamps.size, dtype=bool)
+        for begin, end in spans:
+            hidden |= (f.stamps >= begin) & (f.stamps < end)
+        n = int(hidden.sum())
+        keep = ~hidden
+        logs[name].features = FeatureLog(
+            f.stamps[keep],
+            f.labels[keep],
+            f.ranges[keep],
+            f.bearings[keep],
+            f.sigma_range[keep],
+            f.sigma_bearing[keep],
+        )
+        counter.add(name, "measurement_occluded", n)
+        if n:
+            counter.counts[name]["feature_measurements"] -= n
+    return occluded
 
 
 def _range_scales(range_scale: Mapping[int, float], available: list[int]) -> dict[int, float]:

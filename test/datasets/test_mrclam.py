@@ -316,16 +316,7 @@ FILE_KINDS = [
 
 def _import(directory: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> tuple:
     """``csam import mrclam`` in this process: exit code, stdout, stderr."""
-    from mrclam_files import PLAIN_CONFIG
-
-    from csam_ros.cli import main
-
-    config = tmp_path / "plain.yaml"
-    config.write_text(PLAIN_CONFIG)
-    out = tmp_path / "bag"
-    code = main(["import", "mrclam", str(directory), "--config", str(config), "--out", str(out)])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
+    return _import_with(directory, tmp_path, capsys)
 
 
 @pytest.mark.parametrize("damage", ["missing", "empty", "comments only"])
@@ -422,3 +413,137 @@ def test_a_robot_with_only_one_of_its_files_is_refused_unless_left_out(tmp_path:
     log, report = import_mrclam(directory, robots=[1])
     assert list(log.robots) == ["robot1"]
     assert report.counts["robot1"]["measurement_unselected_robot"] == 1  # robot1 saw robot2
+
+
+def _long_dataset(directory: Path) -> Path:
+    """Two robots driving 400 s: robot1 sees landmark 6 every second, robot2 every 2 s (so
+    robot2 sees landmarks least often); each sees the other every 10 s."""
+    meas = {
+        1: [f"{1000 + t:.1f} 72 2.0 0.1" for t in range(1, 400)]
+        + [f"{1000 + t + 0.5:.1f} 14 1.5 0.0" for t in range(5, 400, 10)],
+        2: [f"{1000 + t:.1f} 27 2.0 0.1" for t in range(1, 400, 2)]
+        + [f"{1000 + t + 0.5:.1f} 5 1.5 0.0" for t in range(5, 400, 10)],
+    }
+    meas = {r: sorted(rows) for r, rows in meas.items()}
+    return write_dataset(directory, {r: clean_odometry(n=801) for r in (1, 2)}, meas)
+
+
+def test_occlusion_drops_a_robots_landmark_observations_in_its_windows(tmp_path: Path) -> None:
+    """Windows [start, end) of seconds after the data set's first stamp: the robot's feature
+    observations inside them are dropped and counted, its rendezvous and the other robot's
+    observations kept."""
+    from csam_ros.datasets.mrclam import parse_occlusion
+
+    d = _long_dataset(tmp_path / "ds")
+    plain, _ = import_mrclam(d)
+    windows = parse_occlusion("1:10-20, 1:100.5-150,2:0-5")
+    assert windows == [(1, 10.0, 20.0), (1, 100.5, 150.0), (2, 0.0, 5.0)]
+    log, report = import_mrclam(d, occlusion=windows)
+    stamps = plain.robots["robot1"].features.stamps
+    hidden = ((stamps >= 10) & (stamps < 20)) | ((stamps >= 100.5) & (stamps < 150))
+    assert hidden.sum() == 10 + 49
+    np.testing.assert_array_equal(log.robots["robot1"].features.stamps, stamps[~hidden])
+    assert report.counts["robot1"]["measurement_occluded"] == 59
+    assert report.counts["robot1"]["feature_measurements"] == stamps.size - 59
+    assert report.counts["robot2"]["measurement_occluded"] == 2  # at 1 s and 3 s
+    for name in ("robot1", "robot2"):
+        np.testing.assert_array_equal(
+            log.robots[name].rendezvous.stamps, plain.robots[name].rendezvous.stamps
+        )
+    assert report.occlusion == {"robot1": [[10.0, 20.0], [100.5, 150.0]], "robot2": [[0.0, 5.0]]}
+    assert "occluded: robot1's landmark observations in [10, 20) [100, 150) s" in report.summary()
+    with pytest.raises(ValueError, match="robot 3 is not imported"):
+        import_mrclam(d, occlusion=[(3, 0.0, 1.0)])
+
+
+def test_the_stress_case_occludes_half_of_the_least_seeing_robots_run(tmp_path: Path) -> None:
+    """'stress': the robot with the fewest landmark observations per second loses them in
+    every other 90 s window from 90 s after its start (400 s: [90, 180) and [270, 360))."""
+    from csam_ros.datasets.mrclam import STRESS, parse_occlusion
+
+    d = _long_dataset(tmp_path / "ds")
+    assert parse_occlusion(" stress ") == STRESS
+    log, report = import_mrclam(d, occlusion=STRESS)
+    assert report.occlusion == {"robot2": [[90.0, 180.0], [270.0, 360.0]]}
+    assert report.counts["robot2"]["measurement_occluded"] == 90  # every 2 s over 180 s
+    assert "measurement_occluded" not in report.counts["robot1"]
+    seen = log.robots["robot2"].features.stamps
+    assert not np.any(((seen >= 90) & (seen < 180)) | ((seen >= 270) & (seen < 360)))
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("4", "'4' is not ROBOT:START-END"),
+        ("4:200-100", "'4:200-100': the window must end after it starts"),
+        ("1:0-10,x", "'x' is not ROBOT:START-END"),
+        ("7:0-10", "robot 7 is not imported"),
+    ],
+)
+def test_bad_occlusion_is_one_line(
+    value: str, message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mrclam_files import small_dataset
+
+    code, _, err = _import_with(
+        small_dataset(tmp_path / "ds"), tmp_path, capsys, "--occlude", value
+    )
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and err.startswith("csam import: "), err
+    assert message in err, err
+    assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.skipif(DATASET is None or not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
+def test_stress_case_on_the_first_200_s_of_dataset_1() -> None:
+    """On a cut of the real data: robot 4 sees landmarks least often (a third as often as the
+    others); its observations in [90, 180) s are dropped, nothing else changes."""
+    plain, _ = import_mrclam(DATASET, duration=200.0)
+    log, report = import_mrclam(DATASET, duration=200.0, occlusion="stress")
+    assert list(report.occlusion) == ["robot4"]
+    [[begin, end]] = report.occlusion["robot4"]
+    assert begin == pytest.approx(90.0, abs=0.1) and end == pytest.approx(180.0, abs=0.1)
+    stamps = plain.robots["robot4"].features.stamps
+    hidden = (stamps >= begin) & (stamps < end)
+    assert report.counts["robot4"]["measurement_occluded"] == hidden.sum() > 100
+    np.testing.assert_array_equal(log.robots["robot4"].features.stamps, stamps[~hidden])
+    for name, robot in log.robots.items():
+        np.testing.assert_array_equal(robot.rendezvous.ranges, plain.robots[name].rendezvous.ranges)
+        if name != "robot4":
+            np.testing.assert_array_equal(robot.features.ranges, plain.robots[name].features.ranges)
+
+
+def test_import_command_occludes_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`csam import mrclam --occlude stress` prints the robot, its windows and the count, and
+    the bag holds the observations left."""
+    from csam_ros.bag import read_bag
+
+    d = _long_dataset(tmp_path / "ds")
+    code, out, err = _import_with(d, tmp_path, capsys, "--occlude", "stress")
+    assert code == 0, err
+    assert (
+        "occluded: robot2's landmark observations in [90, 180) [270, 360) s (180 s; "
+        "90 dropped, its rendezvous kept)" in out
+    ), out
+    assert re.search(r"^\s+0\s+90\s+measurement_occluded$", out, re.M), out
+    features = [m for m in read_bag(tmp_path / "bag") if m.topic == "/robot2/features"]
+    assert len(features) == 200 - 90
+
+
+def _import_with(
+    directory: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], *extra: str
+) -> tuple:
+    """``csam import mrclam DIR --config <plain> --out tmp/bag *extra`` in this process: exit
+    code, stdout, stderr."""
+    from mrclam_files import PLAIN_CONFIG
+
+    from csam_ros.cli import main
+
+    config = tmp_path / "plain.yaml"
+    config.write_text(PLAIN_CONFIG)
+    args = ["import", "mrclam", str(directory), "--config", str(config)]
+    code = main([*args, "--out", str(tmp_path / "bag"), *extra])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
