@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core import se2
+from csam_ros.core.log import covariances_from_correlations
 
 Array = NDArray[np.float64]
 
@@ -170,12 +171,15 @@ def odometry_between(
     sigmas: ArrayLike,
     key_stamps: ArrayLike,
     check: bool = True,
+    correlations: ArrayLike | None = None,
 ) -> OdometryFactors:
     """Compose odometry samples into relative poses between consecutive ``key_stamps``.
 
     Sample ``i`` holds the input over ``(stamps[i-1], stamps[i]]`` (the first sample only
     marks the start). ``key_stamps`` must be strictly increasing and within
     ``[stamps[0], stamps[-1]]``; sample intervals are split at key stamps that fall inside.
+    ``correlations`` ``(N, 3)``, if given, correlate each sample's input noise
+    (:func:`csam_ros.core.log.covariances_from_correlations`; none: independent).
     """
     t = np.asarray(stamps, dtype=float)
     u = np.asarray(inputs, dtype=float)
@@ -205,8 +209,13 @@ def odometry_between(
     dt = piece_end - piece_start
     duration = t[sample] - t[sample - 1]
     U, G = increment_and_jacobian(u[sample], dt)
-    var = q[sample] ** 2 * (duration / dt)[:, None]
-    cov = np.einsum("kij,kj,klj->kil", G, var, G)
+    if correlations is None:
+        var = q[sample] ** 2 * (duration / dt)[:, None]
+        cov = np.einsum("kij,kj,klj->kil", G, var, G)
+    else:
+        sigma = q[sample] * np.sqrt(duration / dt)[:, None]
+        rho = np.asarray(correlations, dtype=float).reshape(-1, 3)[sample]
+        cov = G @ covariances_from_correlations(sigma, rho) @ G.transpose(0, 2, 1)
     segment = np.searchsorted(keys, piece_end, side="left") - 1
     starts = np.flatnonzero(np.diff(np.concatenate([[-1], segment])))
     rel, rel_cov = compose_segments(U, cov, starts)

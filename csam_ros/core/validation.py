@@ -198,6 +198,45 @@ def range_bearing_mask(
     return keep
 
 
+def point_mask(
+    points: ArrayLike,
+    covariances: ArrayLike,
+    field_of_view: float,
+    drops: DropCounter,
+    bounds: InputBounds | None = None,
+) -> NDArray[np.bool_]:
+    """Which Cartesian observations ``(K, 2)`` with covariances ``(K, 2, 2)`` are valid; counts
+    the others by their first fault. The covariance's axes are its sigmas (bounded as a
+    range-bearing observation's; their ratio by ``max_sigma_ratio``); a point at the robot
+    centre has no bearing and passes any field of view."""
+    bounds = bounds or InputBounds()
+    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    c = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
+    keep = np.ones(len(p), dtype=bool)
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(p).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
+        c = np.where(finite[:, None, None], c, np.eye(2))
+        scale = np.abs(c).max(axis=(1, 2))
+        symmetric = np.abs(c[:, 0, 1] - c[:, 1, 0]) <= 1e-9 * scale
+        axes = np.linalg.eigvalsh(0.5 * (c + c.transpose(0, 2, 1)))
+        sigmas = np.sqrt(np.maximum(axes, 0.0))
+        r = np.hypot(p[:, 0], p[:, 1])
+        bearing = np.arctan2(p[:, 1], p[:, 0])
+        margin = BEARING_MARGIN_SIGMAS * sigmas[:, 1] / r
+        faults = (
+            (NOT_FINITE, ~finite),
+            (NON_POSITIVE_SIGMA, ~symmetric | ~(axes[:, 0] > 0)),
+            (RANGE_OUT_OF_BOUNDS, r > bounds.max_range),
+            (SIGMA_OUT_OF_BOUNDS, _sigma_fault(sigmas, sigmas[:, 1] / sigmas[:, 0], bounds)),
+            (OUTSIDE_FIELD_OF_VIEW, (r > 0) & (np.abs(bearing) > 0.5 * field_of_view + margin)),
+        )
+    for reason, bad in faults:
+        fault = keep & bad
+        drops.add(reason, int(fault.sum()))
+        keep &= ~fault
+    return keep
+
+
 def odometry_fault(inputs: ArrayLike, sigmas: ArrayLike, bounds: InputBounds) -> str | None:
     """Why one odometry sample (input and its sigmas) is unusable, or None."""
     u = np.asarray(inputs, dtype=float)
@@ -349,6 +388,32 @@ class MeasurementFilter:
         return self._observations(
             robot, "features", stamp, ranges, bearings, sigma_range, sigma_bearing, None
         )
+
+    def points(
+        self, robot: str, stamp: float, points: ArrayLike, covariances: ArrayLike
+    ) -> NDArray[np.bool_] | None:
+        """Mask of the accepted Cartesian feature observations at one stamp (their own
+        stream), or None if the message is dropped."""
+        drops = self.counter(robot)
+        count = len(np.asarray(points, dtype=float).reshape(-1, 2))
+        if count == 0 or count > self.bounds.max_observations:
+            drops.add(
+                UNKNOWN_ROBOT
+                if not self._known(robot)
+                else EMPTY
+                if count == 0
+                else TOO_MANY_OBSERVATIONS
+            )
+            return None
+        fault = self._stamp_fault(robot, "points", stamp)
+        if fault is not None:
+            drops.add(fault)
+            return None
+        keep = point_mask(points, covariances, self.field_of_view, drops, self.bounds)
+        if not keep.any():
+            return None
+        self._stream(robot, "points").last = float(stamp)
+        return keep
 
     def rendezvous(
         self,

@@ -2,8 +2,8 @@
 
 A file read by :func:`csam_ros.datasets.slam2d.read_slam2d` holds relative poses and Cartesian
 landmark observations with covariances; a :class:`~csam_ros.core.log.MultiRobotLog` holds what
-a robot measures: odometry inputs ``u = (v, v_lat, omega)`` with independent sigmas and
-range-bearing observations with independent sigmas. The conversion:
+a robot measures: odometry inputs ``u = (v, v_lat, omega)`` with their covariance and
+Cartesian feature observations with theirs. The conversion:
 
 - Poses. The pose ids (of every record, vertices included) sorted ascending must form one
   chain: exactly one odometry edge ``(p_k, p_{k+1})`` between each pair of consecutive ids
@@ -19,31 +19,24 @@ range-bearing observations with independent sigmas. The conversion:
   ``dtheta`` is first wrapped to (-pi, pi] (the factor's angle error is wrapped, so nothing
   changes), which keeps ``a^2 + b^2 >= 4/pi^2``: the system is always well conditioned.
 - Odometry covariance. ``Lambda`` of ``z`` maps to the input covariance
-  ``Q = G^-1 Lambda G^-T`` (``G = dU/du`` at ``u``), so ``G Q G^T = Lambda`` exactly. The
-  log carries only ``sigma = sqrt(diag(Q))``: *the correlations of Q are dropped* (the local
-  map then uses ``G diag(sigma^2) G^T``, not ``Lambda``).
-- Landmarks. An observation ``d = (dx, dy)`` in the pose frame becomes the range ``|d|`` and
-  bearing ``atan2(dy, dx)``, stamped at its pose, labelled with the landmark id. Its
-  covariance maps with the polar Jacobian ``J = d(r, beta)/d(dx, dy)`` to ``J C J^T``; the log
-  carries ``sqrt(diag(J C J^T))``: *the range-bearing correlation is dropped* (none for an
-  isotropic ``C``). An observation closer than ``min_range`` has no bearing and is dropped
-  and counted (:class:`Slam2dImport`, and a logged warning).
+  ``Q = G^-1 Lambda G^-T`` (``G = dU/du`` at ``u``), so ``G Q G^T = Lambda`` exactly. The log
+  carries ``Q`` whole: its sigmas ``sqrt(diag(Q))`` and the correlations of its pairs
+  (:class:`~csam_ros.core.log.OdometryLog`; in a bag, the twist covariance's off-diagonal
+  entries).
+- Landmarks. An observation ``d = (dx, dy)`` in the pose frame stays a Cartesian observation
+  (:class:`~csam_ros.core.log.FeaturePointLog`) with its full 2x2 covariance, stamped at its
+  pose and labelled with the landmark id; in a bag it travels on ``/<robot>/feature_points``.
 - Dropped from the file: vertex values (initial estimates only) and landmark vertices never
   observed. There is no ground truth (``truth = None``).
 
-So a file whose covariances are exactly of the form ``G diag(q^2) G^T`` and
-``R(beta) diag(s_r^2, r^2 s_beta^2) R(beta)^T`` gives a local map equal to the file's own
-optimum (to 1e-7 in the tests); otherwise the two differ by the effect of the dropped
-correlations. Measured on simulated 40-pose runs (``test/core/test_slam2d_log.py``, 20 seeds):
-a covariance diagonal in the pose frame for odometry moves the landmarks by at most 0.3 of
-their largest sigma (median 0.07); an anisotropic Cartesian observation covariance whose axes
-are not radial (``diag(0.03^2, 0.01^2)`` in the robot frame) by up to 1.6 sigma (median 0.8),
-since the range-bearing model can only express covariances with radial and tangential axes.
+So a file's local map has the file's own objective: the same odometry factors (up to
+rounding in ``G Q G^T``) and the same observation factors (``PointObservation``), and the map
+is the file's optimum from the local map's start (to 1e-7 in the tests, for correlated
+covariances of both kinds).
 """
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,34 +44,34 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core import se2
-from csam_ros.core.log import FeatureLog, MultiRobotLog, OdometryLog, RobotLog, empty_rendezvous
+from csam_ros.core.log import (
+    FeaturePointLog,
+    MultiRobotLog,
+    OdometryLog,
+    RobotLog,
+    correlations_from_covariances,
+    empty_features,
+    empty_rendezvous,
+)
 from csam_ros.core.motion import increment_and_jacobian
 from csam_ros.datasets.slam2d import Slam2dData, Slam2dFormatError, read_slam2d
 
 Array = NDArray[np.float64]
 
-MIN_RANGE = 1e-9  # m: an observation this close to the robot centre has no bearing
-
 _ODOMETRY_RECORDS = ("ODOMETRY", "EDGE_SE2")
 _OBSERVATION_RECORDS = ("LANDMARK", "EDGE_SE2_XY")
-
-_log = logging.getLogger(__name__)
 
 
 @dataclass
 class Slam2dImport:
-    """A converted file: the log and what the conversion left out."""
+    """A converted file: the log and its size."""
 
     log: MultiRobotLog
     poses: int  # odometry samples = poses of the chain
-    observations: int  # range-bearing observations kept
-    dropped_too_close: int  # observations closer than min_range (no bearing)
+    observations: int  # Cartesian landmark observations
 
     def __str__(self) -> str:
-        text = f"{self.poses} poses, {self.observations} landmark observations"
-        if self.dropped_too_close:
-            text += f", {self.dropped_too_close} dropped (closer than the minimum range)"
-        return text
+        return f"{self.poses} poses, {self.observations} landmark observations"
 
 
 def inputs_from_relative_poses(relative_poses: ArrayLike, dt: float) -> Array:
@@ -104,24 +97,6 @@ def input_covariances(inputs: ArrayLike, dt: float, covariances: ArrayLike) -> A
     left = np.linalg.solve(g, lam)  # G^-1 Lambda
     q = np.linalg.solve(g, left.transpose(0, 2, 1))  # G^-1 Lambda G^-T (Lambda symmetric)
     return 0.5 * (q + q.transpose(0, 2, 1))
-
-
-def polar_observations(
-    points: ArrayLike, covariances: ArrayLike
-) -> tuple[Array, Array, Array, Array]:
-    """Range, bearing and their sigmas ``sqrt(diag(J C J^T))`` of Cartesian observations.
-
-    The range-bearing correlation is dropped. Callers remove points at the origin first.
-    """
-    d = np.asarray(points, dtype=float).reshape(-1, 2)
-    cov = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
-    r = np.hypot(d[:, 0], d[:, 1])
-    beta = np.arctan2(d[:, 1], d[:, 0])
-    c, s = np.cos(beta), np.sin(beta)
-    cxx, cxy, cyy = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
-    var_radial = c * c * cxx + 2.0 * c * s * cxy + s * s * cyy
-    var_tangential = s * s * cxx - 2.0 * c * s * cxy + c * c * cyy
-    return r, beta, np.sqrt(var_radial), np.sqrt(var_tangential) / r
 
 
 def _odometry_line(path: Path, edge: int, records: tuple[str, ...] = _ODOMETRY_RECORDS) -> str:
@@ -197,12 +172,9 @@ def _check_usable(
 
 
 def convert_slam2d(
-    data: Slam2dData,
-    robot: str = "robot1",
-    sample_time: float = 1.0,
-    min_range: float = MIN_RANGE,
+    data: Slam2dData, robot: str = "robot1", sample_time: float = 1.0
 ) -> Slam2dImport:
-    """The log of a file's contents (see the module docstring for the approximations)."""
+    """The log of a file's contents (see the module docstring)."""
     path = Path(data.source)
     if not (np.isfinite(sample_time) and sample_time > 0):
         raise ValueError(f"sample_time must be a positive number of seconds, got {sample_time}")
@@ -210,41 +182,29 @@ def convert_slam2d(
     count = len(relative) + 1
     stamps = np.arange(count) * float(sample_time)
     inputs = inputs_from_relative_poses(relative, sample_time)
-    q = input_covariances(inputs, sample_time, covariance)
-    sigmas = np.sqrt(np.diagonal(q, axis1=1, axis2=2))
-    _check_usable(np.concatenate([inputs, sigmas], axis=1), sigmas, path, link, _ODOMETRY_RECORDS)
-    first_sigma = sigmas[:1] if len(sigmas) else np.ones((1, 3))
-    odometry = OdometryLog(
-        stamps, np.concatenate([np.zeros((1, 3)), inputs]), np.concatenate([first_sigma, sigmas])
+    sigmas, correlations = correlations_from_covariances(
+        input_covariances(inputs, sample_time, covariance)
     )
-
+    values = np.concatenate([inputs, sigmas, correlations], axis=1)
+    _check_usable(values, sigmas, path, link, _ODOMETRY_RECORDS)
+    first = np.ones((1, 3)) if count == 1 else sigmas[:1]
+    odometry = OdometryLog(
+        stamps,
+        np.concatenate([np.zeros((1, 3)), inputs]),
+        np.concatenate([first, sigmas]),
+        np.concatenate([np.zeros((1, 3)), correlations]),
+    )
     position = {int(p): k for k, p in enumerate(data.pose_ids)}
     pose_index = np.array([position[int(p)] for p in data.observation_pose], dtype=np.int64)
-    keep = np.hypot(data.observations[:, 0], data.observations[:, 1]) >= min_range
-    dropped = int((~keep).sum())
-    if dropped:
-        _log.warning(
-            "%s: %d landmark observation(s) closer than %g m to the robot dropped (no bearing)",
-            path,
-            dropped,
-            min_range,
-        )
-    order = np.flatnonzero(keep)[np.argsort(pose_index[keep], kind="stable")]
-    r, beta, sigma_r, sigma_b = polar_observations(
-        data.observations[order], data.observation_covariance[order]
-    )
-    polar = np.stack([r, beta, sigma_r, sigma_b], axis=1)
-    _check_usable(polar, polar[:, 2:], path, order, _OBSERVATION_RECORDS)
-    features = FeatureLog(
+    order = np.argsort(pose_index, kind="stable")
+    points = FeaturePointLog(
         stamps[pose_index[order]],
         data.observation_landmark[order].astype(np.int64),
-        r,
-        beta,
-        sigma_r,
-        sigma_b,
+        data.observations[order],
+        data.observation_covariance[order],
     )
-    log = MultiRobotLog({robot: RobotLog(robot, odometry, features, empty_rendezvous())})
-    return Slam2dImport(log, count, len(order), dropped)
+    robot_log = RobotLog(robot, odometry, empty_features(), empty_rendezvous(), points)
+    return Slam2dImport(MultiRobotLog({robot: robot_log}), count, len(order))
 
 
 def read_slam2d_log(
@@ -253,7 +213,7 @@ def read_slam2d_log(
     """Read a text or g2o 2D SLAM file as the log of one robot ``robot``.
 
     Raises :class:`Slam2dFormatError` for a missing file, a malformed line, or poses that do
-    not form a single odometry chain. Dropped observations are logged as a warning.
+    not form a single odometry chain.
     """
     path = Path(path)
     if not path.is_file():

@@ -6,8 +6,9 @@ The simulator node and the importers publish or write a :class:`MultiRobotLog` t
 bag gives the same input to the core offline as through the nodes.
 
 Topics (docs/ARCHITECTURE.md): ``/<robot>/odom`` (nav_msgs/Odometry, twist = measured v, v_lat,
-omega in the body frame with their variances), ``/<robot>/features``, ``/<robot>/rendezvous``,
-``/<robot>/ground_truth`` and ``/sim/features_truth``.
+omega in the body frame with their covariance: variances on the diagonal, covariances of
+correlated inputs off it), ``/<robot>/features``, ``/<robot>/feature_points`` (Cartesian),
+``/<robot>/rendezvous``, ``/<robot>/ground_truth`` and ``/sim/features_truth``.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from builtin_interfaces.msg import Time
 from csam_msgs.msg import (
     FeatureObservation,
     FeatureObservations,
+    FeaturePoint,
+    FeaturePoints,
     FeaturesTruth,
     FeatureTruth,
     RendezvousObservation,
@@ -30,15 +33,20 @@ from nav_msgs.msg import Odometry
 from tf2_msgs.msg import TFMessage
 
 from csam_ros.core.log import (
+    CORRELATION_PAIRS,
     FeatureLog,
+    FeaturePointLog,
     GroundTruth,
     MultiRobotLog,
     OdometryLog,
     RendezvousLog,
     RobotLog,
+    correlations_valid,
+    empty_points,
 )
-from csam_ros.core.validation import InputBounds, MeasurementFilter
+from csam_ros.core.validation import NOT_FINITE, SIGMA_OUT_OF_BOUNDS, InputBounds, MeasurementFilter
 from csam_ros.ros.topics import (
+    FEATURE_POINTS,
     FEATURES,
     FEATURES_TRUTH,
     GROUND_TRUTH,
@@ -47,8 +55,12 @@ from csam_ros.ros.topics import (
     parse,
 )
 
-# Indices of vx, vy and wz in a row-major 6x6 twist covariance.
-_TWIST_VARIANCE = (0, 7, 35)
+# Indices of vx, vy and wz in a row-major 6x6 twist covariance, and of the covariances of
+# their pairs (log.CORRELATION_PAIRS) above and below the diagonal.
+_TWIST_AXES = (0, 1, 5)
+_TWIST_VARIANCE = tuple(6 * a + a for a in _TWIST_AXES)
+_TWIST_UPPER = tuple(6 * _TWIST_AXES[i] + _TWIST_AXES[j] for i, j in CORRELATION_PAIRS)
+_TWIST_LOWER = tuple(6 * _TWIST_AXES[j] + _TWIST_AXES[i] for i, j in CORRELATION_PAIRS)
 
 
 def stamp_to_ns(seconds: float) -> int:
@@ -89,8 +101,15 @@ def tf_message(transforms: Sequence[tuple[str, str, np.ndarray]], stamp_ns: int)
     return msg
 
 
-def odometry_message(robot: str, stamp_ns: int, inputs: np.ndarray, sigmas: np.ndarray) -> Odometry:
-    """One odometry sample: mean (v, v_lat, omega) over the interval ending at the stamp."""
+def odometry_message(
+    robot: str,
+    stamp_ns: int,
+    inputs: np.ndarray,
+    sigmas: np.ndarray,
+    correlations: np.ndarray | None = None,
+) -> Odometry:
+    """One odometry sample: mean (v, v_lat, omega) over the interval ending at the stamp, its
+    sigmas and, if given, the correlations of its pairs (log.CORRELATION_PAIRS)."""
     msg = Odometry()
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.header.frame_id = f"{robot}/odom"
@@ -100,6 +119,11 @@ def odometry_message(robot: str, stamp_ns: int, inputs: np.ndarray, sigmas: np.n
     msg.twist.twist.angular.z = float(inputs[2])
     cov = np.zeros(36)
     cov[list(_TWIST_VARIANCE)] = np.square(sigmas)
+    if correlations is not None:
+        pairs = [
+            correlations[k] * sigmas[i] * sigmas[j] for k, (i, j) in enumerate(CORRELATION_PAIRS)
+        ]
+        cov[list(_TWIST_UPPER)] = cov[list(_TWIST_LOWER)] = pairs
     msg.twist.covariance = cov
     msg.pose.covariance[0] = -1.0  # REP-145 style: the pose part is not estimated here
     return msg
@@ -113,6 +137,57 @@ def odometry_from_message(msg: Odometry) -> tuple[float, np.ndarray, np.ndarray]
     with np.errstate(invalid="ignore"):
         sigmas = np.sqrt(variances)
     return time_to_seconds(msg.header.stamp), inputs, sigmas
+
+
+def odometry_correlations(msg: Odometry) -> np.ndarray | None:
+    """The correlations (3,) of an odometry message's inputs (log.CORRELATION_PAIRS), from the
+    twist covariance above its diagonal; None when they are all zero (independent inputs).
+    Non-finite when the covariance is, or a sigma is zero."""
+    cov = np.asarray(msg.twist.covariance, dtype=float)
+    upper = 0.5 * (cov[list(_TWIST_UPPER)] + cov[list(_TWIST_LOWER)])
+    if not upper.any():
+        return None
+    s = cov[list(_TWIST_VARIANCE)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.array(
+            [upper[k] / np.sqrt(s[i] * s[j]) for k, (i, j) in enumerate(CORRELATION_PAIRS)]
+        )
+
+
+class PendingCorrelations:
+    """Odometry messages' correlations until the measurement filter releases their samples
+    (it holds one back at a start or a gap): a released sample gets its message's
+    correlations, a sample the filter made up (unknown motion across a gap) none."""
+
+    def __init__(self) -> None:
+        self._pending: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+    def offer(self, stamp: float, sigmas: np.ndarray, correlations: np.ndarray | None) -> None:
+        """Note one message's correlations (only the newest two are kept: at most one sample
+        is held back)."""
+        if correlations is not None:
+            self._pending[stamp] = (np.asarray(sigmas, dtype=float), correlations)
+            while len(self._pending) > 2:
+                del self._pending[next(iter(self._pending))]
+
+    def released(self, samples: Sequence[tuple[float, np.ndarray, np.ndarray]]) -> np.ndarray:
+        """The correlations ``(len(samples), 3)`` of released samples (zeros where none)."""
+        out = np.zeros((len(samples), 3))
+        for k, (stamp, _, sigmas) in enumerate(samples):
+            noted = self._pending.get(stamp)
+            if noted is not None and np.array_equal(noted[0], sigmas):
+                out[k] = noted[1]
+                del self._pending[stamp]
+        return out
+
+
+def correlation_fault(correlations: np.ndarray | None) -> str | None:
+    """Why an odometry sample's correlations are unusable (a drop reason), or None."""
+    if correlations is None:
+        return None
+    if not np.isfinite(correlations).all():
+        return NOT_FINITE
+    return None if correlations_valid(correlations)[0] else SIGMA_OUT_OF_BOUNDS
 
 
 def _observations_message(
@@ -169,6 +244,32 @@ def features_from_message(msg: FeatureObservations) -> tuple[float, dict[str, np
         **_observation_arrays(obs),
     }
     return time_to_seconds(msg.header.stamp), arrays
+
+
+def feature_points_message(robot: str, stamp_ns: int, labels, points, covariances) -> FeaturePoints:
+    """Cartesian feature observations ``points`` ``(K, 2)`` with ``covariances`` ``(K, 2, 2)``
+    at one stamp, in the robot's body frame."""
+    msg = FeaturePoints()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = f"{robot}/base_link"
+    msg.observations = [
+        FeaturePoint(
+            label=int(k), x=float(p[0]), y=float(p[1]), covariance=[c[0, 0], c[0, 1], c[1, 1]]
+        )
+        for k, p, c in zip(labels, points, covariances, strict=True)
+    ]
+    return msg
+
+
+def feature_points_from_message(msg: FeaturePoints) -> tuple[float, dict[str, np.ndarray]]:
+    """(stamp [s], arrays labels (K,), points (K, 2), covariances (K, 2, 2))."""
+    obs = msg.observations
+    c = np.array([o.covariance for o in obs], dtype=float).reshape(-1, 3)
+    return time_to_seconds(msg.header.stamp), {
+        "labels": np.array([o.label for o in obs], dtype=np.int64),
+        "points": np.array([[o.x, o.y] for o in obs], dtype=float).reshape(-1, 2),
+        "covariances": np.stack([c[:, 0], c[:, 1], c[:, 1], c[:, 2]], axis=1).reshape(-1, 2, 2),
+    }
 
 
 def rendezvous_message(
@@ -270,9 +371,10 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
             truth_poses = dict(
                 zip(truth_stamps.tolist(), log.truth.trajectories[name], strict=True)
             )
-        for t, u, s in zip(odo.stamps, odo.inputs, odo.sigmas, strict=True):
+        rho = odo.correlations if odo.correlations is not None else [None] * len(odo.stamps)
+        for t, u, s, c in zip(odo.stamps, odo.inputs, odo.sigmas, rho, strict=True):
             ns = stamp_to_ns(t)
-            out.append(StampedMessage(ns, ODOM.of(name), odometry_message(name, ns, u, s)))
+            out.append(StampedMessage(ns, ODOM.of(name), odometry_message(name, ns, u, s, c)))
             if truth_poses is not None and float(t) in truth_poses:
                 pose = truth_poses[float(t)]
                 out.append(
@@ -291,6 +393,11 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
                 f.sigma_bearing[g],
             )
             out.append(StampedMessage(ns, FEATURES.of(name), msg))
+        p = robot.points
+        for t, g in _groups(p.stamps):
+            ns = stamp_to_ns(t)
+            msg = feature_points_message(name, ns, p.labels[g], p.points[g], p.covariances[g])
+            out.append(StampedMessage(ns, FEATURE_POINTS.of(name), msg))
         rv = robot.rendezvous
         for t, g in _groups(rv.stamps):
             ns = stamp_to_ns(t)
@@ -330,7 +437,10 @@ class LogBuilder:
         self.filter = MeasurementFilter(robots, field_of_view, bounds)
         self._order: list[str] = list(robots or [])
         self._odometry: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+        self._pending: dict[str, PendingCorrelations] = {}
+        self._correlations: dict[str, list[np.ndarray]] = {}  # per accepted sample (K, 3)
         self._features: dict[str, list[tuple[float, dict[str, np.ndarray]]]] = {}
+        self._points: dict[str, list[tuple[float, dict[str, np.ndarray]]]] = {}
         self._rendezvous: dict[str, list[tuple[float, dict[str, object]]]] = {}
         self.truth: GroundTruth | None = None
 
@@ -347,10 +457,27 @@ class LogBuilder:
         if topic is FEATURES_TRUTH:
             self.truth = truth_from_message(msg)  # type: ignore[arg-type]
         elif topic is ODOM:
-            samples = self.filter.odometry(robot, *odometry_from_message(msg))  # type: ignore[arg-type]
+            stamp, inputs, sigmas = odometry_from_message(msg)  # type: ignore[arg-type]
+            rho = odometry_correlations(msg)  # type: ignore[arg-type]
+            fault = correlation_fault(rho)
+            if fault is not None:
+                self.filter.counter(robot).add(fault)
+                return
+            pending = self._pending.setdefault(robot, PendingCorrelations())
+            pending.offer(stamp, sigmas, rho)
+            samples = self.filter.odometry(robot, stamp, inputs, sigmas)
             if samples:
                 self._robot(robot)
                 self._odometry.setdefault(robot, []).extend(samples)
+                self._correlations.setdefault(robot, []).append(pending.released(samples))
+        elif topic is FEATURE_POINTS:
+            stamp, a = feature_points_from_message(msg)  # type: ignore[arg-type]
+            keep = self.filter.points(robot, stamp, a["points"], a["covariances"])
+            if keep is not None:
+                self._robot(robot)
+                self._points.setdefault(robot, []).append(
+                    (stamp, {k: v[keep] for k, v in a.items()})
+                )
         elif topic is FEATURES:
             stamp, a = features_from_message(msg)  # type: ignore[arg-type]
             keep = self.filter.features(
@@ -381,16 +508,19 @@ class LogBuilder:
         robots: dict[str, RobotLog] = {}
         for name in self._order:
             odo = self._odometry.get(name, [])
+            rho = np.concatenate([np.zeros((0, 3)), *self._correlations.get(name, [])])
             odometry = OdometryLog(
                 np.array([o[0] for o in odo], dtype=float),
                 np.array([o[1] for o in odo], dtype=float).reshape(-1, 3),
                 np.array([o[2] for o in odo], dtype=float).reshape(-1, 3),
+                rho if rho.any() else None,
             )
             robots[name] = RobotLog(
                 name,
                 odometry,
                 _feature_log(self._features.get(name, [])),
                 rendezvous_log_from_chunks(self._rendezvous.get(name, [])),
+                _point_log(self._points.get(name, [])),
             )
         return MultiRobotLog(robots, self.truth)
 
@@ -414,6 +544,18 @@ def _feature_log(chunks: list[tuple[float, dict[str, np.ndarray]]]) -> FeatureLo
         _stacked(chunks, "bearings", float),
         _stacked(chunks, "sigma_range", float),
         _stacked(chunks, "sigma_bearing", float),
+    )
+
+
+def _point_log(chunks: list[tuple[float, dict[str, np.ndarray]]]) -> FeaturePointLog:
+    """Feature points accepted message by message, as one log."""
+    if not chunks:
+        return empty_points()
+    return FeaturePointLog(
+        np.concatenate([np.full(len(c[1]["labels"]), c[0]) for c in chunks]),
+        _stacked(chunks, "labels", np.int64),
+        np.concatenate([c[1]["points"] for c in chunks]).reshape(-1, 2),
+        np.concatenate([c[1]["covariances"] for c in chunks]).reshape(-1, 2, 2),
     )
 
 

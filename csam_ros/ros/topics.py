@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from csam_msgs.msg import (
     FeatureObservations,
+    FeaturePoints,
     FeaturesTruth,
     JoinedMap,
     LocalMap,
@@ -94,6 +95,8 @@ class Topic:
 
 ODOM = Topic("odom", Odometry, SENSOR_DATA, SENSOR_DATA_BUFFERED, sensor=True)
 FEATURES = Topic("features", FeatureObservations, RELIABLE, sensor=True)
+# Cartesian feature observations with their covariance (2D SLAM files; sensors give range-bearing)
+FEATURE_POINTS = Topic("feature_points", FeaturePoints, RELIABLE, sensor=True)
 RENDEZVOUS = Topic("rendezvous", RendezvousObservations, RELIABLE, sensor=True)
 GROUND_TRUTH = Topic("ground_truth", Odometry, SENSOR_DATA)
 FEATURES_TRUTH = Topic("/sim/features_truth", FeaturesTruth, LATCHED)
@@ -111,6 +114,7 @@ CLOCK = Topic("/clock", Clock, SHALLOW)
 TOPICS: tuple[Topic, ...] = (
     ODOM,
     FEATURES,
+    FEATURE_POINTS,
     RENDEZVOUS,
     GROUND_TRUTH,
     FEATURES_TRUTH,

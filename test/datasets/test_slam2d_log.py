@@ -1,5 +1,6 @@
-"""2D SLAM file to measurement log: exact odometry inputs, polar observations, chain errors,
-and the converted file through write_log_bag and ``csam replay --offline``."""
+"""2D SLAM file to measurement log: exact odometry inputs and covariances, Cartesian
+observations with their covariance, chain errors, and the converted file through
+write_log_bag and ``csam replay --offline``."""
 
 import json
 import subprocess
@@ -8,7 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from jacobians import numeric_jacobian
 
 from csam_ros.core import se2
 from csam_ros.core.local_map import build_local_map
@@ -19,7 +19,6 @@ from csam_ros.datasets.slam2d_log import (
     convert_slam2d,
     input_covariances,
     inputs_from_relative_poses,
-    polar_observations,
     read_slam2d_log,
 )
 
@@ -193,29 +192,6 @@ def test_heading_is_wrapped_before_solving():
     assert np.all(np.abs(u[:, 2]) <= np.pi)
 
 
-def test_polar_observations_match_finite_difference_jacobian():
-    rng = np.random.default_rng(1)
-    d = rng.uniform(-5, 5, (50, 2))
-    b = rng.standard_normal((50, 2, 2))
-    cov = np.einsum("kij,klj->kil", b, b) + 0.01 * np.eye(2)
-    r, beta, sr, sb = polar_observations(d, cov)
-    np.testing.assert_allclose(r * np.cos(beta), d[:, 0], atol=1e-12)
-    np.testing.assert_allclose(r * np.sin(beta), d[:, 1], atol=1e-12)
-
-    def polar(p):
-        return np.stack([np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0])], axis=1)
-
-    jac = numeric_jacobian(polar, d, angles=[1])
-    expected = np.sqrt(np.einsum("kij,kjl,kil->ki", jac, cov, jac))
-    np.testing.assert_allclose(np.stack([sr, sb], axis=1), expected, rtol=1e-7)
-    # an isotropic covariance has no range-bearing correlation: the sensor model gives it back
-    iso = np.tile(0.04 * np.eye(2), (50, 1, 1))
-    r, beta, sr, sb = polar_observations(d, iso)
-    xy, back = polar_to_cartesian(r, beta, sr, sb)
-    np.testing.assert_allclose(xy, d, atol=1e-12)
-    np.testing.assert_allclose(back, iso, atol=1e-14)
-
-
 def test_representable_g2o_file_gives_the_file_optimum(tmp_path):
     sim = simulate(30, 8, seed=5, odometry_cov="representable", observation_cov="representable")
     # g2o: poses and landmarks share one id space, here interleaved
@@ -230,31 +206,30 @@ def test_representable_g2o_file_gives_the_file_optimum(tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("odometry_cov", "observation_cov", "bound"),
-    [
-        # over seeds 7..26 the largest landmark shift was 0.28 sigma (odometry correlations
-        # only), 1.6 sigma (observation correlations only) and 1.4 sigma (both)
-        ("diagonal", "isotropic", 0.5),
-        ("representable", "diagonal", 2.0),
-        ("diagonal", "diagonal", 2.0),
-    ],
+    ("odometry_cov", "observation_cov"),
+    [("diagonal", "isotropic"), ("representable", "diagonal"), ("correlated", "correlated")],
 )
-def test_dropped_correlations_move_the_map_little(tmp_path, odometry_cov, observation_cov, bound):
+def test_any_covariance_gives_the_file_optimum(tmp_path, odometry_cov, observation_cov):
+    """The log carries the odometry's input covariance and the observations' 2x2 covariance
+    whole (before, their correlations were dropped and the map moved by up to 1.6 sigma)."""
     sim = simulate(40, 10, seed=7, odometry_cov=odometry_cov, observation_cov=observation_cov)
     sim.write_text(tmp_path / "run.txt")
     local, file_poses, file_landmarks = local_map_against_file_optimum(tmp_path / "run.txt")
-    landmark_shift = np.hypot(*(local.landmarks - file_landmarks).T)
-    pose_shift = np.hypot(*(local.poses[:, :2] - file_poses[:, :2]).T)
-    heading_shift = np.abs(se2.wrap_angle(local.poses[:, 2] - file_poses[:, 2]))
-    sigma = np.sqrt(np.linalg.eigvalsh(local.landmark_covariances())[:, -1])
-    print(
-        f"\nodometry {odometry_cov}, observations {observation_cov}: landmarks max "
-        f"{landmark_shift.max():.4f} m ({(landmark_shift / sigma).max():.3f} of their largest "
-        f"sigma), poses max {pose_shift.max():.4f} m, heading max "
-        f"{np.rad2deg(heading_shift.max()):.3f} deg from the file's optimum"
+    np.testing.assert_allclose(local.poses[:, :2], file_poses[:, :2], atol=1e-7)
+    np.testing.assert_allclose(se2.wrap_angle(local.poses[:, 2] - file_poses[:, 2]), 0, atol=1e-8)
+    np.testing.assert_allclose(local.landmarks, file_landmarks, atol=1e-7)
+    robot = read_slam2d_log(tmp_path / "run.txt").robots["robot1"]
+    points = robot.points
+    order = np.argsort(sim.obs_pose, kind="stable")
+    np.testing.assert_array_equal(points.points, sim.obs_xy[order])
+    np.testing.assert_array_equal(points.covariances, sim.obs_covariance[order])
+    assert len(robot.features.stamps) == 0
+    # G Q G^T of the carried input covariance gives the file's odometry covariance back
+    _, g = increment_and_jacobian(robot.odometry.inputs[1:], np.ones(39))
+    q = robot.odometry.covariances()[1:]
+    np.testing.assert_allclose(
+        g @ q @ g.transpose(0, 2, 1), sim.odometry_covariance, rtol=1e-9, atol=1e-15
     )
-    assert landmark_shift.max() > 1e-6  # the approximation is real in this file
-    assert np.all(landmark_shift < bound * sigma)
 
 
 def test_sample_time_sets_stamps_and_inputs(tmp_path):
@@ -268,11 +243,13 @@ def test_sample_time_sets_stamps_and_inputs(tmp_path):
         increment(robot.odometry.inputs[1:], np.full(5, 0.5)), sim.odometry, atol=1e-12
     )
     assert np.all(robot.odometry.sigmas > 0)
-    np.testing.assert_array_equal(robot.features.stamps, 0.5 * sim.obs_pose)
-    np.testing.assert_array_equal(robot.features.labels, sim.obs_landmark)
+    order = np.argsort(sim.obs_pose, kind="stable")
+    np.testing.assert_array_equal(robot.points.stamps, 0.5 * sim.obs_pose[order])
+    np.testing.assert_array_equal(robot.points.labels, sim.obs_landmark[order])
 
 
-def test_observation_at_the_robot_is_dropped_and_counted(tmp_path, caplog):
+def test_observation_at_the_robot_is_kept(tmp_path):
+    """A Cartesian observation needs no bearing: one at the robot centre is a factor like any."""
     path = tmp_path / "close.txt"
     c3, c2 = upper(0.01 * np.eye(3)), upper(0.01 * np.eye(2))
     path.write_text(
@@ -282,14 +259,12 @@ def test_observation_at_the_robot_is_dropped_and_counted(tmp_path, caplog):
         f"LANDMARK 1 8 0 -3 {c2}\n"
     )
     result = convert_slam2d(read_slam2d(path))
-    assert (result.poses, result.observations, result.dropped_too_close) == (2, 2, 1)
-    features = result.log.robots["robot1"].features
-    assert features.labels.tolist() == [7, 8]
-    np.testing.assert_allclose(features.ranges, [2.0, 3.0])
-    np.testing.assert_allclose(features.bearings, [0.0, -np.pi / 2])
-    np.testing.assert_allclose(features.sigma_bearing, [0.05, 0.1 / 3])
-    read_slam2d_log(path)
-    assert "1 landmark observation(s)" in caplog.text
+    assert (result.poses, result.observations) == (2, 3)
+    points = result.log.robots["robot1"].points
+    assert points.labels.tolist() == [7, 7, 8]
+    np.testing.assert_array_equal(points.points, [[2, 0], [0, 0], [0, -3]])
+    local = build_local_map(result.log.robots["robot1"])
+    np.testing.assert_allclose(local.landmarks[0], [5 / 3, 0.0], atol=1e-6)  # equal weights
 
 
 @pytest.mark.parametrize(

@@ -16,6 +16,7 @@ from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.ros.conversions import log_to_messages
 from csam_ros.ros.topics import (
+    FEATURE_POINTS,
     FEATURES_TRUTH,
     LATCHED,
     ODOM,
@@ -70,6 +71,8 @@ def test_every_topic_a_live_run_publishes_is_declared_and_recorded(ros_context: 
     for name, msgtype, qos in subscribed:
         topic = declaration(name)
         assert (msgtype, qos) == (topic.msgtype, topic.subscription_qos), name
+        if topic is FEATURE_POINTS:
+            continue  # a 2D SLAM file's bag has them (played); the simulator never does
         assert name in {p[0] for p in published}, f"nobody publishes {name}"
     assert set(sensor_topics(ROBOTS)) <= {s[0] for s in subscribed}
 
