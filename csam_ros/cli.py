@@ -214,8 +214,8 @@ def _bag_robots(bag: Path) -> list[str]:
     return _bag_contents(bag)[0]
 
 
-def _bag_contents(bag: Path) -> tuple[list[str], float]:
-    """The robots of a bag's sensor topics and the bag's duration [s]."""
+def _bag_contents(bag: Path) -> tuple[list[str], float, list[str]]:
+    """The robots of a bag's sensor topics, the bag's duration [s] and its topics."""
     from csam_ros.bag import inspect_bag
     from csam_ros.ros.topics import parse
 
@@ -226,7 +226,7 @@ def _bag_contents(bag: Path) -> tuple[list[str], float]:
     robots = sorted({d[1] for d in declared if d is not None and d[0].sensor})
     if not robots:
         raise CliError(f"{bag}: no sensor topics (/<robot>/odom, features or rendezvous)")
-    return robots, max(info.end_ns - info.start_ns, 0) * 1e-9
+    return robots, max(info.end_ns - info.start_ns, 0) * 1e-9, list(info.topics)
 
 
 def offline_summary(
@@ -286,8 +286,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
             from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
             from csam_ros.run.live import LiveRun, run_live
 
-            robots, duration = _bag_contents(bag)
-            topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
+            robots, duration, in_bag = _bag_contents(bag)
+            # the sensor topics a bag has (a 2D SLAM file's has feature points, no features)
+            sensors = [t for t in sensor_topics(robots) if t in in_bag]
+            topics = [t for t in [*sensors, FEATURES_TRUTH.name] if t in in_bag]
             run = LiveRun(
                 out_dir=out,
                 robots=robots,
@@ -302,7 +304,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     "--delay",  # let discovery settle both ways: odometry is best effort
                     "2.0",
                     "--wait-for-subscribers",
-                    *sensor_topics(robots),
+                    *sensors,
                     "--min-subscribers",  # the recorder and at least the robot's smoother
                     "2",
                 ],
