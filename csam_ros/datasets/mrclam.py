@@ -228,15 +228,14 @@ class ImportReport:
                 "its rendezvous kept)"
             )
         if self.unread:
-            lines.append(f"  not read: {', '.join(self.unread)} (only the files above are used)")
+            lines.append(
+                f"  not read: {', '.join(self.unread)} (an import reads {BARCODES_FILE}, "
+                f"{LANDMARKS_FILE} and RobotN_Odometry.dat, RobotN_Measurement.dat)"
+            )
         shown = self.notes[:_NOTES_SHOWN]
         if shown:
-            more = (
-                f", {len(self.notes) - len(shown)} more in the report"
-                if self.notes[len(shown) :]
-                else ""
-            )
-            lines.append(f"  first dropped or repaired lines ({len(shown)}{more}):")
+            total = f"{len(self.notes)}{'+' if len(self.notes) >= _MAX_NOTES else ''}"
+            lines.append(f"  first dropped or repaired lines ({len(shown)} of {total}):")
             lines += [f"    {note}" for note in shown]
         return "\n".join(lines)
 
