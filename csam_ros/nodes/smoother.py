@@ -20,7 +20,12 @@ import time
 from typing import Any
 
 import numpy as np
-from csam_msgs.msg import FeatureObservations, RendezvousObservations, RendezvousPoses
+from csam_msgs.msg import (
+    FeatureObservations,
+    FeaturePoints,
+    RendezvousObservations,
+    RendezvousPoses,
+)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
@@ -43,8 +48,12 @@ from csam_ros.nodes.common import (
     subscribe,
 )
 from csam_ros.ros.conversions import (
+    PendingCorrelations,
+    correlation_fault,
+    feature_points_from_message,
     features_from_message,
     ns_to_time,
+    odometry_correlations,
     odometry_from_message,
     rendezvous_from_message,
     rendezvous_log_from_chunks,
@@ -55,6 +64,7 @@ from csam_ros.ros.conversions import (
 )
 from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
 from csam_ros.ros.topics import (
+    FEATURE_POINTS,
     FEATURES,
     LOCAL_MAP,
     ODOM,
@@ -109,6 +119,8 @@ class Smoother(Node):
         # this robot's topics by relative name (the node runs in the robot's namespace)
         subscribe(self, ODOM, guarded(self, self.drops, self.on_odometry))
         subscribe(self, FEATURES, guarded(self, self.drops, self.on_features))
+        subscribe(self, FEATURE_POINTS, guarded(self, self.drops, self.on_feature_points))
+        self.pending_correlations = PendingCorrelations()
         subscribe(self, RENDEZVOUS, guarded(self, self.drops, self.on_own_rendezvous))
         on_peer = guarded(self, self.drops, self.on_peer_rendezvous)
         for peer in self.robots:
@@ -130,10 +142,20 @@ class Smoother(Node):
     # -- input ----------------------------------------------------------------------------------
 
     def on_odometry(self, msg: Odometry) -> None:
-        samples = self.filter.odometry(self.robot, *odometry_from_message(msg))
+        stamp, inputs, sigmas = odometry_from_message(msg)
+        correlations = odometry_correlations(msg)
+        fault = correlation_fault(correlations)
+        if fault is not None:
+            self.drops.add(fault)
+            return
+        self.pending_correlations.offer(stamp, sigmas, correlations)
+        samples = self.filter.odometry(self.robot, stamp, inputs, sigmas)
         if samples:
+            rho = self.pending_correlations.released(samples)
             stamps, inputs, sigmas = zip(*samples, strict=True)
-            self.map.add_odometry(stamps, np.stack(inputs), np.stack(sigmas))
+            self.map.add_odometry(
+                stamps, np.stack(inputs), np.stack(sigmas), rho if rho.any() else None
+            )
             self.last_odometry_ns = time_to_ns(msg.header.stamp)
             self.dirty = True
 
@@ -150,6 +172,18 @@ class Smoother(Node):
                 a["bearings"][keep],
                 a["sigma_range"][keep],
                 a["sigma_bearing"][keep],
+            )
+            self.dirty = True
+
+    def on_feature_points(self, msg: FeaturePoints) -> None:
+        stamp, a = feature_points_from_message(msg)
+        keep = self.filter.points(self.robot, stamp, a["points"], a["covariances"])
+        if keep is not None:
+            self.map.add_points(
+                np.full(int(keep.sum()), stamp),
+                a["labels"][keep],
+                a["points"][keep],
+                a["covariances"][keep],
             )
             self.dirty = True
 
