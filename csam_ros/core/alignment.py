@@ -39,7 +39,7 @@ its first pose and the rendezvous and may legitimately be large.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -409,13 +409,15 @@ def align(
     measurements: RendezvousSet,
     options: AlignmentOptions | None = None,
     start: Array | None = None,
+    excluded: Mapping[int, str] | None = None,
 ) -> Alignment:
     """Place every robot connected to the reference (robot 0) and refine by Algorithm 1.
 
     ``parts[r]`` is robot ``r``'s rendezvous part (``None`` if it has no rendezvous poses).
     ``start`` (R, 3), when given, holds initial base nodes (a previous solution; NaN rows
     where none): a placed robot with one starts Algorithm 1 there instead of at its pairwise
-    initialisation, which still decides whether it can be placed.
+    initialisation, which still decides whether it can be placed. ``excluded`` robots (index:
+    reason) are not placed and stay ``pending: <reason>``.
     """
     options = options or AlignmentOptions()
     robots = measurements.robots
@@ -442,7 +444,7 @@ def align(
                 raise ValueError(f"robot {robots[int(r)]!r} has rendezvous but no RendezvousPart")
             part.local_index(field_pose[field_robot == r], robots[int(r)])
 
-    excluded: dict[int, str] = {}
+    excluded = dict(excluded or {})
     while True:
         placed, status, initial, parents, methods = _place(
             measurements, poses, n_robots, excluded, options

@@ -50,6 +50,7 @@ from csam_ros.core.association import (
     associate,
 )
 from csam_ros.core.config_file import from_mapping, load_document, setting
+from csam_ros.core.consistency import ConsistencyOptions, check_local_map
 from csam_ros.core.covariance import (
     covariance_block,
     covariance_columns,
@@ -66,7 +67,13 @@ from csam_ros.core.joining import (
 from csam_ros.core.local_map import SMOOTHER, LocalMap, LocalMapConfig, build_local_map
 from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import collect, required_stamps
-from csam_ros.core.result import AssociationRecord, CsamResult, FeatureResult, RobotResult
+from csam_ros.core.result import (
+    AssociationRecord,
+    CsamResult,
+    FeatureResult,
+    LocalMapCheck,
+    RobotResult,
+)
 from csam_ros.core.robust import (
     FilterReport,
     RendezvousThinning,
@@ -145,6 +152,29 @@ class CsamConfig:
     consistency_drift: float = setting(
         0.3, "m allowed for local-map errors in that check", **_POSITIVE
     )
+    # a local map's own residuals (csam_ros.core.consistency; docs/METHOD.md 6.5)
+    check_local_maps: bool = setting(
+        True, "check each local map against its own measurements before joining", node=MERGER
+    )
+    max_trajectory_outliers: float = setting(
+        0.02,
+        "share of a map's factors between poses beyond the 99.9 % gate above which the robot "
+        "stays pending",
+        minimum=0.0,
+        node=MERGER,
+    )
+    max_observation_outliers: float = setting(
+        0.3,
+        "share of a map's observations beyond the gate above which the robot stays pending",
+        minimum=0.0,
+        node=MERGER,
+    )
+    max_feature_outliers: float = setting(
+        0.3,
+        "share of one feature's observations beyond the gate above which it is not associated",
+        minimum=0.0,
+        node=MERGER,
+    )
 
     @classmethod
     def from_dict(cls, node: Mapping[str, Any] | None, source: str = "csam") -> CsamConfig:
@@ -169,6 +199,13 @@ class CsamConfig:
             max_iterations=self.max_iterations,
             step_tolerance=self.step_tolerance,
             relative_tolerance=self.relative_tolerance,
+        )
+
+    def consistency_options(self) -> ConsistencyOptions:
+        return ConsistencyOptions(
+            max_trajectory_outliers=self.max_trajectory_outliers,
+            max_observation_outliers=self.max_observation_outliers,
+            max_feature_outliers=self.max_feature_outliers,
         )
 
     def solver_options(self) -> SolverOptions:
@@ -236,8 +273,19 @@ class LocalViewCache:
 
     def __init__(self) -> None:
         self._views: dict[str, LocalView] = {}
+        self._checks: dict[str, tuple[RobotMap, ConsistencyOptions, LocalMapCheck]] = {}
         self.reused = 0
         self.built = 0
+
+    def check(self, m: RobotMap, options: ConsistencyOptions) -> LocalMapCheck:
+        """:func:`~csam_ros.core.consistency.check_local_map` of ``m``, kept while ``m`` is
+        the same object."""
+        kept = self._checks.get(m.name)
+        if kept is not None and kept[0] is m and kept[1] == options:
+            return kept[2]
+        check = check_local_map(m, options)
+        self._checks[m.name] = (m, options, check)
+        return check
 
     def view(self, m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
         """The cached view of ``m`` if it is still valid, else a new one (then cached)."""
@@ -254,10 +302,10 @@ class LocalViewCache:
         return view
 
 
-def _map_features(m: RobotMap, view: LocalView) -> MapFeatures | None:
+def _map_features(m: RobotMap, view: LocalView, left_out: Sequence[int] = ()) -> MapFeatures | None:
     """A robot's features with their rendezvous gains ``K = P_l,rho P_rho,rho^-1`` and
     marginal covariances (the map's own when it carries them, else its view's), as
-    association takes them."""
+    association takes them; without the labels ``left_out``."""
     part, cross = view.part, view.cross
     if part is None or cross is None or len(m.feature_ids) == 0:
         return None
@@ -267,7 +315,8 @@ def _map_features(m: RobotMap, view: LocalView) -> MapFeatures | None:
         covs = np.asarray(m.feature_covariances, dtype=float)
     else:
         covs = view.feature_covariances
-    return MapFeatures(m.feature_labels, m.feature_positions, covs, gain)
+    keep = ~np.isin(m.feature_labels, left_out)
+    return MapFeatures(m.feature_labels[keep], m.feature_positions[keep], covs[keep], gain[keep])
 
 
 def filter_rendezvous(
@@ -319,6 +368,11 @@ def join_maps(
         timing[key] = timing.get(key, 0.0) + now - clock
         clock = now
 
+    checks: dict[int, LocalMapCheck] = {}
+    if config.check_local_maps:
+        options = config.consistency_options()
+        checks = {r: cache.check(m, options) for r, m in enumerate(maps)}
+    lap("local_map_checks")
     rendezvous_logs, rendezvous_filter = filter_rendezvous(maps, rendezvous_logs, config)
     measurements, notes = collect(
         rendezvous_logs,
@@ -341,11 +395,21 @@ def join_maps(
     parts = [v.part for v in views]
     lap("local_rendezvous_parts")
 
+    for r, check in checks.items():
+        if check.reason:
+            what = "reference kept" if r == 0 else "pending"
+            notes.append(f"{names[r]}: {check.reason} ({what})")
+        if check.inconsistent_features:
+            notes.append(
+                f"{names[r]}: features {check.inconsistent_features} not associated: their "
+                "observations disagree"
+            )
     alignment = align(
         parts,
         measurements,
         config.alignment_options(),
         start=warm.base_node_starts(names) if warm is not None else None,
+        excluded={r: c.reason for r, c in checks.items() if c.reason and r > 0},
     )
     aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
     lap("alignment")
@@ -358,7 +422,8 @@ def join_maps(
     if config.associate and len(aligned) > 1:
         feats: list[MapFeatures | None] = [None] * len(maps)
         for r in aligned:
-            feats[r] = _map_features(maps[r], views[r])
+            left_out = checks[r].inconsistent_features if r in checks else []
+            feats[r] = _map_features(maps[r], views[r], left_out)
         associations = associate(
             feats,
             alignment,
@@ -410,6 +475,7 @@ def join_maps(
             feature_labels_local=np.asarray(m.feature_labels, dtype=np.int64),
             features_local=m.feature_positions,
             feature_covariances_local=views[r].feature_covariances,
+            local_check=checks.get(r),
         )
         if r in aligned:
             poses = joint.values_of(solution.pose_ids[r])
@@ -499,19 +565,28 @@ def robot_map_from_local_map(local: LocalMap, with_covariances: bool = False) ->
     )
 
 
-def run_csam(
+@dataclass
+class RobotMaps:
+    """The solved local maps :func:`run_csam` joins, with the rendezvous logs after thinning
+    and what was left out."""
+
+    maps: list[RobotMap]
+    rendezvous_logs: dict[str, RendezvousLog]
+    left_out: list[str]  # notes: robots without a local map, and why
+    thinned: FilterReport
+    seconds: float  # building time
+
+
+def build_robot_maps(
     log: MultiRobotLog,
     config: CsamConfig | None = None,
     local_map: LocalMapConfig | None = None,
-) -> CsamResult:
-    """Build every robot's local map from its log (with a pose at the stamp of every kept
-    rendezvous measurement that involves it; thinning as the smoothers do) and run
-    :func:`join_maps`; ``timing_s["local_maps"]`` is the building time.
+) -> RobotMaps:
+    """Every robot's local map from its log, with a pose at the stamp of every kept
+    rendezvous measurement that involves it (thinning as the smoothers do).
 
     A robot with fewer than two odometry samples, or whose local solve fails or is not
-    finite, gets no local map: it is left out of the joining, as the merger leaves out a robot
-    whose local map never arrives, and named in the result's ``notes``. ValueError when no
-    robot is left."""
+    finite, gets no local map: it is named in ``left_out``."""
     config = config or CsamConfig()
     local_map = local_map or LocalMapConfig()
     start = time.perf_counter()
@@ -546,13 +621,27 @@ def run_csam(
             left_out.append(f"{name}: no local map: its solve failed ({err})")
             continue
         maps.append(robot_map_from_local_map(local))
-    if not maps:
-        raise ValueError("no robot has a local map: " + "; ".join(left_out))
-    built = time.perf_counter() - start
-    result = join_maps(maps, logs, config)
-    result.notes[:0] = left_out
+    return RobotMaps(maps, dict(logs), left_out, thinned, time.perf_counter() - start)
+
+
+def run_csam(
+    log: MultiRobotLog,
+    config: CsamConfig | None = None,
+    local_map: LocalMapConfig | None = None,
+) -> CsamResult:
+    """:func:`build_robot_maps` then :func:`join_maps`; ``timing_s["local_maps"]`` is the
+    building time. A robot without a local map is left out of the joining, as the merger
+    leaves out a robot whose local map never arrives, and named in the result's ``notes``.
+    ValueError when no robot is left."""
+    config = config or CsamConfig()
+    built = build_robot_maps(log, config, local_map)
+    if not built.maps:
+        raise ValueError("no robot has a local map: " + "; ".join(built.left_out))
+    result = join_maps(built.maps, built.rendezvous_logs, config)
+    result.notes[:0] = built.left_out
+    thinning = config.thinning()
     if thinning.min_interval > 0 or thinning.max_per_pair is not None:
-        result.rendezvous_filter["thinning"] = thinned
-    result.timing_s["local_maps"] = built
-    result.timing_s["total"] += built
+        result.rendezvous_filter["thinning"] = built.thinned
+    result.timing_s["local_maps"] = built.seconds
+    result.timing_s["total"] += built.seconds
     return result

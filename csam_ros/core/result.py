@@ -35,11 +35,14 @@ class SummaryError(ValueError):
 # --------------------------------------------------------------------------- reading values
 
 
-def _object(value: Any, where: str, keys: Sequence[str]) -> Mapping[str, Any]:
-    """``value`` as a JSON object with exactly ``keys``."""
+def _object(
+    value: Any, where: str, keys: Sequence[str], optional: Sequence[str] = ()
+) -> Mapping[str, Any]:
+    """``value`` as a JSON object with exactly ``keys`` (those in ``optional`` may be
+    absent: summaries written before they were added)."""
     if not isinstance(value, Mapping):
         raise SummaryError(f"{where}: expected an object, got {type(value).__name__}")
-    missing = [k for k in keys if k not in value]
+    missing = [k for k in keys if k not in value and k not in optional]
     if missing:
         raise SummaryError(f"{where}: no {missing[0]!r} entry (has {sorted(value)})")
     unknown = sorted(set(value) - set(keys))
@@ -118,6 +121,56 @@ def _array_list(value: Any) -> Any:
 # --------------------------------------------------------------------------- C-SAM result
 
 
+@dataclass(frozen=True)
+class LocalMapCheck:
+    """A local map checked against its own measurements (:mod:`csam_ros.core.consistency`);
+    ``reason`` is empty when it passed."""
+
+    trajectory_factors: int
+    trajectory_outliers: int
+    observation_factors: int
+    observation_outliers: int
+    inconsistent_features: list[int] = field(default_factory=list)  # the robot's labels
+    reason: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return not self.reason
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "trajectory_factors": self.trajectory_factors,
+            "trajectory_outliers": self.trajectory_outliers,
+            "observation_factors": self.observation_factors,
+            "observation_outliers": self.observation_outliers,
+            "inconsistent_features": list(self.inconsistent_features),
+            "reason": self.reason,
+        }
+
+    @classmethod
+    def from_dict(cls, node: Any, where: str) -> LocalMapCheck:
+        """The inverse of :meth:`to_dict`."""
+        node = _object(node, where, list(cls(0, 0, 0, 0).to_dict()))
+
+        def count(key: str) -> int:
+            value = node[key]
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise SummaryError(f"{where}.{key}: expected a count, got {value!r:.40}")
+            return value
+
+        labels = _list(node["inconsistent_features"], f"{where}.inconsistent_features")
+        if not all(isinstance(k, int) and not isinstance(k, bool) for k in labels):
+            raise SummaryError(f"{where}.inconsistent_features: expected integer labels")
+        return cls(
+            trajectory_factors=count("trajectory_factors"),
+            trajectory_outliers=count("trajectory_outliers"),
+            observation_factors=count("observation_factors"),
+            observation_outliers=count("observation_outliers"),
+            inconsistent_features=list(labels),
+            reason=_string(node["reason"], f"{where}.reason"),
+        )
+
+
 @dataclass
 class RobotResult:
     """One robot in the result; ``None`` / empty joined fields when it is pending."""
@@ -141,6 +194,7 @@ class RobotResult:
     )
     features_local: Array = field(default_factory=lambda: np.zeros((0, 2)))  # in G_r
     feature_covariances_local: Array = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    local_check: LocalMapCheck | None = None  # None: not checked
 
     @property
     def joined(self) -> bool:
@@ -172,6 +226,7 @@ class RobotResult:
             ],
             "sigma_phi_joined": _array_list(self.sigma_phi_joined) or [],
             "sigma_phi_joined_reference": _array_list(self.sigma_phi_joined_reference) or [],
+            "local_check": self.local_check.to_dict() if self.local_check else None,
         }
 
     @classmethod
@@ -179,8 +234,9 @@ class RobotResult:
         """The inverse of :meth:`to_dict` for the robot ``name``."""
         where = where or f"robots.{name}"
         keys = list(cls(name, "", np.zeros(0), np.zeros((0, 3)), np.zeros(0)).to_dict())
-        node = _object(node, where, keys)
+        node = _object(node, where, keys, optional=("local_check",))
         stamps = _array(node["stamps"], (None,), f"{where}.stamps")
+        check = node.get("local_check")
         n = len(stamps)
 
         def series(key: str, tail: tuple[int, ...] = (), joined: bool = False) -> Array | None:
@@ -228,6 +284,9 @@ class RobotResult:
             feature_labels_local=np.array(labels, dtype=np.int64),
             features_local=np.array(xy, dtype=float).reshape(-1, 2),
             feature_covariances_local=np.array(cov, dtype=float).reshape(-1, 2, 2),
+            local_check=None
+            if check is None
+            else LocalMapCheck.from_dict(check, f"{where}.local_check"),
         )
 
 

@@ -343,6 +343,17 @@ class Problem:
         vals = self.values if values is None else values
         return [f.whitened(self._blocks(f, vals), jacobians=False)[2] for f in self.factors]
 
+    def squared_errors(self, values: Array | None = None) -> list[Array]:
+        """Per factor kind, each factor's squared whitened error ``||W e||^2`` (no robust
+        kernel), in :attr:`factors` order."""
+        vals = self.values if values is None else values
+        squared = []
+        for f in self.factors:
+            errors = f.evaluate(self._blocks(f, vals), False)[0]
+            r = np.einsum("kij,kj->ki", f.sqrt_information, errors)
+            squared.append(np.einsum("ki,ki->k", r, r))
+        return squared
+
     def normal_equations(self, backend: str = "qdldl") -> NormalEquations:
         """The (cached) normal-equation structure of the current variables and factors."""
         if self._system is None or self._system.backend != backend:

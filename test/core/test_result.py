@@ -168,6 +168,16 @@ def _broken(document: dict, path: str, value: Any) -> dict:
             r"dropped\.robot1\.stamp_backwards: expected a count",
         ),
         ("scenario", 5, r"scenario: expected a string"),
+        (
+            "robots.robot2.local_check.trajectory_outliers",
+            -2,
+            r"robots\.robot2\.local_check\.trajectory_outliers: expected a count",
+        ),
+        (
+            "robots.robot2.local_check.inconsistent_features",
+            ["a"],
+            r"robots\.robot2\.local_check\.inconsistent_features: expected integer labels",
+        ),
     ],
 )
 def test_malformed_summary_names_the_key(
@@ -186,3 +196,13 @@ def test_unreadable_summary_file_names_the_file(tmp_path: Path) -> None:
     path.write_text("[]")
     with pytest.raises(SummaryError, match=r"summary\.json: summary: expected an object"):
         RunSummary.read(path)
+
+
+def test_summaries_from_before_the_local_map_check_still_read(joined: CsamResult) -> None:
+    assert all(r.local_check is not None for r in joined.robots.values())
+    document = joined.to_dict()
+    for entry in document["robots"].values():
+        del entry["local_check"]
+    back = CsamResult.from_dict(document)
+    assert all(r.local_check is None for r in back.robots.values())
+    assert back.robots["robot2"].alignment == joined.robots["robot2"].alignment
