@@ -10,9 +10,12 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(include=[package_name, f"{package_name}.*"]),
+    # the Fast DDS profile of live runs: found beside csam_ros/run/ros_env.py, and in share/
+    # for nodes started by hand (FASTRTPS_DEFAULT_PROFILES_FILE)
+    package_data={f"{package_name}.run": ["fastdds_profile.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
-        (f"share/{package_name}", ["package.xml"]),
+        (f"share/{package_name}", ["package.xml", f"{package_name}/run/fastdds_profile.xml"]),
         (f"share/{package_name}/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],

@@ -193,7 +193,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"rate {args.rate}, output {out}/"
     )
     run = demo_live_run(args.scenario, out, seed, args.rate, args.isolated)
-    summary = run_live(run)
+    if args.hosts:
+        from csam_ros.run.hosts import HostsError, run_hosts
+
+        try:
+            summary = run_hosts(run, args.loss)
+        except (HostsError, ValueError) as err:
+            raise CliError(f"--hosts: {err}") from None
+    elif args.loss:
+        raise CliError("--loss needs --hosts (links between hosts)")
+    else:
+        summary = run_live(run)
     _finish(out, replace(summary, scenario=scenario.name))
     _print_latency(out / "bag", summary)
     return 0
@@ -547,6 +557,18 @@ def parser() -> argparse.ArgumentParser:
         help="simulation speed relative to real time (0: as fast as possible)",
     )
     demo.add_argument("--isolated", action="store_true", help=ISOLATED_HELP)
+    demo.add_argument(
+        "--hosts",
+        action="store_true",
+        help="each robot (its simulator and smoother) and the base station (merger, recorder) "
+        "on a host of its own: network namespaces joined by a bridge (needs root)",
+    )
+    demo.add_argument(
+        "--loss",
+        type=float,
+        default=0.0,
+        help="with --hosts: probability that a host's link drops a packet (e.g. 0.1)",
+    )
     demo.set_defaults(func=cmd_demo)
 
     replay = sub.add_parser("replay", help="run a recorded bag's sensor topics through C-SAM")

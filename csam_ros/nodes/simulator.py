@@ -15,6 +15,7 @@ import sys
 import time
 from typing import Any
 
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rosgraph_msgs.msg import Clock
@@ -31,6 +32,8 @@ from csam_ros.ros.topics import (
     robot_topics,
     sensor_topics,
 )
+
+DRAIN_TIMEOUT_S = 30.0  # the longest wait for acknowledgements before exiting when done
 
 
 class Simulator(Node):
@@ -181,6 +184,16 @@ class Simulator(Node):
                 self.create_timer(1.0, self._finish, clock=steady_clock())
 
     def _finish(self) -> None:
+        # a reliable sample to another host may still wait for a resend on a lossy link
+        # (waited in short slices: SIGINT still ends the node at once)
+        deadline = time.monotonic() + DRAIN_TIMEOUT_S
+        waiting = dict(self.topic_publishers)
+        while waiting and time.monotonic() < deadline and self.context.ok():
+            for topic in list(waiting):
+                if waiting[topic].wait_for_all_acked(Duration(seconds=0.1)):
+                    del waiting[topic]
+        if waiting:
+            self.get_logger().warning(f"not every subscriber acknowledged {sorted(waiting)}")
         raise SystemExit(0)
 
 

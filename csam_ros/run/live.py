@@ -16,7 +16,12 @@ from pathlib import Path
 
 from csam_ros.core.result import RunSummary
 from csam_ros.run.launch import ProcessGroup, executable
-from csam_ros.run.ros_env import isolate_this_process, isolated_environment, reserve_domain_id
+from csam_ros.run.ros_env import (
+    isolate_this_process,
+    isolated_environment,
+    reserve_domain_id,
+    with_dds_profile,
+)
 
 
 class LiveRunError(RuntimeError):
@@ -67,7 +72,7 @@ def run_live(run: LiveRun, progress=print) -> RunSummary:
 
 
 def _run_with(run: LiveRun, env: dict[str, str], progress) -> RunSummary:
-    group = ProcessGroup(run.out_dir / "logs", env)
+    group = ProcessGroup(run.out_dir / "logs", with_dds_profile(env))  # the shipped transport
     try:
         return _run(run, group, run.out_dir / "summary.json", progress)
     finally:

@@ -120,3 +120,34 @@ def isolate_this_process(domain_id: int) -> None:
     for key in set(os.environ) - set(isolated):
         del os.environ[key]
     os.environ.update(isolated)
+
+
+# The Fast DDS transport live runs use (see the file): datagrams below the path MTU, so that a
+# lost packet costs one resent fragment, not the whole sample
+DDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
+DDS_PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+DDS_PROFILE_SWITCH = "CSAM_DDS_PROFILE"  # "off": Fast DDS's defaults; a path: that profile
+
+
+def with_dds_profile(env: Mapping[str, str]) -> dict[str, str]:
+    """A copy of ``env`` for node processes, with the shipped Fast DDS profile: unless
+    ``CSAM_DDS_PROFILE=off``, or a profile is already named there (kept as it is);
+    ``CSAM_DDS_PROFILE=FILE`` names another one."""
+    out = dict(env)
+    choice = out.get(DDS_PROFILE_SWITCH, "").strip()
+    if choice.lower() == "off" or any(out.get(v) for v in DDS_PROFILE_VARIABLES):
+        return out
+    profile = Path(choice) if choice else DDS_PROFILE
+    if not profile.is_file():
+        raise FileNotFoundError(f"{DDS_PROFILE_SWITCH}: no such profile file {profile}")
+    for variable in DDS_PROFILE_VARIABLES:
+        out[variable] = str(profile.resolve())
+    return out
+
+
+def subnet_environment(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """A copy of ``base`` (default: os.environ) on ``domain_id`` with discovery over the
+    subnet: nodes on several hosts (or network namespaces) find each other by multicast."""
+    env = isolated_environment(domain_id, base)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
+    return env

@@ -1,0 +1,510 @@
+"""Robots on their own hosts: ``csam demo --hosts``.
+
+Each robot and the base station get a network namespace of their own (a "host"), joined by a
+Linux bridge in a further namespace (the "switch"); nothing is added to the caller's network,
+and deleting the namespaces removes everything. Every robot host runs a simulator of the same
+scenario and seed that publishes only its robot's topics, and the robot's smoother; the base
+station runs the merger, the recorder and the run monitor. Nodes find each other by
+multicast discovery over the subnet on one ROS domain.
+
+Sim time has one source: the first robot's simulator publishes /clock (and the features'
+truth); every other node follows it across the links. Several /clock publishers would each
+pace their own timeline, and nodes would see time jump back and forth between them.
+
+The run ends over ROS: when every simulator has published its data, the monitor (on the
+base station) calls each smoother's ``~/flush`` across the links, waits for the merger's
+joined map of those final local maps, and writes what it saw to ``hosts.json``.
+
+Link faults (``loss``): every IP packet a host receives over its link is dropped with that
+probability (iptables' ``statistic`` match in the raw table, before reassembly, so a lost
+fragment is lost alone, as on a radio link). Needs root, ``ip`` and, for loss, ``iptables``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from csam_ros.core.result import RunSummary
+from csam_ros.run.launch import ProcessGroup, executable
+from csam_ros.run.live import LiveRun, LiveRunError, _param
+from csam_ros.run.ros_env import (
+    reserve_domain_id,
+    subnet_environment,
+    with_dds_profile,
+)
+
+BASE = "base"
+PREFIX = "csam-"  # namespace names: csam-<pid>-<tag>-<host>
+SUBNET = "10.231.0"  # each run has its own bridge, so runs never share this subnet
+MONITOR_END = "end_of_data"  # file the run writes when every simulator is done
+MONITOR_RESULT = "hosts.json"
+
+
+class HostsError(RuntimeError):
+    """Network namespaces cannot be made here (not root, or a tool is missing)."""
+
+
+def missing_requirements(loss: float = 0.0) -> str | None:
+    """Why namespaces with this link loss cannot be made here, or None when they can."""
+    if os.geteuid() != 0:
+        return "network namespaces need root"
+    if shutil.which("ip") is None:
+        return "no `ip` command (iproute2)"
+    if loss > 0 and shutil.which("iptables") is None:
+        return "no `iptables` command for the link loss (Debian: apt-get install iptables)"
+    return None
+
+
+def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    result = subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
+    if check and result.returncode != 0:
+        raise HostsError(f"ip {' '.join(args)}: {result.stderr.strip()}")
+    return result
+
+
+def _in(namespace: str, *argv: str) -> None:
+    result = subprocess.run(
+        ["ip", "netns", "exec", namespace, *argv], capture_output=True, text=True, check=False
+    )
+    if result.returncode != 0:
+        raise HostsError(f"{namespace}: {' '.join(argv)}: {result.stderr.strip()}")
+
+
+@dataclass
+class Network:
+    """Hosts (network namespaces) on one bridge; ``namespaces[host]``, ``addresses[host]``."""
+
+    tag: str
+    hosts: list[str]
+    loss: float = 0.0
+    namespaces: dict[str, str] = field(default_factory=dict)
+    addresses: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def switch(self) -> str:
+        return f"{PREFIX}{self.tag}-switch"
+
+    def all_namespaces(self) -> list[str]:
+        return [self.switch, *self.namespaces.values()]
+
+    def command(self, host: str, argv: list[str]) -> list[str]:
+        """``argv`` run on ``host`` (``ip netns exec`` replaces itself with the command)."""
+        return ["ip", "netns", "exec", self.namespaces[host], *argv]
+
+
+def remove_stale_namespaces() -> list[str]:
+    """Delete the namespaces of runs whose process is gone (killed before cleaning up)."""
+    listed = _ip("netns", "list", check=False).stdout.split()
+    removed = []
+    for name in listed:
+        parts = name.split("-")
+        if not name.startswith(PREFIX) or len(parts) < 4 or not parts[1].isdigit():
+            continue
+        if not Path(f"/proc/{parts[1]}").exists():
+            _ip("netns", "delete", name, check=False)
+            removed.append(name)
+    return removed
+
+
+def create_network(hosts: list[str], loss: float = 0.0) -> Network:
+    """Namespaces for ``hosts`` on one bridge, each with ``loss`` on its link; the caller
+    must :func:`delete_network` it (also when this raises)."""
+    if not 0.0 <= loss < 1.0:
+        raise ValueError(f"loss must be in [0, 1), got {loss}")
+    net = Network(f"{os.getpid()}-{secrets.token_hex(3)}", hosts, loss)
+    try:
+        _connect(net)
+    except BaseException:
+        delete_network(net)
+        raise
+    return net
+
+
+def _connect(net: Network) -> None:
+    _ip("netns", "add", net.switch)
+    _in(net.switch, "ip", "link", "add", "br0", "type", "bridge", "mcast_snooping", "0")
+    _in(net.switch, "ip", "link", "set", "br0", "up")
+    for k, host in enumerate(net.hosts):
+        name = f"{PREFIX}{net.tag}-{host}"
+        _ip("netns", "add", name)
+        net.namespaces[host] = name
+        net.addresses[host] = f"{SUBNET}.{k + 1}"
+        port = f"port{k}"
+        _in(net.switch, "ip", "link", "add", port, "type", "veth", "peer", "eth0", "netns", name)
+        _in(net.switch, "ip", "link", "set", port, "master", "br0", "up")
+        _in(name, "ip", "link", "set", "lo", "up")
+        _in(name, "ip", "addr", "add", f"{net.addresses[host]}/24", "dev", "eth0")
+        _in(name, "ip", "link", "set", "eth0", "up")
+        _in(name, "ip", "route", "add", "default", "dev", "eth0")  # multicast needs a route
+        if net.loss > 0:
+            _in(
+                name,
+                *("iptables", "-t", "raw", "-A", "PREROUTING", "-i", "eth0"),
+                *("-m", "statistic", "--mode", "random", "--probability", f"{net.loss:.4f}"),
+                *("-j", "DROP"),
+            )
+
+
+def delete_network(net: Network) -> None:
+    """Delete every namespace of ``net`` (their links and the bridge go with them)."""
+    for name in net.all_namespaces():
+        _ip("netns", "delete", name, check=False)
+
+
+@contextmanager
+def network(hosts: list[str], loss: float = 0.0) -> Iterator[Network]:
+    """:func:`create_network` for a ``with`` block, deleted at its end whatever happens
+    (SIGTERM too: it raises KeyboardInterrupt here while the block runs)."""
+    reason = missing_requirements(loss)
+    if reason is not None:
+        raise HostsError(reason)
+    remove_stale_namespaces()
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def on_term(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        net = create_network(hosts, loss)
+        try:
+            yield net
+        finally:
+            delete_network(net)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def run_hosts(
+    run: LiveRun, loss: float = 0.0, progress: Callable[[str], None] = print
+) -> RunSummary:
+    """``run`` (as :func:`csam_ros.cli.demo_live_run` makes it) with every robot and the
+    base station on a host of its own; returns the merger's summary. ``hosts.json`` in
+    ``run.out_dir`` holds the monitor's figures (joined maps during the run, seconds from
+    the end of the data to the final joined map)."""
+    run.out_dir.mkdir(parents=True, exist_ok=True)
+    if run.isolated:
+        with reserve_domain_id() as reservation:
+            return _run_on(run, loss, reservation.domain_id, progress)
+    return _run_on(run, loss, int(os.environ.get("ROS_DOMAIN_ID", "0")), progress)
+
+
+def _run_on(run: LiveRun, loss: float, domain: int, progress: Callable[[str], None]) -> RunSummary:
+    hosts = [*run.robots, BASE]
+    env = with_dds_profile(subnet_environment(domain))
+    profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
+    with network(hosts, loss) as net:
+        where = ", ".join(f"{h} {net.addresses[h]}" for h in hosts)
+        progress(f"  hosts: {where}; ROS_DOMAIN_ID {domain}, discovery over the subnet")
+        progress(f"  links: {loss:.0%} packet loss; transport: {profile}")
+        group = ProcessGroup(run.out_dir / "logs", env)
+        try:
+            return _run(run, net, group, progress)
+        finally:
+            group.stop_all()
+
+
+def _run(
+    run: LiveRun, net: Network, group: ProcessGroup, progress: Callable[[str], None]
+) -> RunSummary:
+    summary_path = run.out_dir / "summary.json"
+    for stale in (summary_path, run.out_dir / MONITOR_END, run.out_dir / MONITOR_RESULT):
+        stale.unlink(missing_ok=True)
+    sim_time = _param("use_sim_time", True)
+    from csam_ros.ros.topics import recorded_topics
+
+    topics = recorded_topics(run.robots) + run.extra_topics
+    group.start(
+        "recorder",
+        net.command(
+            BASE, [executable("recorder"), "-o", str(run.out_dir / "bag"), "--topics", *topics]
+        ),
+    )
+    merger_params = {"robots": run.robots, "summary_path": str(summary_path), **run.merger_params}
+    group.start(
+        "merger",
+        net.command(
+            BASE,
+            [
+                executable("merger"),
+                "--ros-args",
+                *sim_time,
+                *sum((_param(k, v) for k, v in merger_params.items()), []),
+            ],
+        ),
+    )
+    group.start(
+        "monitor",
+        net.command(
+            BASE,
+            [
+                sys.executable,
+                "-m",
+                "csam_ros.run.hosts",
+                "--out",
+                str(run.out_dir),
+                "--robots",
+                *run.robots,
+            ],
+        ),
+    )
+    for k, robot in enumerate(run.robots):
+        params = {"robots": run.robots, **run.smoother_params}
+        group.start(
+            f"smoother_{robot}",
+            net.command(
+                robot,
+                [
+                    executable("smoother"),
+                    "--ros-args",
+                    *("-r", f"__ns:=/{robot}"),
+                    *sim_time,
+                    *sum((_param(k, v) for k, v in params.items()), []),
+                ],
+            ),
+        )
+        group.start(
+            f"{run.source_name}_{robot}",
+            net.command(
+                robot,
+                [
+                    *run.source_argv,
+                    "--ros-args",
+                    *sim_time,
+                    *run.source_ros_args,
+                    *_param("emit_robots", [robot]),
+                    *_param("publish_clock", k == 0),  # the one source of sim time
+                ],
+            ),
+        )
+    sources = [f"{run.source_name}_{r}" for r in run.robots]
+    start = time.monotonic()
+    shown = 0
+
+    def relay() -> None:  # the monitor's progress lines
+        nonlocal shown
+        lines = (run.out_dir / "logs" / "monitor.log").read_text(errors="replace").splitlines()
+        for line in lines[shown:]:
+            if line.startswith("  "):
+                progress(line)
+        shown = len(lines)
+
+    def check(ignore: set[str]) -> None:
+        for name, code in group.dead().items():
+            if name not in ignore:
+                raise LiveRunError(f"{name} exited with {code}:\n{group.log_tail(name)}")
+        if time.monotonic() - start > run.timeout_s:
+            raise LiveRunError(f"the run did not end within {run.timeout_s} s")
+
+    while any(group.processes[s].poll() is None for s in sources):
+        check(set(sources))
+        relay()
+        time.sleep(0.1)
+    for source in sources:
+        code = group.processes[source].returncode
+        if code != 0:
+            raise LiveRunError(f"{source} exited with {code}:\n{group.log_tail(source)}")
+    published = [_all_published_at(run.out_dir / "logs" / f"{s}.log") for s in sources]
+    ends = [t for t in published if t is not None]
+    # the end of the data: the last simulator's last message (wall clock of this machine)
+    end = max(ends) if len(ends) == len(published) else time.time()
+    (run.out_dir / MONITOR_END).write_text(f"{end!r}\n")
+    progress(
+        f"  every robot's data published and acknowledged ({time.time() - end:.1f} s after "
+        "its end); the base station flushes the smoothers over ROS"
+    )
+    while group.processes["monitor"].poll() is None:
+        check({*sources, "monitor"})
+        relay()
+        time.sleep(0.1)
+    relay()
+    if group.processes["monitor"].returncode != 0:
+        raise LiveRunError(f"the monitor failed:\n{group.log_tail('monitor')}")
+    stop_times = {}
+    for name in ["recorder", *reversed([n for n in group.processes if n != "recorder"])]:
+        began = time.monotonic()
+        group.stop(name, timeout=20 if name == "recorder" else 10)
+        stop_times[name] = time.monotonic() - began
+    slowest = max(stop_times, key=stop_times.__getitem__)
+    progress(f"  nodes stopped on SIGINT: the slowest, {slowest}, in {stop_times[slowest]:.2f} s")
+    if not summary_path.exists():
+        raise LiveRunError(f"the merger wrote no summary:\n{group.log_tail('merger')}")
+    return RunSummary.read(summary_path)
+
+
+def _all_published_at(log: Path) -> float | None:
+    """The wall-clock time of a simulator's "all messages published" log line."""
+    for line in log.read_text(errors="replace").splitlines():
+        if line.endswith("all messages published"):
+            try:
+                return float(line.split("[")[2].split("]")[0])
+            except (IndexError, ValueError):
+                return None
+    return None
+
+
+# -- the monitor: on the base station, over ROS only -------------------------------------------
+
+
+@dataclass
+class MonitorReport:
+    """What the base station saw of a run."""
+
+    joined_before_end: int  # joined maps received before the data ended
+    joined_total: int
+    end_to_final_s: float  # seconds from the end of the data to the final joined map
+    flush_calls: int
+    final_stamps: dict[str, int]
+
+    def write(self, path: Path) -> None:
+        path.write_text(json.dumps(self.__dict__, indent=1))
+
+    @staticmethod
+    def read(path: Path) -> MonitorReport:
+        return MonitorReport(**json.loads(path.read_text()))
+
+
+def monitor(
+    robots: list[str],
+    data_end: Callable[[], float | None],
+    timeout_s: float = 600.0,
+    progress: Callable[[str], None] = print,
+) -> MonitorReport:
+    """Wait for the smoothers' ``~/flush`` services, count the joined maps while the data
+    comes, and once ``data_end()`` gives the (wall-clock) time the data ended flush every
+    smoother (again, until their latest stamps hold still) and wait for the joined map of
+    those final local maps."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
+
+    from csam_ros.nodes.common import subscribe
+    from csam_ros.ros.conversions import time_to_ns
+    from csam_ros.ros.topics import JOINED_MAP, MARKERS
+
+    rclpy.init()
+    node = rclpy.create_node("csam_run_monitor")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    joined: list = []  # every joined map received
+    received: list[float] = []  # when (wall clock)
+    subscribe(node, JOINED_MAP, lambda m: (joined.append(m), received.append(time.time())))
+    clients = {r: node.create_client(Trigger, f"/{r}/smoother/flush") for r in robots}
+    deadline = time.monotonic() + timeout_s
+
+    def spin(seconds: float) -> None:
+        until = time.monotonic() + seconds
+        while time.monotonic() < until:
+            executor.spin_once(timeout_sec=min(0.1, max(until - time.monotonic(), 0.0)))
+        if time.monotonic() > deadline:
+            raise LiveRunError(f"the monitor gave up after {timeout_s} s")
+
+    try:
+        while not all(c.service_is_ready() for c in clients.values()):
+            spin(0.1)
+        progress(f"  base station: the smoothers of {', '.join(robots)} answer over the links")
+        last_print = time.monotonic()
+        while (end := data_end()) is None:
+            spin(0.1)
+            if time.monotonic() - last_print > 2.0:
+                progress(f"  base station: {len(joined)} joined maps so far")
+                last_print = time.monotonic()
+        calls = 0
+
+        def flush_all() -> dict[str, int]:
+            nonlocal calls
+            stamps: dict[str, int] = {}
+            for robot, client in clients.items():
+                while True:  # a reply lost on a bad link is asked again
+                    calls += 1
+                    future = client.call_async(Trigger.Request())
+                    executor.spin_until_future_complete(future, timeout_sec=30)
+                    if future.result() is not None:
+                        stamps[robot] = int(future.result().message)
+                        break
+                    client.remove_pending_request(future)
+                    spin(0.0)
+            return stamps
+
+        final, previous = flush_all(), None
+        while final != previous or min(final.values()) < 0:
+            spin(0.5)
+            previous, final = final, flush_all()
+
+        def is_final() -> bool:
+            if not joined:
+                return False
+            stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in joined[-1].base_nodes}
+            return all(stamps.get(r) == s for r, s in final.items())
+
+        while not is_final():
+            spin(0.05)
+        end_to_final = time.time() - end
+        before_end = sum(t < end for t in received)
+        progress(
+            f"  base station: final joined map {end_to_final:.2f} s after the end of the data "
+            f"({before_end} joined maps during the run, {calls} flush calls)"
+        )
+
+        def recorder_has_results() -> bool:
+            return all(
+                any(i.node_name == "recorder" for i in node.get_subscriptions_info_by_topic(t))
+                for t in (JOINED_MAP.name, MARKERS.name)
+            )
+
+        until = time.monotonic() + 15
+        while not recorder_has_results() and time.monotonic() < until:
+            spin(0.1)
+        spin(1.0)
+        return MonitorReport(before_end, len(joined), end_to_final, calls, final)
+    finally:
+        node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The base station's run monitor (``csam demo --hosts`` starts it there)."""
+    p = argparse.ArgumentParser(prog="python -m csam_ros.run.hosts", description=main.__doc__)
+    p.add_argument("--out", type=Path, required=True, help="the run's directory")
+    p.add_argument("--robots", nargs="+", required=True)
+    p.add_argument("--timeout", type=float, default=600.0)
+    args = p.parse_args(argv)
+    end_file = args.out / MONITOR_END
+
+    def data_end() -> float | None:
+        try:
+            return float(end_file.read_text())
+        except (OSError, ValueError):  # not there yet, or being written
+            return None
+
+    try:
+        report = monitor(
+            args.robots,
+            data_end,
+            args.timeout,
+            lambda line: print(line, flush=True),
+        )
+    except KeyboardInterrupt:
+        return 130
+    except LiveRunError as err:
+        print(f"monitor: {err}", file=sys.stderr)
+        return 1
+    report.write(args.out / MONITOR_RESULT)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+"""Robots on their own hosts: robot1, robot2 and the base station in three network namespaces
+joined by a bridge (``csam demo --hosts``), on clean links and with random packet loss.
+
+Needs root, ``ip`` and ``iptables`` (``.ci/run`` installs it); skipped, with the reason, where
+they are missing.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from csam_ros.core.csam import run_csam
+from csam_ros.core.result import RunSummary
+from csam_ros.core.simulation import simulate
+from csam_ros.datasets.scenario import load_scenario
+from csam_ros.run.hosts import MONITOR_RESULT, PREFIX, MonitorReport, missing_requirements
+
+REPO = Path(__file__).resolve().parents[2]
+SCENARIO = "map_joining"  # two robots, 40 s
+SEED = 5
+RATE = "16"  # 2.5 s of data: joined maps still arrive during it (the merger solves every 0.5 s)
+
+pytestmark = pytest.mark.skipif(
+    missing_requirements(loss=0.1) is not None,
+    reason=f"multi-host runs: {missing_requirements(loss=0.1)}",
+)
+
+
+def _namespaces() -> set[str]:
+    listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, check=False)
+    return {line.split()[0] for line in listed.stdout.splitlines() if line.startswith(PREFIX)}
+
+
+def _demo_on_hosts(out: Path, loss: float) -> tuple[subprocess.CompletedProcess[str], set[str]]:
+    before = _namespaces()
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "csam_ros.cli",
+            *("demo", "--hosts", "--isolated", "--scenario", SCENARIO),
+            *("--seed", str(SEED), "--rate", RATE, "--loss", str(loss), "--out", str(out)),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+        check=False,
+    )
+    print(result.stdout)
+    return result, _namespaces() - before
+
+
+def test_clean_links_give_the_single_host_joined_map(tmp_path: Path) -> None:
+    result, left = _demo_on_hosts(tmp_path / "run", 0.0)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert not left, f"namespaces left behind: {left}"
+    assert "base 10.231.0.3" in result.stdout  # three hosts on one subnet
+    live = RunSummary.read(tmp_path / "run" / "summary.json").result
+    # the single-host run of this scenario and seed (csam demo equals it to 1e-6: test_cli)
+    single = run_csam(simulate(load_scenario(SCENARIO), seed=SEED))
+    assert set(live.robots) == set(single.robots) == {"robot1", "robot2"}
+    for name, robot in single.robots.items():
+        assert live.robots[name].alignment == robot.alignment
+        np.testing.assert_allclose(live.robots[name].poses_joined, robot.poses_joined, atol=1e-6)
+    np.testing.assert_allclose(
+        [f.xy for f in live.features], [f.xy for f in single.features], atol=1e-6
+    )
+    assert {(x.a, x.b) for x in live.associations} == {(x.a, x.b) for x in single.associations}
+    report = MonitorReport.read(tmp_path / "run" / MONITOR_RESULT)
+    assert report.joined_before_end > 1
+
+
+@pytest.mark.parametrize("loss", [0.1, 0.3])
+def test_lossy_links_keep_the_joined_map_coming(loss: float, tmp_path: Path) -> None:
+    result, left = _demo_on_hosts(tmp_path / "run", loss)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert not left, f"namespaces left behind: {left}"
+    assert f"links: {loss:.0%} packet loss" in result.stdout
+    report = MonitorReport.read(tmp_path / "run" / MONITOR_RESULT)
+    assert report.joined_before_end > 1, report  # joined maps during the run, not only at its end
+    assert report.final_stamps == {"robot1": 40_000_000_000, "robot2": 40_000_000_000}
+    summary = RunSummary.read(tmp_path / "run" / "summary.json")
+    assert {n: r.alignment for n, r in summary.result.robots.items()} == {
+        "robot1": "reference",
+        "robot2": "aligned",
+    }
+    lag = [line for line in result.stdout.splitlines() if "lag from a local map" in line]
+    assert lag, result.stdout
+    print(
+        f"{loss:.0%} loss: {lag[0].strip()}; final joined map {report.end_to_final_s:.2f} s "
+        "after the data"
+    )
