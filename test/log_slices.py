@@ -24,6 +24,7 @@ def _select(data: Any, keep: np.ndarray) -> Any:
                 else np.asarray(getattr(data, f.name))[keep]
             )
             for f in fields(data)
+            if getattr(data, f.name) is not None  # an optional field left out stays None
         },
     )
 

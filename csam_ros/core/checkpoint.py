@@ -21,9 +21,9 @@ import json
 import os
 import zipfile
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, get_type_hints
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,12 +40,11 @@ from csam_ros.core.factors import (
 )
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.local_map import LocalMapState
-from csam_ros.core.log import FeatureLog, OdometryLog, RendezvousLog, RobotLog
+from csam_ros.core.log import RendezvousLog, RobotLog
 from csam_ros.core.result import CsamResult
 from csam_ros.core.robust import RendezvousThinning
 from csam_ros.core.solver import Problem
 from csam_ros.core.validation import (
-    DropCounter,
     LocalMapArrays,
     MeasurementFilter,
     _Stream,
@@ -57,6 +56,9 @@ VERSION = 1
 SMOOTHER = "smoother"
 MERGER = "merger"
 OFFLINE = "offline"
+# a smoother's drop reason: odometry samples that came while it was down (after a restart
+# from a checkpoint, estimated from the step of its odometry stamps)
+LOST_WHILE_DOWN = "lost_while_down"
 
 Array = NDArray[np.float64]
 
@@ -189,10 +191,11 @@ class FilterState:
     def restore(self, checks: MeasurementFilter) -> None:
         """Put this state into ``checks`` (a new filter with the same robots and bounds)."""
         checks._streams = {key: _Stream(last, held) for key, (last, held) in self.streams.items()}
-        checks.drops = {r: DropCounter() for r in self.drops}
-        for robot, counts in self.drops.items():
+        for robot, counts in self.drops.items():  # into its own counters: callers hold them
+            counter = checks.counter(robot)
+            counter.counts.clear()
             for reason, n in counts.items():
-                checks.drops[robot].add(reason, n)
+                counter.add(reason, n)
 
     def to_header(self) -> dict[str, Any]:
         return {
@@ -619,6 +622,13 @@ def _counts(node: Mapping[str, Any], r: _Reader, where: str) -> dict[str, int]:
 # --------------------------------------------------------------------------- offline replay
 
 
+def _log_parts() -> dict[str, type]:
+    """The parts of a :class:`~csam_ros.core.log.RobotLog` (odometry, features, ...) and
+    their dataclasses."""
+    hints = get_type_hints(RobotLog)
+    return {f.name: hints[f.name] for f in fields(RobotLog) if f.name != "name"}
+
+
 @dataclass
 class OfflineState:
     """What an offline replay accepted: each robot's measurement log (in the order of the
@@ -629,28 +639,21 @@ class OfflineState:
     result: CsamResult | None = None
 
     def write(self, path: Path) -> int:
+        """Write atomically (every field of every part of each log, by name); the bytes."""
         arrays: dict[str, Any] = {}
+        lists: dict[str, list[str]] = {}
         for name, log in self.logs.items():
-            o, f = log.odometry, log.features
-            arrays.update(
-                {
-                    f"logs/{name}/odometry/stamps": o.stamps,
-                    f"logs/{name}/odometry/inputs": o.inputs,
-                    f"logs/{name}/odometry/sigmas": o.sigmas,
-                    f"logs/{name}/features/stamps": f.stamps,
-                    f"logs/{name}/features/labels": f.labels,
-                    f"logs/{name}/features/ranges": f.ranges,
-                    f"logs/{name}/features/bearings": f.bearings,
-                    f"logs/{name}/features/sigma_range": f.sigma_range,
-                    f"logs/{name}/features/sigma_bearing": f.sigma_bearing,
-                }
-            )
-            arrays.update(_rendezvous_arrays(f"logs/{name}/rendezvous", log.rendezvous))
+            for part in _log_parts():
+                data = getattr(log, part)
+                for f in fields(data):
+                    value, key = getattr(data, f.name), f"logs/{name}/{part}/{f.name}"
+                    if isinstance(value, list):
+                        lists[key] = [str(v) for v in value]
+                    elif value is not None:
+                        arrays[key] = np.asarray(value)
         header = {
             "robots": list(self.logs),
-            "rendezvous_observed": {
-                n: list(log.rendezvous.observed) for n, log in self.logs.items()
-            },
+            "lists": lists,
             "filter": self.filter.to_header(),
             "result": None if self.result is None else self.result.to_dict(),
         }
@@ -659,30 +662,25 @@ class OfflineState:
     @classmethod
     def read(cls, path: Path) -> OfflineState:
         r = _Reader(path, *read_npz(path, OFFLINE))
-        observed = r.value("rendezvous_observed", dict)
+        lists = r.value("lists", dict)
         logs = {}
         for name in r.value("robots", list):
-            p = f"logs/{name}"
-            odometry = OdometryLog(
-                r.array(f"{p}/odometry/stamps"),
-                r.array(f"{p}/odometry/inputs", tail=(3,)),
-                r.array(f"{p}/odometry/sigmas", tail=(3,)),
-            )
-            features = FeatureLog(
-                r.array(f"{p}/features/stamps"),
-                r.array(f"{p}/features/labels", np.int64),
-                *(
-                    r.array(f"{p}/features/{k}")
-                    for k in ("ranges", "bearings", "sigma_range", "sigma_bearing")
-                ),
-            )
-            if (
-                len({len(odometry.stamps), len(odometry.inputs), len(odometry.sigmas)}) != 1
-                or len({len(getattr(features, f.name)) for f in fields(features)}) != 1
-            ):
-                raise r.fail(f"{p}: arrays of different lengths")
-            rendezvous = _rendezvous_log(f"{p}/rendezvous", observed.get(name), r)
-            logs[str(name)] = RobotLog(str(name), odometry, features, rendezvous)
+            parts: dict[str, Any] = {}
+            for part, kind in _log_parts().items():
+                values: dict[str, Any] = {}
+                for f in fields(kind):
+                    key = f"logs/{name}/{part}/{f.name}"
+                    if key in lists:
+                        values[f.name] = [str(v) for v in lists[key]]
+                    elif key in r.arrays:
+                        values[f.name] = r.array(key, r.arrays[key].dtype)
+                    elif f.default is MISSING and f.default_factory is MISSING:
+                        raise r.fail(f"no array {key!r}")
+                lengths = {len(v) for v in values.values()}
+                if len(lengths) > 1:
+                    raise r.fail(f"logs/{name}/{part}: fields of different lengths")
+                parts[part] = kind(**values)
+            logs[str(name)] = RobotLog(str(name), **parts)
         result = r.value("result", (dict, type(None)))
         try:
             parsed = None if result is None else CsamResult.from_dict(result)
@@ -693,34 +691,27 @@ class OfflineState:
 
 def joined_logs(first: Mapping[str, RobotLog], then: Mapping[str, RobotLog]) -> dict[str, RobotLog]:
     """Each robot's log of ``first`` followed by its log of ``then`` (robots of ``first``
-    first, in order, then new ones)."""
+    first, in order, then new ones). ValueError when a field is given in one and not the
+    other (e.g. odometry correlations)."""
     out = dict(first)
     for name, log in then.items():
         if name not in out:
             out[name] = log
             continue
-        a = out[name]
-        out[name] = RobotLog(
-            name,
-            OdometryLog(
-                *(
-                    np.concatenate([getattr(a.odometry, k), getattr(log.odometry, k)])
-                    for k in ("stamps", "inputs", "sigmas")
-                )
-            ),
-            FeatureLog(
-                *(
-                    np.concatenate([getattr(a.features, f.name), getattr(log.features, f.name)])
-                    for f in fields(FeatureLog)
-                )
-            ),
-            RendezvousLog(
-                np.concatenate([a.rendezvous.stamps, log.rendezvous.stamps]),
-                [*a.rendezvous.observed, *log.rendezvous.observed],
-                *(
-                    np.concatenate([getattr(a.rendezvous, k), getattr(log.rendezvous, k)])
-                    for k in ("ranges", "bearings", "sigma_range", "sigma_bearing")
-                ),
-            ),
-        )
+        parts = {}
+        for part in _log_parts():
+            a, b = getattr(out[name], part), getattr(log, part)
+            values = {}
+            for f in fields(a):
+                x, y = getattr(a, f.name), getattr(b, f.name)
+                if x is None and y is None:
+                    values[f.name] = None
+                elif x is None or y is None:
+                    raise ValueError(f"{name}: {part}.{f.name} is given in one log only")
+                elif isinstance(x, list):
+                    values[f.name] = [*x, *y]
+                else:
+                    values[f.name] = np.concatenate([x, y])
+            parts[part] = type(a)(**values)
+        out[name] = RobotLog(name, **parts)
     return out

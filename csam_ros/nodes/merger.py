@@ -30,6 +30,12 @@ the rest of their message kept. A robot whose new local map starts later or hold
 than its last one has had its smoother restarted: the new map is its current truth and
 replaces the old one, and the restart and the poses lost are logged once and counted in
 ``/csam/status`` and the summary.
+
+With ``state_path`` set, the merger writes its state there (atomically) after each solve:
+every robot's last local map and rendezvous measurements, the reference, its counts and the
+joined map (:class:`~csam_ros.core.checkpoint.MergerState`). Started with such a file, it
+takes that state up, publishes its joined map at once and goes on from it, also for robots
+whose smoothers are gone; a file it cannot use is one logged error, and it starts empty.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 
 from csam_ros.core import se2
+from csam_ros.core.checkpoint import CheckpointError, MergerState
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
@@ -155,6 +162,13 @@ class Merger(Node):
         )
         summary = declare(self, "summary_path", "", "write summary.json here after each solve")
         self.summary_path = Path(summary) if summary else None
+        state = declare(
+            self,
+            "state_path",
+            "",
+            "write the merger's state here after each solve and resume from it at start ('': off)",
+        )
+        self.state_path = Path(state) if state else None
         period = declare(
             self, "solve_period", 0.5, "minimum wall-clock seconds between solves", 0.0, 3600.0
         )
@@ -193,12 +207,16 @@ class Merger(Node):
         self._stopping = False
         self._on_map = guarded(self, self.drops, self.on_local_map)
         self._on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
+        resumed = self.state_path is not None and self.resume(self.state_path)
         for robot in self.allowed:  # listed robots' latched maps may come before discovery
-            self._subscribe(robot)
+            if robot not in self.robots:
+                self._subscribe(robot)
         self.joined_pub = publisher(self, JOINED_MAP)
         self.markers_pub = publisher(self, MARKERS)
         self.status_pub = publisher(self, STATUS)
         self.tf_pub = publisher(self, TF)
+        if resumed and self.last_result is not None:
+            self._publish(self.last_result, dict(self.local_map_stamps), tuple(self.robots))
         self.create_timer(
             max(period, 0.01), guarded(self, self.drops, self.on_timer), clock=steady_clock()
         )
@@ -220,6 +238,39 @@ class Merger(Node):
             self.get_logger().warning("a solve is still running; its result is not published")
         with self._publish_lock:  # no publication is under way, and none starts from now on
             super().destroy_node()
+
+    def resume(self, path: Path) -> bool:
+        """Take up the state saved at ``path`` (call before any subscription); whether it was
+        (a file that cannot be used is logged once: the merger starts empty)."""
+        if not path.exists():
+            self.get_logger().info(f"no merger state at {path} yet: starting empty")
+            return False
+        try:
+            saved = MergerState.read(path)
+        except CheckpointError as err:
+            self.get_logger().error(f"merger state not used, starting empty: {err}")
+            return False
+        now = time.monotonic()
+        self.local_maps = dict(saved.maps)
+        self.local_map_stamps = dict(saved.map_stamps)
+        self.rendezvous = dict(saved.rendezvous)
+        self.heard = list(saved.heard)
+        self.reference = saved.reference
+        self.map_arrival = {robot: now for robot in saved.maps}
+        self.restarts = dict(saved.restarts)
+        self.restart_poses_lost = dict(saved.restart_poses_lost)
+        self.solves = saved.solves
+        for reason, n in saved.dropped.items():
+            self.drops.add(reason, n)
+        self.last_result = saved.result
+        for robot in saved.robots:
+            if not self.allowed or robot in self.allowed:
+                self._subscribe(robot)
+        self.get_logger().info(
+            f"resumed from {path}: {len(saved.maps)} local maps, reference "
+            f"{saved.reference or '(none yet)'}, {saved.solves} solves"
+        )
+        return True
 
     def _subscribe(self, robot: str) -> None:
         """Subscribe to ``robot``'s local map and rendezvous poses (the topic names it)."""
@@ -442,13 +493,45 @@ class Merger(Node):
             stats = self.stats()
         if self._stopping:
             return
-        stamps = dict(inputs.stamps)
-        joined = joined_map_message(result, max(stamps.values()), stamps, inputs.robots)
+        if self.state_path is not None:
+            self._write_state(inputs, result, stats)
+        self._publish(result, dict(inputs.stamps), inputs.robots, stats)
+
+    def _write_state(self, inputs: SolveInputs, result: CsamResult, stats: MergerStats) -> None:
+        """Write the state of this solve to ``state_path`` (a failure is logged, not fatal)."""
+        assert self.state_path is not None
+        order = inputs.robots[: len(inputs.maps)]
+        try:
+            MergerState(
+                reference=order[0],
+                heard=list(order),
+                robots=list(inputs.robots),
+                maps=dict(zip(order, inputs.maps, strict=True)),
+                map_stamps={r: inputs.stamps[r] for r in order},
+                rendezvous=dict(inputs.logs),
+                solves=stats.solves,
+                dropped=stats.dropped,
+                restarts=stats.restarts,
+                restart_poses_lost=stats.restart_poses_lost,
+                result=result,
+            ).write(self.state_path)
+        except (OSError, ValueError) as err:
+            self.get_logger().error(f"merger state not written to {self.state_path}: {err}")
+
+    def _publish(
+        self,
+        result: CsamResult,
+        stamps: dict[str, int],
+        robots: tuple[str, ...],
+        stats: MergerStats | None = None,
+    ) -> None:
+        """Publish a joined map, its markers and transforms (and write the summary)."""
+        joined = joined_map_message(result, max(stamps.values()), stamps, robots)
         markers = joined_map_markers(result, self.get_clock().now().to_msg())
         with self._publish_lock:
             if self._stopping:
                 return
-            if self.summary_path is not None:
+            if self.summary_path is not None and stats is not None:
                 RunSummary(result, merger=stats).write(self.summary_path)
             self.joined_pub.publish(joined)
             self.markers_pub.publish(markers)

@@ -11,10 +11,20 @@ Every field of every sensor message is checked against the ``input:`` bounds
 (:class:`~csam_ros.core.validation.InputBounds`, the same checks as offline replay); bad input is
 dropped and counted (``/csam/status``), and every callback is guarded, so an unexpected error
 is logged and counted as ``callback_error``: the node keeps running with what it accepted.
+
+With ``checkpoint_path`` set, every publication also writes a checkpoint there atomically
+(:class:`~csam_ros.core.checkpoint.SmootherCheckpoint`: what the node accepted, its solved
+local map, its filters' and thinning's state and its counts), and a smoother started with a
+checkpoint of its robot resumes from it: it publishes the same local map at once and goes on.
+What came while it was down is lost: the step of its odometry stamps across the restart is
+logged, and the odometry samples missed are counted as ``lost_while_down`` (``/csam/status``,
+with ``restarts`` and ``lost_seconds``). A checkpoint that cannot be read, or of another
+robot, is one logged error: the node starts empty.
 """
 
 from __future__ import annotations
 
+import pathlib
 import sys
 import time
 from typing import Any
@@ -32,6 +42,15 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from csam_ros.core.checkpoint import (
+    LOST_WHILE_DOWN,
+    CheckpointError,
+    FilterState,
+    SmootherCheckpoint,
+    ThinningState,
+    missed_samples,
+    odometry_period,
+)
 from csam_ros.core.csam import CsamConfig, robot_map_from_local_map
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.local_map import LocalMap as CoreLocalMap
@@ -94,6 +113,13 @@ class Smoother(Node):
             0.0,
             360.0,
         )
+        checkpoint = declare(
+            self,
+            "checkpoint_path",
+            "",
+            "write a checkpoint here at every publication and resume from it at start ('': off)",
+        )
+        self.checkpoint_path = pathlib.Path(checkpoint) if checkpoint else None
         local_map = declare_settings(self, LocalMapConfig)
         self.publish_period = local_map.publish_period
         self.map = CoreLocalMap(self.robot, local_map.options())
@@ -115,6 +141,12 @@ class Smoother(Node):
         self.dirty = False
         self.solve_seconds = 0.0
         self.errors = 0
+        self.restarts = 0  # restarts from a checkpoint
+        self.lost_seconds = 0.0  # odometry time lost while the node was down
+        self._resumed_after: float | None = None  # the checkpoint's last odometry stamp
+        self._odometry_period: float | None = None
+        if self.checkpoint_path is not None:
+            self.resume(self.checkpoint_path)
 
         # this robot's topics by relative name (the node runs in the robot's namespace)
         subscribe(self, ODOM, guarded(self, self.drops, self.on_odometry))
@@ -138,6 +170,8 @@ class Smoother(Node):
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
         self.create_timer(self.publish_period, guarded(self, self.drops, self.on_timer))
+        if self.restarts and self.published_ns >= 0 and len(self.map.stamps) >= 2:
+            guarded(self, self.drops, self.publish)(0)  # the resumed map, latched, at once
 
     # -- input ----------------------------------------------------------------------------------
 
@@ -151,6 +185,8 @@ class Smoother(Node):
         self.pending_correlations.offer(stamp, sigmas, correlations)
         samples = self.filter.odometry(self.robot, stamp, inputs, sigmas)
         if samples:
+            if self._resumed_after is not None:
+                self._count_lost(samples[0][0])
             rho = self.pending_correlations.released(samples)
             stamps, inputs, sigmas = zip(*samples, strict=True)
             self.map.add_odometry(
@@ -247,6 +283,10 @@ class Smoother(Node):
         self.dirty = False
         if len(self.map.stamps) < 2:  # only the start pose: nothing to publish yet
             return
+        self.publish(report.solve.iterations if report.solve is not None else 0)
+
+    def publish(self, iterations: int) -> None:
+        """Publish the local map as it is (and write the checkpoint, when on)."""
         robot_map = robot_map_from_local_map(self.map)
         stamp_ns = self.last_odometry_ns
         msg = robot_map_to_message(
@@ -254,7 +294,7 @@ class Smoother(Node):
             stamp_ns,
             self.map.pose_covariances(),
             self.map.landmark_covariances(),
-            report.solve.iterations if report.solve is not None else 0,
+            iterations,
         )
         self.local_map_pub.publish(msg)
         self.rendezvous_pub.publish(self.rendezvous_poses(robot_map, stamp_ns))
@@ -262,6 +302,94 @@ class Smoother(Node):
         latest = (f"{self.robot}/map", f"{self.robot}/base_link", self.map.poses[-1])
         self.tf_pub.publish(tf_message([latest], stamp_to_ns(self.map.stamps[-1])))
         self.published_ns = stamp_ns
+        if self.checkpoint_path is not None:
+            self.write_checkpoint(self.checkpoint_path)
+
+    # -- checkpoint -----------------------------------------------------------------------------
+
+    def write_checkpoint(self, path: pathlib.Path) -> None:
+        """Write what this node accepted and its local map to ``path`` (atomically); a
+        failure is logged and counted as an error, never fatal."""
+        try:
+            SmootherCheckpoint(
+                robot=self.robot,
+                local_map=self.map.state(),
+                filter=FilterState.of(self.filter),
+                peer_filter=FilterState.of(self.peer_filter),
+                thinning=ThinningState.of(self.thinning),
+                own_rendezvous=rendezvous_log_from_chunks(self.own_rendezvous),
+                rendezvous_stamps=np.array(sorted(self.rendezvous_stamps), dtype=float),
+                last_odometry_ns=self.last_odometry_ns,
+                published_ns=self.published_ns,
+                errors=self.errors,
+                restarts=self.restarts,
+                lost_seconds=self.lost_seconds,
+            ).write(path)
+        except OSError as err:
+            self.errors += 1
+            self.get_logger().error(f"checkpoint not written to {path}: {err}")
+
+    def resume(self, path: pathlib.Path) -> None:
+        """Take up the state of the checkpoint at ``path`` if there is a usable one of this
+        robot (else say why and start empty)."""
+        if not path.exists():
+            self.get_logger().info(f"no checkpoint at {path} yet: starting empty")
+            return
+        try:
+            saved = SmootherCheckpoint.read(path, self.robot)
+            local = CoreLocalMap.from_state(self.robot, saved.local_map, self.map.options)
+        except (CheckpointError, ValueError) as err:
+            self.get_logger().error(f"checkpoint not used, starting empty: {err}")
+            return
+        self.map = local
+        saved.filter.restore(self.filter)
+        saved.peer_filter.restore(self.peer_filter)
+        saved.thinning.restore(self.thinning)
+        log = saved.own_rendezvous
+        observed = np.array(log.observed, dtype=object)
+        self.own_rendezvous = []  # one chunk per run of equal stamps, in arrival order
+        for _, rows in _runs(log.stamps):
+            self.own_rendezvous.append(
+                (
+                    float(log.stamps[rows.start]),
+                    {
+                        "observed": observed[rows],
+                        "ranges": log.ranges[rows],
+                        "bearings": log.bearings[rows],
+                        "sigma_range": log.sigma_range[rows],
+                        "sigma_bearing": log.sigma_bearing[rows],
+                    },
+                )
+            )
+        self.rendezvous_stamps = set(saved.rendezvous_stamps.tolist())
+        self.last_odometry_ns, self.published_ns = saved.last_odometry_ns, saved.published_ns
+        self.errors, self.lost_seconds = saved.errors, saved.lost_seconds
+        self.restarts = saved.restarts + 1
+        odometry = saved.local_map.odometry_stamps
+        self._resumed_after = float(odometry[-1]) if len(odometry) else None
+        self._odometry_period = odometry_period(odometry)
+        self.get_logger().info(
+            f"resumed from {path}: {len(self.map.stamps)} poses, "
+            f"{len(self.map.landmark_labels)} features, odometry up to "
+            f"{self._resumed_after if self._resumed_after is not None else float('nan'):.3f} s"
+        )
+
+    def _count_lost(self, first_stamp: float) -> None:
+        """Count what came while the node was down: the odometry samples missed between the
+        checkpoint's last one and ``first_stamp``, the first accepted after the restart."""
+        assert self._resumed_after is not None
+        gap = first_stamp - self._resumed_after
+        period = self._odometry_period
+        missed = missed_samples(gap, period)
+        lost = max(gap - (period or 0.0), 0.0)
+        self._resumed_after = None
+        self.drops.add(LOST_WHILE_DOWN, missed)
+        self.lost_seconds += lost
+        self.get_logger().warning(
+            f"odometry resumed {gap:.3f} s after the checkpoint's last sample: {missed} "
+            f"odometry samples ({lost:.3f} s of data, with what else came then) lost while "
+            "the smoother was down"
+        )
 
     def rendezvous_poses(self, robot_map: RobotMap, stamp_ns: int) -> RendezvousPoses:
         measurements, stamps = self.kept_rendezvous()
@@ -304,6 +432,8 @@ class Smoother(Node):
             "solve_seconds": round(self.solve_seconds, 4),
             "dropped": drops.total,
             "errors": self.errors,
+            "restarts": self.restarts,
+            "lost_seconds": round(self.lost_seconds, 3),
             **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
         }
         level = (
@@ -320,6 +450,15 @@ class Smoother(Node):
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.status_pub.publish(array)
+
+
+def _runs(stamps: np.ndarray) -> list[tuple[float, slice]]:
+    """The runs of equal consecutive stamps."""
+    if len(stamps) == 0:
+        return []
+    starts = np.flatnonzero(np.r_[True, np.diff(stamps) != 0])
+    ends = np.r_[starts[1:], len(stamps)]
+    return [(float(stamps[a]), slice(int(a), int(b))) for a, b in zip(starts, ends, strict=True)]
 
 
 def _checked_rendezvous(

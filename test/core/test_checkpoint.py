@@ -188,7 +188,7 @@ def test_bad_files_are_refused_with_one_clear_error(run, tmp_path) -> None:
     with pytest.raises(CheckpointError, match="version 99"):
         OfflineState.read(future)
     short = tmp_path / "short.npz"
-    write_npz(short, "offline", {"robots": ["robot1"], "rendezvous_observed": {}}, {})
+    write_npz(short, "offline", {"robots": ["robot1"], "lists": {}}, {})
     with pytest.raises(CheckpointError, match="no array 'logs/robot1/odometry/stamps'"):
         OfflineState.read(short)
 

@@ -1,0 +1,345 @@
+"""Faults on live nodes in the isolated domain: a smoother killed and restarted from its
+checkpoint, a merger killed and restarted (from the latched local maps, and from its saved
+state), checkpoints that cannot be used, and a robot whose clock is offset."""
+
+from __future__ import annotations
+
+import copy
+import signal
+from typing import Any
+
+import numpy as np
+import pytest
+from merger_harness import ROBOTS, MergerHarness, joined_view, run_messages
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from csam_ros.core.checkpoint import LOST_WHILE_DOWN, SmootherCheckpoint, missed_samples
+from csam_ros.core.log import MultiRobotLog
+from csam_ros.core.simulation import simulate
+from csam_ros.datasets.scenario import load_scenario
+
+LOST_FROM, LOST_TO = 15.0, 18.0  # s after the start: the smoother is down in between
+
+
+def _smoother_messages() -> tuple[list[Any], float]:
+    """robot1's sensor messages of map_joining and robot2's rendezvous (which robot1's
+    smoother also takes), in stamp order; and the first odometry stamp."""
+    from csam_ros.ros.conversions import log_to_messages
+
+    log = simulate(load_scenario("map_joining"), seed=3)
+    topics = {"/robot1/odom", "/robot1/features", "/robot1/rendezvous", "/robot2/rendezvous"}
+    messages = [m for m in log_to_messages(MultiRobotLog(log.robots), False) if m.topic in topics]
+    return messages, float(log.robots["robot1"].odometry.stamps[0])
+
+
+class SmootherClient:
+    """A node that feeds a smoother process, flushes it and reads what it publishes."""
+
+    def __init__(self, context: Any, spin: Any) -> None:
+        import rclpy
+        from std_srvs.srv import Trigger
+
+        from csam_ros.nodes.common import publisher, subscribe
+        from csam_ros.ros.topics import FEATURES, LOCAL_MAP, ODOM, RENDEZVOUS, STATUS
+
+        self.spin = spin
+        self.node = rclpy.create_node("fault_client", context=context)
+        self.pubs = {
+            "/robot1/odom": publisher(self.node, ODOM, ODOM.of("robot1")),
+            "/robot1/features": publisher(self.node, FEATURES, FEATURES.of("robot1")),
+            "/robot1/rendezvous": publisher(self.node, RENDEZVOUS, RENDEZVOUS.of("robot1")),
+            "/robot2/rendezvous": publisher(self.node, RENDEZVOUS, RENDEZVOUS.of("robot2")),
+        }
+        self.maps: list[Any] = []
+        self.status: dict[str, str] = {}
+        subscribe(self.node, LOCAL_MAP, self.maps.append, LOCAL_MAP.of("robot1"))
+        subscribe(self.node, STATUS, self._on_status)
+        self.flush_client = self.node.create_client(Trigger, "/robot1/smoother/flush")
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+
+    def _on_status(self, msg: Any) -> None:
+        for status in msg.status:
+            if status.name == "smoother/robot1":
+                self.status = {kv.key: kv.value for kv in status.values}
+
+    def wait(self, condition: Any, timeout_s: float = 30.0) -> None:
+        assert self.spin(self.executor, condition, timeout_s), "timed out"
+
+    def readers(self) -> set[tuple[str, bytes]]:
+        """The subscription endpoints on the graph of every topic fed here."""
+        return {
+            (topic, bytes(info.endpoint_gid))
+            for topic in self.pubs
+            for info in self.node.get_subscriptions_info_by_topic(topic)
+        }
+
+    def send(self, messages: list[Any], old_readers: set[tuple[str, bytes]] = frozenset()) -> None:
+        """Publish ``messages`` once a reader not among ``old_readers`` (a killed process's
+        endpoints stay on the graph for a while) is on every topic."""
+
+        def ready() -> bool:
+            new = {topic for topic, _ in self.readers() - set(old_readers)}
+            return new == set(self.pubs)
+
+        self.wait(ready)
+        # discovery settles both ways (odometry is best effort: a message to a reader that
+        # has not matched this writer yet is gone)
+        self.spin(self.executor, lambda: False, 1.0)
+        for m in messages:
+            self.pubs[m.topic].publish(m.message)
+            self.executor.spin_once(timeout_sec=0.001)
+
+    def reach(self, odometry: Any) -> None:
+        """Send one odometry message until the smoother has it (its flush says its stamp):
+        a restarted reader may not know this writer yet, and best effort is not resent."""
+        stamp = odometry.stamp_ns
+        for _ in range(100):
+            self.pubs[odometry.topic].publish(odometry.message)
+            if self.flush(settle=False) == stamp:
+                return
+            self.spin(self.executor, lambda: False, 0.2)
+        raise AssertionError(f"the smoother never received odometry at {stamp} ns")
+
+    def flush(self, settle: bool = True) -> int:
+        """Flush until the published stamp stays the same (messages may still be queued)."""
+        from std_srvs.srv import Trigger
+
+        def once() -> int:
+            future = self.flush_client.call_async(Trigger.Request())
+            self.wait(future.done)
+            return int(future.result().message)
+
+        self.wait(self.flush_client.service_is_ready)
+        previous, final = None, once()
+        while settle and final != previous:
+            self.spin(self.executor, lambda: False, 0.5)
+            previous, final = final, once()
+        return final
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self.executor.shutdown()
+
+
+def _without_iterations(msg: Any) -> Any:
+    out = copy.deepcopy(msg)
+    out.iterations = 0
+    return out
+
+
+def test_a_killed_smoother_resumes_from_its_checkpoint(
+    ros_context, spin, nodes, tmp_path, fields_equal
+) -> None:
+    messages, t0 = _smoother_messages()
+    stamp = [m.stamp_ns / 1e9 - t0 for m in messages]
+    before = [m for m, t in zip(messages, stamp, strict=True) if t <= LOST_FROM]
+    after = [m for m, t in zip(messages, stamp, strict=True) if t > LOST_TO]
+    checkpoint = tmp_path / "robot1.npz"
+    args = [
+        "--ros-args",
+        "-r",
+        "__ns:=/robot1",
+        "-p",
+        "robots:=[robot1,robot2]",
+        "-p",
+        "publish_period:=1000.0",
+        "-p",
+        f"checkpoint_path:={checkpoint}",
+    ]
+    client = SmootherClient(ros_context, spin)
+    try:
+        first = nodes.start("smoother", *args)
+        client.send(before)
+        client.flush()
+        killed_map = client.maps[-1]
+        assert nodes.stop(first, signal.SIGKILL) == -signal.SIGKILL
+        saved = SmootherCheckpoint.read(checkpoint, "robot1")
+        assert saved.published_ns == killed_map.header.stamp.sec * 10**9 + (
+            killed_map.header.stamp.nanosec
+        )
+
+        published, old_readers = len(client.maps), client.readers()
+        second = nodes.start("smoother", *args)
+        # the restarted smoother publishes the map it had, before any new data
+        client.wait(lambda: len(client.maps) > published)
+        fields_equal(_without_iterations(killed_map), _without_iterations(client.maps[-1]))
+
+        # the first odometry after the restart, then the rest (it comes again: a duplicate)
+        client.send([], old_readers)
+        client.reach(next(m for m in after if m.topic == "/robot1/odom"))
+        client.send(after)
+        client.flush()
+        # odometry is best effort: count from what the smoother received, as it does
+        last_before = float(saved.local_map.odometry_stamps[-1])
+        odometry = SmootherCheckpoint.read(checkpoint, "robot1").local_map.odometry_stamps
+        first_after = float(odometry[odometry > last_before][0])
+        lost = missed_samples(first_after - last_before, 0.5)
+        assert lost >= round((LOST_TO - LOST_FROM) / 0.5)  # 15.5 ... 18.0 s never came
+        client.wait(lambda: client.status.get(f"dropped/{LOST_WHILE_DOWN}") == str(lost))
+        assert client.status["restarts"] == "1"
+        assert float(client.status["lost_seconds"]) == pytest.approx(lost * 0.5, abs=1e-3)
+        final = client.maps[-1]
+        # what it had accepted before the kill is all there
+        old = {(s.sec, s.nanosec) for s in killed_map.pose_stamps}
+        new = {(s.sec, s.nanosec) for s in final.pose_stamps}
+        assert old <= new and final.pose_stamps[0] == killed_map.pose_stamps[0]
+        assert len(final.poses) > len(killed_map.poses)
+        nodes.stop(second)
+        print(
+            f"smoother killed after {LOST_FROM:g} s, restarted at {LOST_TO:g} s: "
+            f"{len(killed_map.poses)} poses resumed, {lost} odometry samples lost"
+        )
+    finally:
+        client.close()
+
+
+def test_a_checkpoint_that_cannot_be_used_is_one_error_and_an_empty_start(
+    ros_context, tmp_path, capfd
+) -> None:
+    from csam_ros.nodes.smoother import Smoother
+
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"\x00" * 100)
+    robot1 = tmp_path / "robot1.npz"
+    for namespace, path, error in (
+        ("robot1", garbage, "not a readable .npz file"),
+        ("robot2", robot1, "the checkpoint of 'robot1', not of 'robot2'"),
+    ):
+        smoother = Smoother(
+            context=ros_context,
+            namespace=namespace,
+            parameter_overrides=[
+                Parameter("robots", value=["robot1", "robot2"]),
+                Parameter("checkpoint_path", value=str(path)),
+            ],
+        )
+        try:
+            assert len(smoother.map.stamps) == 0 and smoother.restarts == 0
+            if namespace == "robot1":  # then it writes a good checkpoint of robot1
+                messages, _ = _smoother_messages()
+                for m in messages[:60]:
+                    if m.topic == "/robot1/odom":
+                        smoother.on_odometry(m.message)
+                smoother.solve_and_publish()
+                smoother.write_checkpoint(robot1)
+                assert smoother.errors == 0
+        finally:
+            smoother.destroy_node()
+        logged = capfd.readouterr().err
+        assert logged.count("checkpoint not used, starting empty") == 1, logged
+        assert error in logged
+
+
+def _replace_merger(harness: MergerHarness, context: Any, **parameters: Any) -> None:
+    """Kill the harness's merger (destroyed, its thread left) and start a new one."""
+    from csam_ros.nodes.merger import Merger
+
+    harness.executor.remove_node(harness.merger)
+    harness.merger.destroy_node()
+    overrides = {"robots": ROBOTS, "solve_period": 0.02, **parameters}
+    harness.merger = Merger(
+        context=context,
+        parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+    )
+    harness.executor.add_node(harness.merger)
+
+
+def test_a_restarted_merger_republishes_the_joined_map_in_one_solve(
+    ros_context, spin, tmp_path
+) -> None:
+    messages = run_messages()
+    harness = MergerHarness(ros_context, spin)
+    try:
+        joined = harness.start(messages)
+        published = len(harness.joined)
+        _replace_merger(harness, ros_context)
+        harness.wait(lambda: len(harness.joined) > published)
+        assert harness.merger.solves == 1
+        assert joined_view(harness.joined[-1]) == joined_view(joined)
+    finally:
+        harness.close()
+
+
+def _messages_until(end: float) -> Any:
+    """map_joining's last smoother messages (as merger_harness.run_messages) with robot2's
+    map and measurements cut at ``end`` s: an earlier moment of the same run."""
+    from log_slices import robot_log_between
+    from merger_harness import STAMP_NS, RunMessages
+
+    from csam_ros.core.csam import robot_map_from_local_map
+    from csam_ros.core.local_map import build_local_map
+    from csam_ros.core.rendezvous import required_stamps
+    from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
+
+    logs = dict(simulate(load_scenario("map_joining"), seed=2).robots)
+    logs["robot2"] = robot_log_between(logs["robot2"], end=end)
+    stamps = required_stamps({n: r.rendezvous for n, r in logs.items()})
+    maps, rendezvous = {}, {}
+    for name, log in logs.items():
+        extra = stamps[name][stamps[name] <= log.odometry.stamps[-1]]
+        local = build_local_map(log, extra)
+        m = robot_map_from_local_map(local)
+        maps[name] = robot_map_to_message(
+            m, STAMP_NS, local.pose_covariances(), local.landmark_covariances()
+        )
+        indices = np.unique(local.pose_index(extra))
+        rendezvous[name] = rendezvous_poses_message(m, STAMP_NS, indices, log.rendezvous)
+    return RunMessages(maps, rendezvous, logs)
+
+
+def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
+    ros_context, spin, tmp_path
+) -> None:
+    """The merger's state saved at a solve with robot2's map of the first 25 s; a new merger
+    takes it up with no smoother left (its joined map comes from the state alone), then both
+    whole maps arrive: the joined map equals the one of a merger that never stopped."""
+    from csam_ros.nodes.common import publisher
+    from csam_ros.ros.topics import LOCAL_MAP, RENDEZVOUS_POSES
+
+    state = tmp_path / "merger.npz"
+    early, whole = _messages_until(25.0), run_messages()
+    harness = MergerHarness(ros_context, spin, state_path=str(state))
+    try:
+        joined = harness.start(early)
+        solves = harness.merger.solves
+        for r in ROBOTS:  # the smoothers are gone: nothing holds their maps any more
+            harness.injector.destroy_publisher(harness.maps[r])
+            harness.injector.destroy_publisher(harness.rendezvous[r])
+        _replace_merger(harness, ros_context, state_path=str(state))
+        published = len(harness.joined)
+        harness.wait(lambda: len(harness.joined) > published)
+        assert harness.merger.solves == solves and harness.merger.reference == "robot1"
+        assert set(harness.merger.local_maps) == set(ROBOTS)
+        assert joined_view(harness.joined[-1]) == joined_view(joined)
+
+        # the smoothers are back with their whole maps: the merger goes on from its state
+        harness.maps = {r: publisher(harness.injector, LOCAL_MAP, LOCAL_MAP.of(r)) for r in ROBOTS}
+        harness.rendezvous = {
+            r: publisher(harness.injector, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of(r)) for r in ROBOTS
+        }
+        poses = len(whole.local_maps["robot2"].poses)
+
+        def robot2_whole() -> bool:
+            return any(
+                t.robot == "robot2" and len(t.poses) == poses
+                for t in harness.joined[-1].trajectories
+            )
+
+        harness.hold(whole)
+        harness.wait(lambda: harness.merger.solves > solves and robot2_whole())
+        harness.wait(lambda: not harness.merger.dirty and not harness.merger.solving)
+        continued = harness.resolve()
+        assert harness.merger.restarts == {}
+
+        # a merger that never stopped, on the same maps
+        _replace_merger(harness, ros_context)
+        published = len(harness.joined)
+        harness.wait(lambda: len(harness.joined) > published)
+        harness.wait(lambda: not harness.merger.dirty and not harness.merger.solving)
+        uninterrupted = harness.resolve()
+        assert joined_view(continued) == joined_view(uninterrupted)
+        assert joined_view(continued) != joined_view(joined)
+    finally:
+        harness.close()
