@@ -11,7 +11,8 @@ error ``s = ||W e||^2`` (no robust kernel) against the chi2 gate of its dimensio
 (docs/METHOD.md section 6.5):
 
 - the trajectory: the share of the factors between poses (odometry and gap bridges) beyond
-  the gate. Healthy maps have next to none (MR.CLAM Dataset 1: 0 of 5,096-6,555 per robot);
+  the gate. Healthy maps have next to none (MR.CLAM Dataset 1: at most 2 of 4,426-6,555 per
+  robot);
   a folded trajectory many (a simulated wrong loop of five features: 64 of 64). Above
   ``max_trajectory_outliers`` the robot stays pending;
 - the observations: the share beyond the gate of all of them (MR.CLAM: 4-8 %, its
