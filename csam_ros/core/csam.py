@@ -78,6 +78,7 @@ from csam_ros.core.robust import (
     FilterReport,
     RendezvousThinning,
     consistent_rendezvous,
+    select_rendezvous,
     thin_rendezvous,
 )
 from csam_ros.core.solver import NormalEquations, SolverOptions
@@ -325,13 +326,40 @@ def filter_rendezvous(
     """The consistency check of ``config`` (:func:`csam_ros.core.robust.consistent_rendezvous`)
     against the local maps' trajectories. Thinning is not done here: it decides where the
     local maps hold poses, so the smoothers (online) and :func:`run_csam` (offline) apply it.
+    First, a measurement stamped before the first or after the last pose of its observer's or
+    observed robot's map can have no pose there (clocks that differ between robots; online,
+    also a map that has not caught up yet): it is left out and counted in the report
+    ``trajectory_span`` under ``outside_trajectory``, per observing robot.
     Returns the kept logs and what was dropped."""
+    logs, reports = _within_trajectories(maps, logs, config.stamp_tolerance)
     if not config.rendezvous_consistency:
-        return logs, {}
+        return logs, reports
     trajectories = {m.name: (np.asarray(m.stamps, dtype=float), m.poses) for m in maps}
     present = {n: log for n, log in logs.items() if n in trajectories}
     kept, checked = consistent_rendezvous(present, trajectories, drift=config.consistency_drift)
-    return {**logs, **kept}, {"consistency": checked}
+    return {**logs, **kept}, {**reports, "consistency": checked}
+
+
+def _within_trajectories(
+    maps: Sequence[RobotMap], logs: Mapping[str, RendezvousLog], tolerance: float
+) -> tuple[Mapping[str, RendezvousLog], dict[str, FilterReport]]:
+    """``logs`` without measurements stamped outside the span of their observer's or observed
+    robot's map (robots without a map are left to :func:`collect`)."""
+    span = {m.name: (float(m.stamps[0]) - tolerance, float(m.stamps[-1]) + tolerance) for m in maps}
+    report = FilterReport()
+    out = dict(logs)
+    for name, log in logs.items():
+        stamps = np.asarray(log.stamps, dtype=float)
+        if name not in span or len(stamps) == 0:
+            continue
+        low = np.array([span.get(o, (-np.inf, np.inf))[0] for o in log.observed])
+        high = np.array([span.get(o, (-np.inf, np.inf))[1] for o in log.observed])
+        low, high = np.maximum(low, span[name][0]), np.minimum(high, span[name][1])
+        keep = (stamps >= low) & (stamps <= high)
+        if not keep.all():
+            report.add(name, "outside_trajectory", int((~keep).sum()))
+            out[name] = select_rendezvous(log, keep)
+    return (out, {"trajectory_span": report}) if report.dropped else (logs, {})
 
 
 def join_maps(

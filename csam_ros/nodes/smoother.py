@@ -94,6 +94,9 @@ from csam_ros.ros.topics import (
     TF,
 )
 
+# a drop reason: a rendezvous stamp before this robot's first pose (e.g. clocks that differ)
+OUTSIDE_TRAJECTORY = "outside_trajectory"
+
 
 class Smoother(Node):
     """One robot's sqrt-SAM smoother (see the module docstring)."""
@@ -141,6 +144,7 @@ class Smoother(Node):
         self.dirty = False
         self.solve_seconds = 0.0
         self.errors = 0
+        self.outside_stamps: set[float] = set()  # rendezvous stamps before the first pose
         self.restarts = 0  # restarts from a checkpoint
         self.lost_seconds = 0.0  # odometry time lost while the node was down
         self._resumed_after: float | None = None  # the checkpoint's last odometry stamp
@@ -362,6 +366,9 @@ class Smoother(Node):
                 )
             )
         self.rendezvous_stamps = set(saved.rendezvous_stamps.tolist())
+        if len(self.map.stamps):  # counted before the restart
+            first = self.map.stamps[0] - self.map.options.stamp_tolerance
+            self.outside_stamps = {t for t in self.rendezvous_stamps if t < first}
         self.last_odometry_ns, self.published_ns = saved.last_odometry_ns, saved.published_ns
         self.errors, self.lost_seconds = saved.errors, saved.lost_seconds
         self.restarts = saved.restarts + 1
@@ -393,7 +400,20 @@ class Smoother(Node):
 
     def rendezvous_poses(self, robot_map: RobotMap, stamp_ns: int) -> RendezvousPoses:
         measurements, stamps = self.kept_rendezvous()
-        stamps = stamps[stamps <= self.map.stamps[-1]]
+        tolerance = self.map.options.stamp_tolerance
+        early = stamps[stamps < self.map.stamps[0] - tolerance]
+        for t in set(early.tolist()) - self.outside_stamps:
+            # before this robot's first pose (e.g. a peer's clock ahead of this one's): no pose
+            # will ever be there; counted once, and the merger leaves the measurement out
+            self.outside_stamps.add(t)
+            self.drops.add(OUTSIDE_TRAJECTORY)
+            self.get_logger().warning(
+                f"a rendezvous at {t:.3f} s is before this robot's first pose at "
+                f"{self.map.stamps[0]:.3f} s: no pose there (clocks differ?)"
+            )
+        stamps = stamps[
+            (stamps >= self.map.stamps[0] - tolerance) & (stamps <= self.map.stamps[-1])
+        ]
         indices = np.unique(self.map.pose_index(stamps)) if len(stamps) else np.zeros(0, int)
         return rendezvous_poses_message(robot_map, stamp_ns, indices, measurements)
 

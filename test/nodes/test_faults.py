@@ -343,3 +343,144 @@ def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
         assert joined_view(continued) != joined_view(joined)
     finally:
         harness.close()
+
+
+OFFSET = 0.3  # s: robot2's clock against robot1's
+
+
+def _clock_offset(log: MultiRobotLog, robot: str, offset: float) -> MultiRobotLog:
+    """``log`` with every stamp of ``robot`` (and its true trajectory's) ``offset`` s later:
+    its clock is ahead of the others' by that much."""
+    from dataclasses import replace
+
+    r = log.robots[robot]
+    moved = replace(
+        r,
+        odometry=replace(r.odometry, stamps=r.odometry.stamps + offset),
+        features=replace(r.features, stamps=r.features.stamps + offset),
+        rendezvous=replace(r.rendezvous, stamps=r.rendezvous.stamps + offset),
+    )
+    truth = log.truth
+    if truth is not None:
+        stamps = {**truth.trajectory_stamps, robot: truth.trajectory_stamps[robot] + offset}
+        truth = replace(truth, trajectory_stamps=stamps)
+    return MultiRobotLog({**log.robots, robot: moved}, truth)
+
+
+def _side_by_side() -> MultiRobotLog:
+    """map_joining with robot2 starting 2 m ahead and 2 m to the left of robot1, both driving
+    the same way: robot1 sees robot2 from its first sample to its last."""
+    from dataclasses import replace
+
+    scenario = load_scenario("map_joining")
+    robot1, robot2 = scenario.robots
+    robot2 = replace(robot2, start_pose=(-8.5, 1.0, 0.0))
+    return simulate(replace(scenario, robots=(robot1, robot2)), seed=1)
+
+
+def _errors(result: Any, truth: Any) -> tuple[float, float]:
+    """Landmark RMSE and the largest trajectory position RMSE of a joined map [m]."""
+    from csam_ros.core.evaluation import evaluate
+
+    e = evaluate(result, truth)
+    trajectory = max(v["position_rmse_m"] for v in e["trajectory_error"].values())
+    return e["landmark_error"]["rmse_m"], trajectory
+
+
+def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory(
+    ros_context, spin
+) -> None:
+    """robot2's clock 0.3 s ahead: robot1's first sighting of robot2 (at 0 s) comes before
+    robot2's first pose (at 0.3 s). robot2's smoother and the merger drop it and count it,
+    the others are joined at the wrong moment of robot2's path; the joined map still forms,
+    equals the core's on the same data, and its error is measured."""
+    import rclpy
+
+    from csam_ros.core.csam import run_csam
+    from csam_ros.nodes.common import publisher
+    from csam_ros.nodes.merger import Merger
+    from csam_ros.nodes.smoother import OUTSIDE_TRAJECTORY, Smoother
+    from csam_ros.ros.conversions import log_to_messages
+    from csam_ros.ros.topics import parse
+
+    clean = _side_by_side()
+    log = _clock_offset(clean, "robot2", OFFSET)
+    expected = run_csam(log)
+    robots = list(log.robots)
+    smoothers = {
+        r: Smoother(
+            context=ros_context,
+            namespace=r,
+            parameter_overrides=[
+                Parameter("robots", value=robots),
+                Parameter("publish_period", value=1000.0),
+            ],
+        )
+        for r in robots
+    }
+    merger = Merger(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("robots", value=robots),
+            Parameter("solve_period", value=0.05),
+        ],
+    )
+    source = rclpy.create_node("clock_offset_source", context=ros_context)
+    messages = log_to_messages(log, with_truth=False)
+    pubs = {}
+    for m in messages:
+        if m.topic not in pubs:
+            topic, robot = parse(m.topic)
+            pubs[m.topic] = publisher(source, topic, topic.of(robot))
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (source, merger, *smoothers.values()):
+        executor.add_node(n)
+    try:
+        assert spin(executor, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()))
+        spin(executor, lambda: False, 1.0)
+        for m in messages:
+            pubs[m.topic].publish(m.message)
+            executor.spin_once(timeout_sec=0.0)
+        last = {r: float(log.robots[r].odometry.stamps[-1]) for r in robots}
+        assert spin(
+            executor,
+            lambda: all(s.filter.clock(r) == last[r] for r, s in smoothers.items()),
+            30,
+        )
+        spin(executor, lambda: False, 0.5)
+        for s in smoothers.values():
+            s.solve_and_publish(converge=True)
+
+        def merged_final() -> bool:
+            result = merger.last_result
+            return result is not None and all(
+                len(result.robots[r].stamps) == len(s.map.stamps) for r, s in smoothers.items()
+            )
+
+        assert spin(executor, merged_final, 60)
+        spin(executor, lambda: False, 0.3)
+        result = merger.last_result
+        assert result is not None
+        # robot2's smoother holds no pose before its first one: the measurement is counted
+        assert smoothers["robot2"].drops.as_dict() == {OUTSIDE_TRAJECTORY: 1}
+        assert all(s.errors == 0 for s in smoothers.values())
+        # the merger leaves it out and counts it, as the core does offline
+        span = {"robot1": {"outside_trajectory": 1}}
+        assert result.rendezvous_filter["trajectory_span"].dropped == span
+        assert expected.rendezvous_filter["trajectory_span"].dropped == span
+        assert result.robots["robot2"].alignment == "aligned"
+        for name, want in expected.robots.items():
+            np.testing.assert_allclose(
+                result.robots[name].poses_joined, want.poses_joined, atol=1e-6
+            )
+        before, after = _errors(run_csam(clean), clean.truth), _errors(result, log.truth)
+        print(
+            f"robot2's clock {OFFSET} s ahead: 1 rendezvous dropped; landmark RMSE "
+            f"{before[0]:.3f} -> {after[0]:.3f} m, trajectory RMSE {before[1]:.3f} -> "
+            f"{after[1]:.3f} m"
+        )
+        assert after[0] < 0.25 and after[1] < 0.25
+    finally:
+        for n in (source, merger, *smoothers.values()):
+            n.destroy_node()
+        executor.shutdown()
