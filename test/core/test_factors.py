@@ -88,6 +88,67 @@ def test_point_observation_jacobians_including_range_near_zero(distance):
     np.testing.assert_allclose(f.evaluate([x, points], False)[0], 0, atol=1e-12)
 
 
+def cartesian_observations(rng, count):
+    """Poses, points, noisy Cartesian measurements and full (correlated, anisotropic) 2x2
+    covariances of ``count`` observations."""
+    x = random_poses(rng, count)
+    landmarks = x[:, :2] + rng.uniform(-6, 6, (count, 2))
+    b = rng.normal(size=(count, 2, 2))
+    cov = 0.05 * b @ b.transpose(0, 2, 1) + 1e-3 * np.eye(2)
+    z = se2.inverse_transform_point(x, landmarks) + rng.normal(0, 0.2, (count, 2))
+    return x, landmarks, z, cov
+
+
+def test_cartesian_observation_with_full_covariance_against_finite_differences():
+    """The whitened residual ``W (R^T (l - t) - z)`` and its Jacobian, ``W^T W = C^-1``."""
+    x, landmarks, z, cov = cartesian_observations(np.random.default_rng(11), 12)
+    f = PointObservation(np.arange(12), np.arange(12, 24), z, covariance=cov)
+    r, jac, cost = f.whitened([x, landmarks])
+    e = se2.inverse_transform_point(x, landmarks) - z
+    np.testing.assert_allclose(cost, 0.5 * np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov), e))
+    numeric = numeric_block_jacobians(lambda b: f.whitened(b, False)[0], [x, landmarks])
+    np.testing.assert_allclose(jac, np.concatenate(numeric, axis=2), atol=1e-6, rtol=1e-6)
+    check_jacobians(f, [x, landmarks])
+
+
+def test_cartesian_observation_equals_gtsam_transform_to():
+    """The same factor in GTSAM (``Pose2.transformTo`` with its own Jacobians, the covariance
+    as a Gaussian noise model): whitened errors, costs and whitened Jacobians agree, GTSAM's
+    pose Jacobian being against its tangent space (``d(global) = blkdiag(R, 1) d(tangent)``)."""
+    gtsam = pytest.importorskip("gtsam")
+    x, landmarks, z, cov = cartesian_observations(np.random.default_rng(12), 10)
+    f = PointObservation(np.arange(10), np.arange(10, 20), z, covariance=cov)
+    r, jac, cost = f.whitened([x, landmarks])
+
+    def error(zk):
+        def fn(this, values, H):
+            pose = values.atPose2(this.keys()[0])
+            point = np.asarray(values.atPoint2(this.keys()[1]), dtype=float)
+            jp, jl = np.zeros((2, 3), order="F"), np.zeros((2, 2), order="F")
+            e = pose.transformTo(point, jp, jl) - zk
+            if H is not None:
+                H[0], H[1] = jp, jl
+            return e
+
+        return fn
+
+    for k in range(10):
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*x[k]))
+        values.insert(1, landmarks[k])
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov[k])
+        factor = gtsam.CustomFactor(noise, [0, 1], error(z[k]))
+        assert factor.error(values) == pytest.approx(cost[k], rel=1e-10)
+        linear = factor.linearize(values)
+        a, b = linear.jacobian()
+        tangent = np.eye(3)
+        tangent[:2, :2] = se2.rotation(x[k, 2])
+        ours = np.concatenate([jac[k][:, :3] @ tangent, jac[k][:, 3:]], axis=1)
+        # whitening is unique up to an orthogonal factor: compare the normal equations
+        np.testing.assert_allclose(ours.T @ ours, a.T @ a, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(ours.T @ r[k], -a.T @ b, rtol=1e-9, atol=1e-9)
+
+
 def test_relative_position_jacobians():
     rng = np.random.default_rng(4)
     a, b = random_poses(rng, 9), random_poses(rng, 9)

@@ -1,22 +1,37 @@
-"""Round trip of a simulated run through ROS messages and back, and boundary checks."""
+"""Round trip of a simulated run (and of Cartesian feature points with correlated odometry)
+through ROS messages and bags and back, and boundary checks."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from csam_msgs.msg import FeaturePoint
 
+from csam_ros.bag import inspect_bag, read_bag_messages
+from csam_ros.core.log import (
+    FeaturePointLog,
+    MultiRobotLog,
+    OdometryLog,
+    RobotLog,
+    correlations_from_covariances,
+    empty_features,
+    empty_rendezvous,
+)
 from csam_ros.core.simulation import simulate
 from csam_ros.core.validation import (
     DUPLICATE,
     EMPTY,
     NON_POSITIVE_RANGE,
+    NON_POSITIVE_SIGMA,
     NOT_FINITE,
     OUTSIDE_FIELD_OF_VIEW,
+    SIGMA_OUT_OF_BOUNDS,
     STAMP_BACKWARDS,
     UNKNOWN_ROBOT,
 )
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.ros.conversions import LogBuilder, log_to_messages, yaw_quaternion
+from csam_ros.run.bag_io import write_log_bag
 
 
 @pytest.fixture(scope="module")
@@ -90,3 +105,75 @@ def test_yaw_quaternion_rotates_about_z() -> None:
         assert (q.x, q.y) == (0.0, 0.0)
         assert q.z**2 + q.w**2 == pytest.approx(1.0)
         assert 2 * np.arctan2(q.z, q.w) == pytest.approx(yaw)
+
+
+def correlated_log() -> MultiRobotLog:
+    """One robot with correlated odometry inputs and Cartesian feature points whose
+    covariances are full (as a 2D SLAM file's import gives)."""
+    rng = np.random.default_rng(4)
+    n, k = 30, 40
+    a = 0.1 * rng.standard_normal((n, 3, 3))
+    sigmas, rho = correlations_from_covariances(a @ a.transpose(0, 2, 1) + 0.01 * np.eye(3))
+    odometry = OdometryLog(np.arange(n) * 0.5, rng.standard_normal((n, 3)), sigmas, rho)
+    b = 0.2 * rng.standard_normal((k, 2, 2))
+    stamps = np.sort(rng.choice(np.arange(1, n) * 0.5, k))
+    points = FeaturePointLog(
+        stamps,
+        rng.integers(0, 9, k),
+        rng.uniform(-5, 5, (k, 2)),
+        b @ b.transpose(0, 2, 1) + 0.01 * np.eye(2),
+    )
+    robot = RobotLog("robot1", odometry, empty_features(), empty_rendezvous(), points)
+    return MultiRobotLog({"robot1": robot})
+
+
+def test_feature_points_and_odometry_correlations_round_trip_through_a_bag(tmp_path) -> None:
+    log = correlated_log()
+    write_log_bag(log, tmp_path / "bag")
+    topics = ["/robot1/odom", "/robot1/feature_points"]
+    assert set(inspect_bag(tmp_path / "bag").topics) == set(topics)
+    builder = LogBuilder()
+    for m in read_bag_messages(tmp_path / "bag", topics):
+        builder.add(m.topic, m.message)
+    got, sent = builder.build().robots["robot1"], log.robots["robot1"]
+    np.testing.assert_array_equal(got.points.stamps, sent.points.stamps)
+    np.testing.assert_array_equal(got.points.labels, sent.points.labels)
+    np.testing.assert_array_equal(got.points.points, sent.points.points)
+    np.testing.assert_array_equal(got.points.covariances, sent.points.covariances)
+    np.testing.assert_allclose(got.odometry.sigmas, sent.odometry.sigmas, rtol=1e-15)
+    np.testing.assert_allclose(got.odometry.correlations, sent.odometry.correlations, atol=1e-14)
+    np.testing.assert_allclose(got.odometry.covariances(), sent.odometry.covariances(), rtol=1e-13)
+    assert sum(c.total for c in builder.filter.drops.values()) == 0
+
+
+def test_bad_feature_points_and_correlations_are_dropped_and_counted() -> None:
+    log = correlated_log()
+    messages = log_to_messages(log)
+    builder = LogBuilder(robots=["robot1"], field_of_view=np.deg2rad(240))
+    odometry = [m for m in messages if m.topic == "/robot1/odom"]
+    for m in odometry[:3]:
+        builder.add(m.topic, m.message)
+    bad_odometry = odometry[3].message
+    bad_odometry.twist.covariance[1] = bad_odometry.twist.covariance[6] = 1.0  # rho(v, v_lat) > 1
+    builder.add("/robot1/odom", bad_odometry)
+    points = [m for m in messages if m.topic == "/robot1/feature_points"][0].message
+    points.header.stamp = odometry[2].message.header.stamp
+    base = points.observations[0]
+    bad = [
+        FeaturePoint(label=base.label, x=base.x, y=base.y, covariance=base.covariance)
+        for _ in range(5)
+    ]
+    bad[0].x = float("nan")
+    bad[1].covariance = [1.0, 2.0, 1.0]  # not positive definite
+    bad[2].x, bad[2].y = -3.0, 0.1  # behind the robot, beyond +-120 degrees
+    bad[3].covariance = [1e8, 0.0, 1e8]  # sigma 1e4 m
+    points.observations = bad
+    builder.add("/robot1/feature_points", points)
+    drops = builder.filter.drops["robot1"].counts
+    assert drops[SIGMA_OUT_OF_BOUNDS] == 2  # the correlation and the sigma
+    assert drops[NOT_FINITE] == 1
+    assert drops[NON_POSITIVE_SIGMA] == 1
+    assert drops[OUTSIDE_FIELD_OF_VIEW] == 1
+    built = builder.build().robots["robot1"]
+    assert len(built.points.stamps) == 1  # the unchanged copy
+    assert len(built.odometry.stamps) == 3
