@@ -240,12 +240,21 @@ def _bag_contents(bag: Path) -> tuple[list[str], float, list[str]]:
 
 
 def offline_summary(
-    bag: Path, config_document: dict | None = None
+    bag: Path,
+    config_document: dict | None = None,
+    resume: Path | None = None,
+    save_state: Path | None = None,
 ) -> tuple[RunSummary, GroundTruth | None]:
-    """The summary of a bag run through the core in stamp order (no DDS), and its truth."""
+    """The summary of a bag run through the core in stamp order (no DDS), and its truth.
+
+    ``resume``: continue from the state an earlier replay saved (its accepted logs and its
+    measurement filter), the bag's data after them; ``save_state``: write the state of this
+    replay there (a replay continued from it equals one over all the data)."""
     from csam_ros.bag import read_bag_messages
+    from csam_ros.core.checkpoint import CheckpointError, FilterState, OfflineState, joined_logs
     from csam_ros.core.csam import CsamConfig, run_csam
     from csam_ros.core.local_map import LocalMapConfig
+    from csam_ros.core.log import MultiRobotLog
     from csam_ros.core.result import RunSummary
     from csam_ros.core.validation import InputBounds
     from csam_ros.ros.conversions import LogBuilder
@@ -259,17 +268,34 @@ def offline_summary(
     except ValueError as err:
         raise CliError(str(err)) from None
     robots = _bag_robots(bag)
+    saved = None
+    if resume is not None:
+        try:
+            saved = OfflineState.read(resume)
+        except CheckpointError as err:
+            raise CliError(f"--resume: {err}") from None
+        robots = [*saved.logs, *(r for r in robots if r not in saved.logs)]
     builder = LogBuilder(robots, bounds=bounds)
+    if saved is not None:
+        saved.filter.restore(builder.filter)
     topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
     for m in read_bag_messages(bag, topics, on_damage=_warn):
         builder.add(m.topic, m.message)
     log = builder.build()
+    if saved is not None:
+        try:
+            log = MultiRobotLog(joined_logs(saved.logs, log.robots), log.truth)
+        except ValueError as err:
+            raise CliError(f"--resume {resume}: {err}") from None
     dropped = {r: c.as_dict() for r, c in builder.filter.drops.items()}
     try:
         result = run_csam(log, config, local_map)
     except ValueError as err:  # no robot with a local map: named with the reason of each
         drops = "; ".join(f"{r} dropped {d}" for r, d in dropped.items() if d)
         raise CliError(f"{bag}: {err}" + (f" ({drops})" if drops else "")) from None
+    if save_state is not None:
+        size = OfflineState(log.robots, FilterState.of(builder.filter), result).write(save_state)
+        print(f"  state saved to {save_state} ({size / 1e6:.2f} MB)")
     return RunSummary(result, dropped=dropped), log.truth
 
 
@@ -279,6 +305,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     bag = args.bag
     if not bag.exists():
         raise CliError(f"{bag}: no such bag")
+    if (args.save_state or args.resume) and not args.offline:
+        raise CliError(
+            "--save-state and --resume go with --offline (a live merger saves its state "
+            "through its state_path parameter)"
+        )
     document = {}
     if args.config is not None:
         from csam_ros.core.config_file import ConfigFileError, load_document
@@ -291,7 +322,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     out = _fresh_dir(args.out, f"replay-{bag.name}")
     try:
         if args.offline:
-            summary, _ = offline_summary(bag, document)
+            summary, _ = offline_summary(bag, document, args.resume, args.save_state)
         else:
             from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
             from csam_ros.run.live import LiveRun, run_live
@@ -586,6 +617,17 @@ def parser() -> argparse.ArgumentParser:
         help="YAML with csam:, local_map:, merger: and input: sections (e.g. config/mrclam.yaml)",
     )
     replay.add_argument("--isolated", action="store_true", help=ISOLATED_HELP)
+    replay.add_argument(
+        "--save-state",
+        type=Path,
+        help="with --offline: write the replay's state (accepted data, result) to this .npz",
+    )
+    replay.add_argument(
+        "--resume",
+        type=Path,
+        help="with --offline: continue from a state saved by --save-state (this bag's data "
+        "follows its data)",
+    )
     replay.set_defaults(func=cmd_replay)
 
     imp = sub.add_parser("import", help="convert a data set into a bag of sensor topics")

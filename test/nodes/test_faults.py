@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import signal
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,12 @@ from merger_harness import ROBOTS, MergerHarness, joined_view, run_messages
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from csam_ros.core.checkpoint import LOST_WHILE_DOWN, SmootherCheckpoint, missed_samples
+from csam_ros.core.checkpoint import (
+    LOST_WHILE_DOWN,
+    OfflineState,
+    SmootherCheckpoint,
+    missed_samples,
+)
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
@@ -484,3 +490,53 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
         for n in (source, merger, *smoothers.values()):
             n.destroy_node()
         executor.shutdown()
+
+
+def _split_bag(bag: Any, first: Any, then: Any) -> None:
+    """Write the messages of ``bag`` in its first half of log time to ``first``, the rest to
+    ``then`` (as a recording stopped and started again)."""
+    from csam_ros.bag import BagWriter, read_bag
+
+    messages = list(read_bag(bag))
+    middle = (messages[0].log_time_ns + messages[-1].log_time_ns) // 2
+    for path, part in (
+        (first, [m for m in messages if m.log_time_ns <= middle]),
+        (then, [m for m in messages if m.log_time_ns > middle]),
+    ):
+        with BagWriter(path, flush_period_s=3600) as writer:
+            for m in part:
+                if m.topic not in writer.topics:
+                    writer.add_topic(m.topic, m.msgtype)
+                writer.write(m.topic, m.log_time_ns, m.data)
+
+
+def test_an_offline_replay_continued_from_its_saved_state_equals_the_whole_replay(
+    tmp_path, capsys
+) -> None:
+    """csam replay --offline of a recorded run's first half with --save-state, then of its
+    second half with --resume: the same summary as one replay of the whole bag. A state file
+    that cannot be used, or the options without --offline, are one-line errors."""
+    from csam_ros.cli import main, offline_summary
+
+    bag = Path(__file__).resolve().parents[2] / "bags" / "map_joining"
+    first, then, state = tmp_path / "first", tmp_path / "then", tmp_path / "state.npz"
+    _split_bag(bag, first, then)
+    whole, _ = offline_summary(bag)
+    offline_summary(first, save_state=state)
+    continued, _ = offline_summary(then, resume=state)
+    assert continued.dropped == whole.dropped
+    assert continued.result.to_dict() | {"timing_s": {}} == whole.result.to_dict() | {
+        "timing_s": {}
+    }
+    halfway = OfflineState.read(state)
+    assert halfway.result is not None
+    assert len(halfway.result.associations) < len(whole.result.associations)
+
+    (tmp_path / "bad.npz").write_text("not a state")
+    for argv, error in (
+        (["--offline", "--resume", tmp_path / "bad.npz"], "--resume: "),
+        (["--save-state", tmp_path / "x.npz"], "go with --offline"),
+    ):
+        code = main(["replay", str(then), "--out", str(tmp_path / "out"), *map(str, argv)])
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and error in lines[0], lines
