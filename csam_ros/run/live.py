@@ -3,7 +3,9 @@
 The source is the simulator (``csam demo``) or the player of a bag (``csam replay``). The run
 ends when the source has published everything: every smoother is flushed (``~/flush``), the
 merger's joined map is awaited for those final local maps, the recorder is stopped (which
-finalises the bag) and every process is gone. The merger writes ``summary.json``.
+finalises the bag) and every process is gone. The merger writes ``summary.json``; each
+smoother its checkpoint and the merger its state in ``state/`` of the run folder, so that a
+node restarted with the same parameters resumes.
 """
 
 from __future__ import annotations
@@ -93,7 +95,14 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> Run
     group.start(
         "recorder", [executable("recorder"), "-o", str(run.out_dir / "bag"), "--topics", *topics]
     )
-    merger_params = {"robots": run.robots, "summary_path": str(summary_path), **run.merger_params}
+    # checkpoints in the run folder: a node restarted by hand with the same parameters resumes
+    state = run.out_dir / "state"
+    merger_params = {
+        "robots": run.robots,
+        "summary_path": str(summary_path),
+        "state_path": str(state / "merger.npz"),
+        **run.merger_params,
+    }
     group.start(
         "merger",
         [
@@ -104,7 +113,11 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> Run
         ],
     )
     for robot in run.robots:
-        params = {"robots": run.robots, **run.smoother_params}
+        params = {
+            "robots": run.robots,
+            "checkpoint_path": str(state / f"{robot}.npz"),
+            **run.smoother_params,
+        }
         group.start(
             f"smoother_{robot}",
             [
