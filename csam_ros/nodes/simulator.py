@@ -181,7 +181,7 @@ class Simulator(Node):
             self.get_logger().info("all messages published")
             if self.exit_when_done:
                 # let reliable messages drain before the process goes away
-                self.create_timer(1.0, self._finish, clock=steady_clock())
+                self.create_timer(0.2, self._finish, clock=steady_clock())
 
     def _finish(self) -> None:
         # a reliable sample to another host may still wait for a resend on a lossy link

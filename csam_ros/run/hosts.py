@@ -48,6 +48,7 @@ from csam_ros.run.ros_env import (
 BASE = "base"
 PREFIX = "csam-"  # namespace names: csam-<pid>-<tag>-<host>
 SUBNET = "10.231.0"  # each run has its own bridge, so runs never share this subnet
+MONITOR_READY = "base_ready"  # file the monitor writes when it reaches every smoother
 MONITOR_END = "end_of_data"  # file the run writes when every simulator is done
 MONITOR_RESULT = "hosts.json"
 
@@ -213,15 +214,16 @@ def _run_on(run: LiveRun, loss: float, domain: int, progress: Callable[[str], No
         try:
             return _run(run, net, group, progress)
         finally:
-            group.stop_all()
+            if group.dead().keys() != group.processes.keys():  # failed or interrupted
+                stop_nodes(group, progress)
 
 
 def _run(
     run: LiveRun, net: Network, group: ProcessGroup, progress: Callable[[str], None]
 ) -> RunSummary:
     summary_path = run.out_dir / "summary.json"
-    for stale in (summary_path, run.out_dir / MONITOR_END, run.out_dir / MONITOR_RESULT):
-        stale.unlink(missing_ok=True)
+    for stale in (MONITOR_READY, MONITOR_END, MONITOR_RESULT, summary_path.name):
+        (run.out_dir / stale).unlink(missing_ok=True)
     sim_time = _param("use_sim_time", True)
     from csam_ros.ros.topics import recorded_topics
 
@@ -260,7 +262,7 @@ def _run(
             ],
         ),
     )
-    for k, robot in enumerate(run.robots):
+    for robot in run.robots:
         params = {"robots": run.robots, **run.smoother_params}
         group.start(
             f"smoother_{robot}",
@@ -275,21 +277,6 @@ def _run(
                 ],
             ),
         )
-        group.start(
-            f"{run.source_name}_{robot}",
-            net.command(
-                robot,
-                [
-                    *run.source_argv,
-                    "--ros-args",
-                    *sim_time,
-                    *run.source_ros_args,
-                    *_param("emit_robots", [robot]),
-                    *_param("publish_clock", k == 0),  # the one source of sim time
-                ],
-            ),
-        )
-    sources = [f"{run.source_name}_{r}" for r in run.robots]
     start = time.monotonic()
     shown = 0
 
@@ -308,6 +295,29 @@ def _run(
         if time.monotonic() - start > run.timeout_s:
             raise LiveRunError(f"the run did not end within {run.timeout_s} s")
 
+    # the data starts once the base station reaches every smoother (as a single-host run's
+    # source starts once the smoothers answer): else, on a lossy link, discovery can take
+    # longer than a short run
+    while not (run.out_dir / MONITOR_READY).exists():
+        check(set())
+        relay()
+        time.sleep(0.1)
+    for k, robot in enumerate(run.robots):
+        group.start(
+            f"{run.source_name}_{robot}",
+            net.command(
+                robot,
+                [
+                    *run.source_argv,
+                    "--ros-args",
+                    *sim_time,
+                    *run.source_ros_args,
+                    *_param("emit_robots", [robot]),
+                    *_param("publish_clock", k == 0),  # the one source of sim time
+                ],
+            ),
+        )
+    sources = [f"{run.source_name}_{r}" for r in run.robots]
     while any(group.processes[s].poll() is None for s in sources):
         check(set(sources))
         relay()
@@ -332,16 +342,29 @@ def _run(
     relay()
     if group.processes["monitor"].returncode != 0:
         raise LiveRunError(f"the monitor failed:\n{group.log_tail('monitor')}")
-    stop_times = {}
-    for name in ["recorder", *reversed([n for n in group.processes if n != "recorder"])]:
-        began = time.monotonic()
-        group.stop(name, timeout=20 if name == "recorder" else 10)
-        stop_times[name] = time.monotonic() - began
-    slowest = max(stop_times, key=stop_times.__getitem__)
-    progress(f"  nodes stopped on SIGINT: the slowest, {slowest}, in {stop_times[slowest]:.2f} s")
+    stop_nodes(group, progress)
     if not summary_path.exists():
         raise LiveRunError(f"the merger wrote no summary:\n{group.log_tail('merger')}")
     return RunSummary.read(summary_path)
+
+
+def stop_nodes(group: ProcessGroup, progress: Callable[[str], None]) -> None:
+    """Stop every process (the recorder first: it finalises the bag), each by SIGINT and only
+    if that fails by SIGTERM, then SIGKILL; say how long the slowest took."""
+    times = {}
+    for name in ["recorder", *reversed([n for n in group.processes if n != "recorder"])]:
+        if name not in group.processes:
+            continue
+        began = time.monotonic()
+        code = group.stop(name, timeout=20 if name == "recorder" else 10)
+        times[name] = (time.monotonic() - began, code)
+    running = {n: t for n, (t, _) in times.items()}
+    slowest = max(running, key=running.__getitem__)
+    killed = sorted(n for n, (_, code) in times.items() if code is not None and code < 0)
+    progress(
+        f"  nodes stopped on SIGINT: the slowest, {slowest}, in {running[slowest]:.2f} s"
+        + (f"; ended by a signal: {', '.join(killed)}" if killed else "")
+    )
 
 
 def _all_published_at(log: Path) -> float | None:
@@ -379,20 +402,21 @@ class MonitorReport:
 def monitor(
     robots: list[str],
     data_end: Callable[[], float | None],
+    ready: Callable[[], None] = lambda: None,
     timeout_s: float = 600.0,
     progress: Callable[[str], None] = print,
 ) -> MonitorReport:
-    """Wait for the smoothers' ``~/flush`` services, count the joined maps while the data
-    comes, and once ``data_end()`` gives the (wall-clock) time the data ended flush every
-    smoother (again, until their latest stamps hold still) and wait for the joined map of
-    those final local maps."""
+    """Wait for the smoothers' ``~/flush`` services and local maps (then call ``ready``),
+    count the joined maps while the data comes, and once ``data_end()`` gives the time
+    (wall clock) the data ended, flush every smoother (again, until their latest stamps hold
+    still) and wait for the joined map of those final local maps."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import JOINED_MAP, MARKERS
+    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS
 
     rclpy.init()
     node = rclpy.create_node("csam_run_monitor")
@@ -412,9 +436,16 @@ def monitor(
             raise LiveRunError(f"the monitor gave up after {timeout_s} s")
 
     try:
-        while not all(c.service_is_ready() for c in clients.values()):
+
+        def reached() -> bool:  # every smoother's flush service and local map seen
+            return all(c.service_is_ready() for c in clients.values()) and all(
+                node.get_publishers_info_by_topic(LOCAL_MAP.of(r)) for r in robots
+            )
+
+        while not reached():
             spin(0.1)
         progress(f"  base station: the smoothers of {', '.join(robots)} answer over the links")
+        ready()
         last_print = time.monotonic()
         while (end := data_end()) is None:
             spin(0.1)
@@ -494,6 +525,7 @@ def main(argv: list[str] | None = None) -> int:
         report = monitor(
             args.robots,
             data_end,
+            lambda: (args.out / MONITOR_READY).write_text("ready\n"),
             args.timeout,
             lambda line: print(line, flush=True),
         )

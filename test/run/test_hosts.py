@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 SCENARIO = "map_joining"  # two robots, 40 s
 SEED = 5
 RATE = "16"  # 2.5 s of data: joined maps still arrive during it (the merger solves every 0.5 s)
+LOSSES = (0.0, 0.1, 0.3)
 
 pytestmark = pytest.mark.skipif(
     missing_requirements(loss=0.1) is not None,
@@ -36,32 +38,46 @@ def _namespaces() -> set[str]:
     return {line.split()[0] for line in listed.stdout.splitlines() if line.startswith(PREFIX)}
 
 
-def _demo_on_hosts(out: Path, loss: float) -> tuple[subprocess.CompletedProcess[str], set[str]]:
+@dataclass
+class HostsRun:
+    out: Path
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[float, HostsRun]:
+    """``csam demo --hosts`` on clean links, at 10% and at 30% loss: three runs at once, each
+    on its own namespaces (they must not clash); no namespace is left behind."""
     before = _namespaces()
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "csam_ros.cli",
-            *("demo", "--hosts", "--isolated", "--scenario", SCENARIO),
-            *("--seed", str(SEED), "--rate", RATE, "--loss", str(loss), "--out", str(out)),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=REPO,
-        check=False,
-    )
-    print(result.stdout)
-    return result, _namespaces() - before
-
-
-def test_clean_links_give_the_single_host_joined_map(tmp_path: Path) -> None:
-    result, left = _demo_on_hosts(tmp_path / "run", 0.0)
-    assert result.returncode == 0, result.stdout + result.stderr
+    started = {}
+    for loss in LOSSES:
+        out = tmp_path_factory.mktemp(f"hosts-{loss}") / "run"
+        argv = [sys.executable, "-m", "csam_ros.cli", "demo", "--hosts", "--isolated"]
+        argv += ["--scenario", SCENARIO, "--seed", str(SEED), "--rate", RATE]
+        argv += ["--loss", str(loss), "--out", str(out)]
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        started[loss] = (out, proc)
+    done = {}
+    for loss, (out, proc) in started.items():
+        try:
+            stdout, stderr = proc.communicate(timeout=300)
+        except subprocess.TimeoutExpired:
+            proc.terminate()  # the run deletes its namespaces on SIGTERM
+            stdout, stderr = proc.communicate(timeout=60)
+        print(stdout)
+        done[loss] = HostsRun(out, proc.returncode, stdout, stderr)
+    left = _namespaces() - before
     assert not left, f"namespaces left behind: {left}"
-    assert "base 10.231.0.3" in result.stdout  # three hosts on one subnet
-    live = RunSummary.read(tmp_path / "run" / "summary.json").result
+    return done
+
+
+def test_clean_links_give_the_single_host_joined_map(runs: dict[float, HostsRun]) -> None:
+    run = runs[0.0]
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "base 10.231.0.3" in run.stdout  # three hosts on one subnet
+    live = RunSummary.read(run.out / "summary.json").result
     # the single-host run of this scenario and seed (csam demo equals it to 1e-6: test_cli)
     single = run_csam(simulate(load_scenario(SCENARIO), seed=SEED))
     assert set(live.robots) == set(single.robots) == {"robot1", "robot2"}
@@ -72,26 +88,25 @@ def test_clean_links_give_the_single_host_joined_map(tmp_path: Path) -> None:
         [f.xy for f in live.features], [f.xy for f in single.features], atol=1e-6
     )
     assert {(x.a, x.b) for x in live.associations} == {(x.a, x.b) for x in single.associations}
-    report = MonitorReport.read(tmp_path / "run" / MONITOR_RESULT)
+    report = MonitorReport.read(run.out / MONITOR_RESULT)
     assert report.joined_before_end > 1
 
 
 @pytest.mark.parametrize("loss", [0.1, 0.3])
-def test_lossy_links_keep_the_joined_map_coming(loss: float, tmp_path: Path) -> None:
-    result, left = _demo_on_hosts(tmp_path / "run", loss)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert not left, f"namespaces left behind: {left}"
-    assert f"links: {loss:.0%} packet loss" in result.stdout
-    report = MonitorReport.read(tmp_path / "run" / MONITOR_RESULT)
+def test_lossy_links_keep_the_joined_map_coming(runs: dict[float, HostsRun], loss: float) -> None:
+    run = runs[loss]
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert f"links: {loss:.0%} packet loss" in run.stdout
+    report = MonitorReport.read(run.out / MONITOR_RESULT)
     assert report.joined_before_end > 1, report  # joined maps during the run, not only at its end
     assert report.final_stamps == {"robot1": 40_000_000_000, "robot2": 40_000_000_000}
-    summary = RunSummary.read(tmp_path / "run" / "summary.json")
+    summary = RunSummary.read(run.out / "summary.json")
     assert {n: r.alignment for n, r in summary.result.robots.items()} == {
         "robot1": "reference",
         "robot2": "aligned",
     }
-    lag = [line for line in result.stdout.splitlines() if "lag from a local map" in line]
-    assert lag, result.stdout
+    lag = [line for line in run.stdout.splitlines() if "lag from a local map" in line]
+    assert lag, run.stdout
     print(
         f"{loss:.0%} loss: {lag[0].strip()}; final joined map {report.end_to_final_s:.2f} s "
         "after the data"
