@@ -5,7 +5,8 @@ ends when the source has published everything: every smoother is flushed (``~/fl
 merger's joined map is awaited for those final local maps, the recorder is stopped (which
 finalises the bag) and every process is gone. The merger writes ``summary.json``; each
 smoother its checkpoint and the merger its state in ``state/`` of the run folder, so that a
-node restarted with the same parameters resumes.
+node restarted with the same parameters resumes. The summary's ``dropped`` holds what each
+smoother dropped, read from its last checkpoint.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from csam_ros.core.result import RunSummary
@@ -229,7 +230,23 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> Run
         rclpy.try_shutdown()
     group.stop("recorder", timeout=20)
     group.stop_all()
-    return RunSummary.read(summary_path)
+    summary = RunSummary.read(summary_path)
+    return replace(summary, dropped=smoother_drops(run.robots, run.out_dir / "state"))
+
+
+def smoother_drops(robots: list[str], folder: Path) -> dict[str, dict[str, int]]:
+    """What each smoother dropped of its robot's input, by reason (data lost while it was
+    down among them), from its last checkpoint in ``folder`` (robots without one left out)."""
+    from csam_ros.core.checkpoint import CheckpointError, SmootherCheckpoint
+
+    drops = {}
+    for robot in robots:
+        try:
+            saved = SmootherCheckpoint.read(folder / f"{robot}.npz", robot)
+        except CheckpointError:
+            continue
+        drops[robot] = saved.filter.drops.get(robot, {})
+    return drops
 
 
 def _check_alive(group: ProcessGroup, ignore: str | None = None) -> None:

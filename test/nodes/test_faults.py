@@ -24,6 +24,7 @@ from csam_ros.core.checkpoint import (
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.run.live import smoother_drops
 
 LOST_FROM, LOST_TO = 15.0, 18.0  # s after the start: the smoother is down in between
 
@@ -192,6 +193,9 @@ def test_a_killed_smoother_resumes_from_its_checkpoint(
         new = {(s.sec, s.nanosec) for s in final.pose_stamps}
         assert old <= new and final.pose_stamps[0] == killed_map.pose_stamps[0]
         assert len(final.poses) > len(killed_map.poses)
+        # a live run's summary takes each smoother's counts from its checkpoint
+        dropped = smoother_drops(["robot1", "robot2"], tmp_path)
+        assert list(dropped) == ["robot1"] and dropped["robot1"][LOST_WHILE_DOWN] == lost
         nodes.stop(second)
         print(
             f"smoother killed after {LOST_FROM:g} s, restarted at {LOST_TO:g} s: "
