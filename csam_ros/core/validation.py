@@ -7,6 +7,7 @@ reason that shows in ``/csam/status``; accepted data is never touched by a later
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -210,46 +211,71 @@ def point_mask(
     range-bearing observation's; their ratio by ``max_sigma_ratio``); a point at the robot
     centre has no bearing and passes any field of view."""
     bounds = bounds or InputBounds()
-    p = np.asarray(points, dtype=float).reshape(-1, 2)
-    c = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
+    p = np.asarray(points, dtype=float).reshape(-1, 2).tolist()
+    c = np.asarray(covariances, dtype=float).reshape(-1, 4).tolist()
     keep = np.ones(len(p), dtype=bool)
-    with np.errstate(all="ignore"):
-        finite = np.isfinite(p).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
-        c = np.where(finite[:, None, None], c, np.eye(2))
-        scale = np.abs(c).max(axis=(1, 2))
-        symmetric = np.abs(c[:, 0, 1] - c[:, 1, 0]) <= 1e-9 * scale
-        axes = np.linalg.eigvalsh(0.5 * (c + c.transpose(0, 2, 1)))
-        sigmas = np.sqrt(np.maximum(axes, 0.0))
-        r = np.hypot(p[:, 0], p[:, 1])
-        bearing = np.arctan2(p[:, 1], p[:, 0])
-        margin = BEARING_MARGIN_SIGMAS * sigmas[:, 1] / r
-        faults = (
-            (NOT_FINITE, ~finite),
-            (NON_POSITIVE_SIGMA, ~symmetric | ~(axes[:, 0] > 0)),
-            (RANGE_OUT_OF_BOUNDS, r > bounds.max_range),
-            (SIGMA_OUT_OF_BOUNDS, _sigma_fault(sigmas, sigmas[:, 1] / sigmas[:, 0], bounds)),
-            (OUTSIDE_FIELD_OF_VIEW, (r > 0) & (np.abs(bearing) > 0.5 * field_of_view + margin)),
-        )
-    for reason, bad in faults:
-        fault = keep & bad
-        drops.add(reason, int(fault.sum()))
-        keep &= ~fault
+    # plain floats: a message holds a few observations, and there is one per stamp
+    for k, ((x, y), (cxx, cxy, cyx, cyy)) in enumerate(zip(p, c, strict=True)):
+        reason = _point_fault(x, y, cxx, cxy, cyx, cyy, field_of_view, bounds)
+        if reason is not None:
+            drops.add(reason)
+            keep[k] = False
     return keep
+
+
+def _point_fault(
+    x: float,
+    y: float,
+    cxx: float,
+    cxy: float,
+    cyx: float,
+    cyy: float,
+    field_of_view: float,
+    bounds: InputBounds,
+) -> str | None:
+    """Why one Cartesian observation is unusable (its first fault), or None."""
+    if not all(math.isfinite(v) for v in (x, y, cxx, cxy, cyx, cyy)):
+        return NOT_FINITE
+    scale = max(abs(cxx), abs(cxy), abs(cyx), abs(cyy))
+    # the covariance's eigenvalues (its axes squared), smallest by det / largest
+    mean, radius = 0.5 * (cxx + cyy), math.hypot(0.5 * (cxx - cyy), 0.5 * (cxy + cyx))
+    largest = mean + radius
+    smallest = (cxx * cyy - cxy * cyx) / largest if largest > 0 else -1.0
+    if abs(cxy - cyx) > 1e-9 * scale or not smallest > 0:
+        return NON_POSITIVE_SIGMA
+    r = math.hypot(x, y)
+    if r > bounds.max_range:
+        return RANGE_OUT_OF_BOUNDS
+    low, high = math.sqrt(smallest), math.sqrt(largest)
+    if (
+        low < bounds.min_sigma
+        or high > bounds.max_sigma
+        or not high / low <= bounds.max_sigma_ratio
+    ):
+        return SIGMA_OUT_OF_BOUNDS
+    margin = BEARING_MARGIN_SIGMAS * high / r if r > 0 else math.inf
+    if abs(math.atan2(y, x)) > 0.5 * field_of_view + margin:
+        return OUTSIDE_FIELD_OF_VIEW
+    return None
 
 
 def odometry_fault(inputs: ArrayLike, sigmas: ArrayLike, bounds: InputBounds) -> str | None:
     """Why one odometry sample (input and its sigmas) is unusable, or None."""
-    u = np.asarray(inputs, dtype=float)
-    s = np.asarray(sigmas, dtype=float)
-    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(s))):
+    # plain floats: called once per odometry message (tens of thousands in a replay)
+    u = np.asarray(inputs, dtype=float).reshape(3).tolist()
+    s = np.asarray(sigmas, dtype=float).reshape(3).tolist()
+    if not all(math.isfinite(v) for v in (*u, *s)):
         return NOT_FINITE
-    if np.any(s <= 0):
+    if min(s) <= 0:
         return NON_POSITIVE_SIGMA
     if max(abs(u[0]), abs(u[1])) > bounds.max_speed or abs(u[2]) > bounds.max_turn_rate:
         return SPEED_OUT_OF_BOUNDS
-    with np.errstate(over="ignore"):
-        ratio = s.max() / s.min()
-    if _sigma_fault(s, ratio, bounds):
+    ratio = max(s) / min(s)  # inf beyond floating point range
+    if (
+        min(s) < bounds.min_sigma
+        or max(s) > bounds.max_sigma
+        or not ratio <= bounds.max_sigma_ratio
+    ):
         return SIGMA_OUT_OF_BOUNDS
     return None
 
