@@ -256,20 +256,52 @@ def _replace_merger(harness: MergerHarness, context: Any, **parameters: Any) -> 
     harness.executor.add_node(harness.merger)
 
 
-def test_a_restarted_merger_republishes_the_joined_map_in_one_solve(
-    ros_context, spin, tmp_path
-) -> None:
+def test_a_killed_merger_republishes_the_joined_map_in_one_solve(ros_context, spin, nodes) -> None:
+    """A merger process killed (SIGKILL) and started again: from the smoothers' latched
+    local maps alone it publishes the same joined map, after one solve."""
+    import rclpy
+
+    from csam_ros.nodes.common import publisher, subscribe
+    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, RENDEZVOUS_POSES, STATUS
+
     messages = run_messages()
-    harness = MergerHarness(ros_context, spin)
+    node = rclpy.create_node("latched_maps", context=ros_context)
+    for r in ROBOTS:  # held by this node as the smoothers hold them (transient local)
+        publisher(node, LOCAL_MAP, LOCAL_MAP.of(r)).publish(messages.local_maps[r])
+        publisher(node, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of(r)).publish(messages.rendezvous[r])
+    joined: list[Any] = []
+    solves: list[str] = []
+    subscribe(node, JOINED_MAP, joined.append)
+    subscribe(
+        node,
+        STATUS,
+        lambda m: solves.extend(
+            kv.value
+            for st in m.status
+            if st.name == "merger"
+            for kv in st.values
+            if kv.key == "solves"
+        ),
+    )
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    # the default solve period (0.5 s): maps and rendezvous poses, latched, arrive together
+    args = ["--ros-args", "-p", "robots:=[robot1,robot2]"]
     try:
-        joined = harness.start(messages)
-        published = len(harness.joined)
-        _replace_merger(harness, ros_context)
-        harness.wait(lambda: len(harness.joined) > published)
-        assert harness.merger.solves == 1
-        assert joined_view(harness.joined[-1]) == joined_view(joined)
+        first = nodes.start("merger", *args)
+        assert spin(executor, lambda: len(joined) > 0, 60)
+        spin(executor, lambda: False, 1.5)  # any later solve of the first merger
+        assert nodes.stop(first, signal.SIGKILL) == -signal.SIGKILL
+        before, published = joined[-1], len(joined)
+        nodes.start("merger", *args)
+        assert spin(executor, lambda: len(joined) > published, 60)
+        solves.clear()
+        assert spin(executor, lambda: len(solves) > 0, 10)
+        assert solves[-1] == "1"
+        assert joined_view(joined[-1]) == joined_view(before)
     finally:
-        harness.close()
+        node.destroy_node()
+        executor.shutdown()
 
 
 def _messages_until(end: float) -> Any:
