@@ -26,6 +26,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mrclam_files import small_dataset
 
+from csam_ros.core.log import correlations_valid
 from csam_ros.datasets.mrclam import MrclamFormatError, import_mrclam
 from csam_ros.datasets.slam2d import Slam2dFormatError
 from csam_ros.datasets.slam2d_log import read_slam2d_log
@@ -136,8 +137,10 @@ def test_corrupted_slam2d_files_import_or_raise_their_format_error(
         odometry = log.robots["robot1"].odometry
         assert len(odometry.stamps) >= 2
         assert np.isfinite(odometry.inputs).all() and (odometry.sigmas > 0).all()
-        features = log.robots["robot1"].features
-        assert np.isfinite(features.ranges).all() and (features.sigma_range > 0).all()
+        assert correlations_valid(odometry.correlations).all()
+        points = log.robots["robot1"].points
+        assert np.isfinite(points.points).all()
+        assert (np.linalg.eigvalsh(points.covariances) > 0).all()
 
 
 def test_the_unmutated_files_import() -> None:
