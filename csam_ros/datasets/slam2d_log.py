@@ -50,6 +50,7 @@ from csam_ros.core.log import (
     OdometryLog,
     RobotLog,
     correlations_from_covariances,
+    correlations_valid,
     empty_features,
     empty_rendezvous,
 )
@@ -156,18 +157,25 @@ def _chain(data: Slam2dData, path: Path) -> tuple[Array, Array, Array]:
 
 
 def _check_usable(
-    values: Array, sigmas: Array, path: Path, rows: Array, records: tuple[str, ...]
+    values: Array,
+    sigmas: Array,
+    correlations: Array,
+    path: Path,
+    rows: Array,
+    records: tuple[str, ...],
 ) -> None:
-    """Raise naming the first record whose converted values are not finite or whose sigmas
-    are not positive (a number beyond floating point range, e.g. ``dx = 1e308``); ``rows``
+    """Raise naming the first record whose converted values are not finite, whose sigmas are
+    not positive or whose correlations give no positive definite covariance (a number beyond
+    floating point range, e.g. ``dx = 1e308``, or a covariance singular in rounding); ``rows``
     gives each one's index among the file's ``records``."""
     bad = ~np.isfinite(values).all(axis=1) | ~(sigmas > 0).all(axis=1)
+    bad |= ~correlations_valid(correlations)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
         raise Slam2dFormatError(
             f"{_odometry_line(path, int(rows[k]), records)}: the record converts to a "
-            "non-finite value or a zero sigma in the robot's log (a number beyond floating "
-            "point range)"
+            "non-finite value, a zero sigma or a singular covariance in the robot's log (a "
+            "number beyond floating point range)"
         )
 
 
@@ -186,7 +194,7 @@ def convert_slam2d(
         input_covariances(inputs, sample_time, covariance)
     )
     values = np.concatenate([inputs, sigmas, correlations], axis=1)
-    _check_usable(values, sigmas, path, link, _ODOMETRY_RECORDS)
+    _check_usable(values, sigmas, correlations, path, link, _ODOMETRY_RECORDS)
     first = np.ones((1, 3)) if count == 1 else sigmas[:1]
     odometry = OdometryLog(
         stamps,
