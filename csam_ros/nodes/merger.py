@@ -600,6 +600,8 @@ class Merger(Node):
             "converged": result.converged if result is not None else "",
             "dropped": self.drops.total,
             "restarts": sum(self.restarts.values()),
+            # rendezvous the last solve left out: stamped outside a robot's trajectory
+            "outside_trajectory": _outside_trajectory(result),
             "last_error": self.last_error,
             **{f"dropped/{k}": v for k, v in self.drops.as_dict().items()},
         }
@@ -634,6 +636,12 @@ def robot_map_transforms(result: CsamResult, stamp_ns: int) -> TFMessage:
             latest = se2.compose(robot.poses_joined[-1], se2.inverse(robot.poses_local[-1]))
             transforms.append((result.reference_frame, f"{name}/map", latest))
     return tf_message(transforms, stamp_ns)
+
+
+def _outside_trajectory(result: CsamResult | None) -> int:
+    """Rendezvous measurements a solve left out as stamped outside a map's span."""
+    report = result.rendezvous_filter.get("trajectory_span") if result is not None else None
+    return report.total("outside_trajectory") if report is not None else 0
 
 
 def _same_map(a: RobotMap, b: RobotMap) -> bool:

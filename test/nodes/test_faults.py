@@ -511,6 +511,9 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
         assert result.rendezvous_filter["trajectory_span"].dropped == span
         assert expected.rendezvous_filter["trajectory_span"].dropped == span
         assert result.robots["robot2"].alignment == "aligned"
+        with merger._lock:
+            status = {kv.key: kv.value for kv in merger._status().status[-1].values}
+        assert status["outside_trajectory"] == "1"
         for name, want in expected.robots.items():
             np.testing.assert_allclose(
                 result.robots[name].poses_joined, want.poses_joined, atol=1e-6
