@@ -250,6 +250,11 @@ class Merger(Node):
         except CheckpointError as err:
             self.get_logger().error(f"merger state not used, starting empty: {err}")
             return False
+        except Exception as err:  # noqa: BLE001 - a node never dies of a bad file
+            self.get_logger().error(
+                f"merger state not used, starting empty: {path}: {type(err).__name__}: {err}"
+            )
+            return False
         now = time.monotonic()
         self.local_maps = dict(saved.maps)
         self.local_map_stamps = dict(saved.map_stamps)

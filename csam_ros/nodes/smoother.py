@@ -342,8 +342,13 @@ class Smoother(Node):
         try:
             saved = SmootherCheckpoint.read(path, self.robot)
             local = CoreLocalMap.from_state(self.robot, saved.local_map, self.map.options)
-        except (CheckpointError, ValueError) as err:
+        except CheckpointError as err:
             self.get_logger().error(f"checkpoint not used, starting empty: {err}")
+            return
+        except Exception as err:  # noqa: BLE001 - a node never dies of a bad file
+            self.get_logger().error(
+                f"checkpoint not used, starting empty: {path}: {type(err).__name__}: {err}"
+            )
             return
         self.map = local
         saved.filter.restore(self.filter)

@@ -201,3 +201,43 @@ def test_missed_samples_from_the_odometry_period() -> None:
     assert missed_samples(0.5, period) == 0
     assert missed_samples(3.0, None) == 0
     assert odometry_period(np.zeros(1)) is None
+
+
+def test_damaged_checkpoints_raise_only_checkpoint_errors(run, tmp_path) -> None:
+    """Bytes flipped or cut anywhere in a checkpoint: reading it either works or raises
+    CheckpointError, never anything else (a node would die of that at start)."""
+    local = LocalMap("robot1")
+    local.add_log(robot_log_between(run.robots["robot1"], end=10.0))
+    local.update()
+    checks = MeasurementFilter(["robot1", "robot2"])
+    good = tmp_path / "good.npz"
+    SmootherCheckpoint(
+        "robot1",
+        local.state(),
+        FilterState.of(checks),
+        FilterState.of(checks),
+        ThinningState({}, {}),
+        run.robots["robot1"].rendezvous,
+        np.zeros(0),
+        1,
+        1,
+        0,
+    ).write(good)
+    data = good.read_bytes()
+    rng = np.random.default_rng(5)
+    bad = tmp_path / "bad.npz"
+    for i in range(150):
+        damaged = bytearray(data)
+        if i % 3 == 0:
+            damaged = damaged[: int(rng.integers(0, len(data)))]
+        else:
+            for at in rng.integers(0, len(data), size=int(rng.integers(1, 8))):
+                damaged[at] = int(rng.integers(0, 256))
+        bad.write_bytes(bytes(damaged))
+        try:
+            restored = SmootherCheckpoint.read(bad, "robot1")
+            LocalMap.from_state("robot1", restored.local_map)
+        except CheckpointError:
+            pass
+        except ValueError as err:  # from_state: arrays that do not fit together
+            assert "robot1" in str(err)

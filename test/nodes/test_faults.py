@@ -205,7 +205,7 @@ def test_a_killed_smoother_resumes_from_its_checkpoint(
         client.close()
 
 
-def test_a_checkpoint_that_cannot_be_used_is_one_error_and_an_empty_start(
+def test_a_checkpoint_or_state_that_cannot_be_used_is_one_error_and_an_empty_start(
     ros_context, tmp_path, capfd
 ) -> None:
     from csam_ros.nodes.smoother import Smoother
@@ -240,6 +240,19 @@ def test_a_checkpoint_that_cannot_be_used_is_one_error_and_an_empty_start(
         logged = capfd.readouterr().err
         assert logged.count("checkpoint not used, starting empty") == 1, logged
         assert error in logged
+    # the merger's state file likewise (here a smoother's checkpoint)
+    from csam_ros.nodes.merger import Merger
+
+    merger = Merger(
+        context=ros_context, parameter_overrides=[Parameter("state_path", value=str(robot1))]
+    )
+    try:
+        assert merger.local_maps == {} and merger.solves == 0 and merger.last_result is None
+    finally:
+        merger.destroy_node()
+    logged = capfd.readouterr().err
+    assert logged.count("merger state not used, starting empty") == 1, logged
+    assert "a 'smoother' file, not a 'merger' one" in logged
 
 
 def _replace_merger(harness: MergerHarness, context: Any, **parameters: Any) -> None:
