@@ -371,8 +371,8 @@ def victoria_park_cut(path, poses):
 def test_victoria_park_cut_replays_to_gtsam_optimum(tmp_path):
     """`csam import slam2d` then `csam replay --offline` on Victoria Park up to pose id 1,000
     against GTSAM's optimum of the file's model (this project's errors written with GTSAM's
-    geometry; Gauss-Newton from dead reckoning, which on this cut reaches the optimum of the
-    whole file's incremental solve; up to 2,000 it diverges)."""
+    geometry), GTSAM's Gauss-Newton started from dead reckoning: on this cut both reach the
+    same minimum (measured: 3e-6 m apart); on the cut up to pose 2,000 GTSAM diverges."""
     from csam_ros.bench.smoothing import graph_from_slam2d
     from csam_ros.testing.gtsam_oracle import build_gtsam, gauss_newton, gtsam_estimate
 
