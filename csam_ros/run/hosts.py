@@ -507,34 +507,49 @@ def monitor(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The base station's run monitor (``csam demo --hosts`` starts it there)."""
+    """The base station's run monitor: ``csam demo --hosts`` starts it there; with
+    ``--flush``, the end of a run by hand (every smoother flushed over ROS, then the final
+    joined map awaited)."""
     p = argparse.ArgumentParser(prog="python -m csam_ros.run.hosts", description=main.__doc__)
-    p.add_argument("--out", type=Path, required=True, help="the run's directory")
-    p.add_argument("--robots", nargs="+", required=True)
-    p.add_argument("--timeout", type=float, default=600.0)
+    p.add_argument("--robots", nargs="+", required=True, help="the robots' names")
+    p.add_argument(
+        "--flush", action="store_true", help="the data has ended: flush the smoothers now"
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        help=f"the run's directory (a hosts run's: {MONITOR_END} there ends the data; "
+        f"{MONITOR_RESULT} is written there)",
+    )
+    p.add_argument("--timeout", type=float, default=600.0, help="seconds before giving up")
     args = p.parse_args(argv)
-    end_file = args.out / MONITOR_END
+    if args.out is None and not args.flush:
+        p.error("either --flush or --out DIR")
+    now = time.time()
 
     def data_end() -> float | None:
+        if args.flush:
+            return now
         try:
-            return float(end_file.read_text())
+            return float((args.out / MONITOR_END).read_text())
         except (OSError, ValueError):  # not there yet, or being written
             return None
 
+    def ready() -> None:
+        if args.out is not None:
+            (args.out / MONITOR_READY).write_text("ready\n")
+
     try:
         report = monitor(
-            args.robots,
-            data_end,
-            lambda: (args.out / MONITOR_READY).write_text("ready\n"),
-            args.timeout,
-            lambda line: print(line, flush=True),
+            args.robots, data_end, ready, args.timeout, lambda line: print(line, flush=True)
         )
     except KeyboardInterrupt:
         return 130
     except LiveRunError as err:
         print(f"monitor: {err}", file=sys.stderr)
         return 1
-    report.write(args.out / MONITOR_RESULT)
+    if args.out is not None:
+        report.write(args.out / MONITOR_RESULT)
     return 0
 
 
