@@ -10,9 +10,11 @@ the path is sampled during stretches without observations (only where odometry s
 most ``key_interval`` apart: none inside a gap in the odometry, whatever its length). Stamps
 closer than ``stamp_tolerance`` share one key pose. Odometry samples between consecutive keys
 are composed into one relative-pose factor (:func:`csam_ros.core.motion.odometry_between`); a
-key inserted in the past splits the factor of its interval (exact for the mean). Features give
-Cartesian observation factors (docs/METHOD.md section 3); a new landmark is initialised from
-its first observation.
+key inserted in the past splits the factor of its interval (exact for the mean); odometry
+inputs may be correlated (:class:`~csam_ros.core.log.OdometryLog`). Features give Cartesian
+observation factors (docs/METHOD.md section 3), and so do feature points (Cartesian
+observations with their own 2x2 covariance, :meth:`LocalMap.add_points`); a new landmark is
+initialised from its first observation.
 
 Update policy (online). Data are buffered as they arrive. :meth:`LocalMap.update` integrates
 everything covered by odometry: new keys (appended or inserted in the past) get initial values
