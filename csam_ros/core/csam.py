@@ -120,8 +120,11 @@ class CsamConfig:
     step_tolerance: float = setting(
         1e-9, "m, rad: stop when the largest step component is below", **_POSITIVE
     )
+    # MR.CLAM's robust joint costs creep at 1e-11-1e-12 per iteration long after the map
+    # settled: Dataset 2 took 103 iterations to 1e-12 (20 of them below 1e-10), so the cap of
+    # 100 left it unconverged; features move < 1e-6 m over that creep
     relative_tolerance: float = setting(
-        1e-12, "stop when the relative cost decrease is below", **_POSITIVE
+        1e-10, "stop when the relative cost decrease is below", **_POSITIVE
     )
     # SolverOptions.max_step_scale; MR.CLAM: 100+ -> 68 iterations
     max_step_scale: float = setting(

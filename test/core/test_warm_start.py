@@ -69,7 +69,8 @@ def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
     assert (cache.built, cache.reused) == (2, 0)
     again = join_maps(maps, logs, previous=first, cache=cache)
     assert (cache.built, cache.reused) == (2, 2)
-    assert _largest_difference(first, again) < 1e-9
+    # both stop where the relative cost decrease falls below 1e-10 (CsamConfig)
+    assert _largest_difference(first, again) < 1e-8
     assert again.statistics["joint_iterations"] <= 2
     # a new map object of one robot is a new view for that robot only
     maps[1] = replace(maps[1])
