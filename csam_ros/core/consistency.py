@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from csam_ros.core.factors import POINT, POSE
 from csam_ros.core.result import LocalMapCheck
@@ -53,6 +53,11 @@ class ConsistencyOptions:
     max_feature_outliers: float = 0.3
 
 
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The chi2 quantile (scipy.stats.chi2.ppf without importing scipy.stats, 0.6 s)."""
+    return float(2.0 * gammaincinv(0.5 * dof, probability))
+
+
 def _share(part: int, whole: int) -> float:
     return part / whole if whole else 0.0
 
@@ -67,7 +72,7 @@ def check_local_map(m: RobotMap, options: ConsistencyOptions) -> LocalMapCheck:
     for factor, squared in zip(problem.factors, problem.squared_errors(), strict=True):
         if len(factor) == 0:
             continue
-        outlier = squared > chi2.ppf(options.gate_probability, factor.residual_dim)
+        outlier = squared > chi2_quantile(options.gate_probability, factor.residual_dim)
         if all(kind is POSE for kind in factor.kinds) and len(factor.kinds) == 2:
             trajectory[0] += len(factor)
             trajectory[1] += int(outlier.sum())
