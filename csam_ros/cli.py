@@ -451,6 +451,20 @@ def cmd_bag_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bandwidth(args: argparse.Namespace) -> int:
+    """Print what each robot's topics carried, and how it grew over the run."""
+    from csam_ros.bag import BagError
+    from csam_ros.run.bandwidth import bandwidth_lines, measure_bandwidth
+
+    try:
+        bandwidth = measure_bandwidth(args.bag, on_damage=_warn)
+    except BagError as err:
+        raise CliError(str(err)) from None
+    for line in bandwidth_lines(bandwidth):
+        print(line)
+    return 0
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     from csam_ros.run.bag_io import write_log_bag
 
@@ -674,6 +688,14 @@ def parser() -> argparse.ArgumentParser:
     cal.add_argument("--duration", type=float, help="seconds of data to calibrate on")
     cal.add_argument("--rounds", type=int, default=12, help="most expectation-maximisation rounds")
     cal.set_defaults(func=cmd_calibrate)
+
+    bandwidth = sub.add_parser(
+        "bandwidth",
+        help="bytes per robot, topic and second of a bag, and by tenth of the run what each "
+        "robot sent to the base station",
+    )
+    bandwidth.add_argument("bag", type=Path, help="bag directory or .mcap file")
+    bandwidth.set_defaults(func=cmd_bandwidth)
 
     bag = sub.add_parser("bag", help="bag tools: recover a killed or damaged recording")
     bag_tools = bag.add_subparsers(dest="bag_command", required=True)

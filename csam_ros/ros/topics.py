@@ -111,6 +111,9 @@ STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
 TF = Topic("/tf", TFMessage, QoSProfile(depth=100))
 CLOCK = Topic("/clock", Clock, SHALLOW)
 
+# what each robot sends to the base station (the merger subscribes to these)
+MERGER_INPUTS: tuple[Topic, ...] = (LOCAL_MAP, RENDEZVOUS_POSES)
+
 TOPICS: tuple[Topic, ...] = (
     ODOM,
     FEATURES,
