@@ -203,6 +203,8 @@ def run_hosts(
 
 
 def _run_on(run: LiveRun, loss: float, domain: int, progress: Callable[[str], None]) -> RunSummary:
+    if BASE in run.robots:
+        raise HostsError(f"a robot named {BASE!r} would share the base station's host name")
     hosts = [*run.robots, BASE]
     env = with_dds_profile(subnet_environment(domain))
     profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
