@@ -26,26 +26,23 @@ from csam_msgs.msg import (
 from geometry_msgs.msg import Pose2D
 
 from csam_ros.core.factors import (
-    POINT,
-    POSE,
     Cauchy,
     Huber,
     PointObservation,
-    PosePrior,
     RelativePose,
     RobustKernel,
 )
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
+from csam_ros.core.map_arrays import robot_map_from_arrays
 from csam_ros.core.result import CsamResult
-from csam_ros.core.solver import Problem, SingularProblemError
+from csam_ros.core.solver import SingularProblemError
 from csam_ros.core.validation import (
     MALFORMED_LOCAL_MAP,
     MALFORMED_RENDEZVOUS_POSES,
     ROBOT_MISMATCH,
     DropCounter,
     LocalMapArrays,
-    local_map_fault,
     rendezvous_row_mask,
 )
 from csam_ros.ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
@@ -74,16 +71,6 @@ def _kernel_to_message(kernel: RobustKernel | None) -> tuple[str, float]:
     if name is None:
         raise LocalMapError(f"robust kernel {type(kernel).__name__} has no message form")
     return name, float(kernel.threshold if isinstance(kernel, Huber) else kernel.scale)
-
-
-def _kernel_from_message(name: str, parameter: float) -> RobustKernel | None:
-    if name == "":
-        return None
-    if name == "huber":
-        return Huber(parameter)
-    if name == "cauchy":
-        return Cauchy(parameter)
-    raise LocalMapError(f"unknown robust kernel {name!r}")
 
 
 def robot_map_to_message(
@@ -229,46 +216,11 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
     (``malformed_local_map`` or ``robot_mismatch``).
     """
     name = _robot_of(msg, robot, LocalMapError)
-    m = local_map_arrays(msg, name)
-    fault = local_map_fault(m)
-    if fault is not None:
-        raise LocalMapError(f"{name}: {fault}")
-    problem = Problem()
-    n = len(m.poses)
-    pose_ids = problem.add_variables(POSE, [(name, "pose", i) for i in range(n)], m.poses)
-    feature_ids = problem.add_variables(
-        POINT, [(name, "feature", int(k)) for k in m.feature_labels], m.feature_xy
-    )
-    feature_of = dict(zip(m.feature_labels.tolist(), feature_ids.tolist(), strict=True))
-    problem.add_factor(
-        PosePrior(
-            pose_ids[:1],
-            [[0.0, 0.0, 0.0]],
-            m.prior_sqrt_information.reshape(1, 3, 3),
-            name=f"{name} gauge",
-        )
-    )
-    if len(m.odometry_ends):
-        problem.add_factor(
-            RelativePose(
-                pose_ids[m.odometry_ends[:, 0]],
-                pose_ids[m.odometry_ends[:, 1]],
-                m.odometry_delta,
-                m.odometry_sqrt_information.reshape(-1, 3, 3),
-                name=f"{name} odometry",
-            )
-        )
-    if len(m.observation_pose):
-        problem.add_factor(
-            PointObservation(
-                pose_ids[m.observation_pose],
-                np.array([feature_of[int(k)] for k in m.observation_label], dtype=np.int64),
-                m.observation_xy,
-                m.observation_sqrt_information.reshape(-1, 2, 2),
-                robust=_kernel_from_message(m.robust_kernel, m.robust_parameter),
-                name=f"{name} observations",
-            )
-        )
+    try:
+        robot_map = robot_map_from_arrays(name, local_map_arrays(msg, name))
+    except ValueError as error:
+        raise LocalMapError(str(error)) from None
+    problem = robot_map.problem
     with np.errstate(all="ignore"):  # values within bounds may still overflow together
         try:
             system = problem.normal_equations()
@@ -277,9 +229,7 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
             system.factorize(0.0)
         except (FloatingPointError, SingularProblemError) as error:
             raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
-    return RobotMap(
-        name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
-    )
+    return robot_map
 
 
 def rendezvous_poses_message(
