@@ -183,8 +183,18 @@ def demo_live_run(
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.run.hosts import HostsError, Links, missing_requirements, run_hosts
     from csam_ros.run.live import run_live
 
+    if (args.loss or args.link_rate) and not args.hosts:
+        raise CliError("--loss and --link-rate need --hosts (links between hosts)")
+    if args.hosts:
+        try:
+            links = Links(args.loss, args.link_rate)
+        except ValueError as err:
+            raise CliError(f"--hosts: {err}") from None
+        if (reason := missing_requirements(links)) is not None:
+            raise CliError(f"--hosts: {reason}")
     scenario = load_scenario(args.scenario)
     out = _fresh_dir(args.out, scenario.name)
     seed = scenario.seed if args.seed is None else args.seed
@@ -194,14 +204,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     run = demo_live_run(args.scenario, out, seed, args.rate, args.isolated)
     if args.hosts:
-        from csam_ros.run.hosts import HostsError, run_hosts
-
         try:
-            summary = run_hosts(run, args.loss)
-        except (HostsError, ValueError) as err:
+            summary = run_hosts(run, links)
+        except HostsError as err:
             raise CliError(f"--hosts: {err}") from None
-    elif args.loss:
-        raise CliError("--loss needs --hosts (links between hosts)")
     else:
         summary = run_live(run)
     _finish(out, replace(summary, scenario=scenario.name))
@@ -613,6 +619,13 @@ def parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="with --hosts: probability that a host's link drops a packet (e.g. 0.1)",
+    )
+    demo.add_argument(
+        "--link-rate",
+        type=float,
+        default=0.0,
+        metavar="KBIT_S",
+        help="with --hosts: each host's link carries at most this many kbit/s each way",
     )
     demo.set_defaults(func=cmd_demo)
 

@@ -15,9 +15,11 @@ The run ends over ROS: when every simulator has published its data, the monitor 
 base station) calls each smoother's ``~/flush`` across the links, waits for the merger's
 joined map of those final local maps, and writes what it saw to ``hosts.json``.
 
-Link faults (``loss``): every IP packet a host receives over its link is dropped with that
-probability (iptables' ``statistic`` match in the raw table, before reassembly, so a lost
-fragment is lost alone, as on a radio link). Needs root, ``ip`` and, for loss, ``iptables``.
+Link faults (:class:`Links`): every IP packet a host receives over its link is dropped with
+probability ``loss`` (iptables' ``statistic`` match in the raw table, before reassembly, so a
+lost fragment is lost alone, as on a radio link); ``kbit_s`` caps each link's rate both ways
+(a token bucket, ``tc qdisc tbf``, with 400 ms of queue). Needs root, ``ip``, for loss
+``iptables`` and for a rate ``tc``.
 """
 
 from __future__ import annotations
@@ -57,14 +59,34 @@ class HostsError(RuntimeError):
     """Network namespaces cannot be made here (not root, or a tool is missing)."""
 
 
-def missing_requirements(loss: float = 0.0) -> str | None:
-    """Why namespaces with this link loss cannot be made here, or None when they can."""
+@dataclass(frozen=True)
+class Links:
+    """The faults of every host's link."""
+
+    loss: float = 0.0  # probability that a packet is dropped on receipt
+    kbit_s: float = 0.0  # rate limit each way (0: none)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.loss < 1.0:
+            raise ValueError(f"loss must be in [0, 1), got {self.loss}")
+        if not self.kbit_s >= 0:
+            raise ValueError(f"the link rate must be >= 0 kbit/s, got {self.kbit_s}")
+
+    def __str__(self) -> str:
+        rate = f", {self.kbit_s:g} kbit/s each way" if self.kbit_s else ""
+        return f"{self.loss:.0%} packet loss{rate}"
+
+
+def missing_requirements(links: Links = Links()) -> str | None:
+    """Why namespaces with these links cannot be made here, or None when they can."""
     if os.geteuid() != 0:
         return "network namespaces need root"
     if shutil.which("ip") is None:
         return "no `ip` command (iproute2)"
-    if loss > 0 and shutil.which("iptables") is None:
+    if links.loss > 0 and shutil.which("iptables") is None:
         return "no `iptables` command for the link loss (Debian: apt-get install iptables)"
+    if links.kbit_s > 0 and shutil.which("tc") is None:
+        return "no `tc` command for the link rate (iproute2)"
     return None
 
 
@@ -89,7 +111,7 @@ class Network:
 
     tag: str
     hosts: list[str]
-    loss: float = 0.0
+    links: Links = Links()
     namespaces: dict[str, str] = field(default_factory=dict)
     addresses: dict[str, str] = field(default_factory=dict)
 
@@ -119,12 +141,10 @@ def remove_stale_namespaces() -> list[str]:
     return removed
 
 
-def create_network(hosts: list[str], loss: float = 0.0) -> Network:
-    """Namespaces for ``hosts`` on one bridge, each with ``loss`` on its link; the caller
-    must :func:`delete_network` it (also when this raises)."""
-    if not 0.0 <= loss < 1.0:
-        raise ValueError(f"loss must be in [0, 1), got {loss}")
-    net = Network(f"{os.getpid()}-{secrets.token_hex(3)}", hosts, loss)
+def create_network(hosts: list[str], links: Links = Links()) -> Network:
+    """Namespaces for ``hosts`` on one bridge, each with ``links``' faults on its link;
+    :func:`delete_network` deletes it (this does when it fails)."""
+    net = Network(f"{os.getpid()}-{secrets.token_hex(3)}", hosts, links)
     try:
         _connect(net)
     except BaseException:
@@ -149,13 +169,20 @@ def _connect(net: Network) -> None:
         _in(name, "ip", "addr", "add", f"{net.addresses[host]}/24", "dev", "eth0")
         _in(name, "ip", "link", "set", "eth0", "up")
         _in(name, "ip", "route", "add", "default", "dev", "eth0")  # multicast needs a route
-        if net.loss > 0:
+        if net.links.loss > 0:
             _in(
                 name,
                 *("iptables", "-t", "raw", "-A", "PREROUTING", "-i", "eth0"),
-                *("-m", "statistic", "--mode", "random", "--probability", f"{net.loss:.4f}"),
+                *("-m", "statistic", "--mode", "random", "--probability", f"{net.links.loss:.4f}"),
                 *("-j", "DROP"),
             )
+        if net.links.kbit_s > 0:  # both ways: the host's sending side and the switch's port
+            for namespace, device in ((name, "eth0"), (net.switch, port)):
+                _in(
+                    namespace,
+                    *("tc", "qdisc", "add", "dev", device, "root", "tbf"),
+                    *("rate", f"{net.links.kbit_s:g}kbit", "burst", "4kb", "latency", "400ms"),
+                )
 
 
 def delete_network(net: Network) -> None:
@@ -165,10 +192,10 @@ def delete_network(net: Network) -> None:
 
 
 @contextmanager
-def network(hosts: list[str], loss: float = 0.0) -> Iterator[Network]:
+def network(hosts: list[str], links: Links = Links()) -> Iterator[Network]:
     """:func:`create_network` for a ``with`` block, deleted at its end whatever happens
     (SIGTERM too: it raises KeyboardInterrupt here while the block runs)."""
-    reason = missing_requirements(loss)
+    reason = missing_requirements(links)
     if reason is not None:
         raise HostsError(reason)
     remove_stale_namespaces()
@@ -179,7 +206,7 @@ def network(hosts: list[str], loss: float = 0.0) -> Iterator[Network]:
 
     signal.signal(signal.SIGTERM, on_term)
     try:
-        net = create_network(hosts, loss)
+        net = create_network(hosts, links)
         try:
             yield net
         finally:
@@ -189,7 +216,7 @@ def network(hosts: list[str], loss: float = 0.0) -> Iterator[Network]:
 
 
 def run_hosts(
-    run: LiveRun, loss: float = 0.0, progress: Callable[[str], None] = print
+    run: LiveRun, links: Links = Links(), progress: Callable[[str], None] = print
 ) -> RunSummary:
     """``run`` (as :func:`csam_ros.cli.demo_live_run` makes it) with every robot and the
     base station on a host of its own; returns the merger's summary. ``hosts.json`` in
@@ -198,20 +225,20 @@ def run_hosts(
     run.out_dir.mkdir(parents=True, exist_ok=True)
     if run.isolated:
         with reserve_domain_id() as reservation:
-            return _run_on(run, loss, reservation.domain_id, progress)
-    return _run_on(run, loss, int(os.environ.get("ROS_DOMAIN_ID", "0")), progress)
+            return _run_on(run, links, reservation.domain_id, progress)
+    return _run_on(run, links, int(os.environ.get("ROS_DOMAIN_ID", "0")), progress)
 
 
-def _run_on(run: LiveRun, loss: float, domain: int, progress: Callable[[str], None]) -> RunSummary:
+def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], None]) -> RunSummary:
     if BASE in run.robots:
         raise HostsError(f"a robot named {BASE!r} would share the base station's host name")
     hosts = [*run.robots, BASE]
     env = with_dds_profile(subnet_environment(domain))
     profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
-    with network(hosts, loss) as net:
+    with network(hosts, links) as net:
         where = ", ".join(f"{h} {net.addresses[h]}" for h in hosts)
         progress(f"  hosts: {where}; ROS_DOMAIN_ID {domain}, discovery over the subnet")
-        progress(f"  links: {loss:.0%} packet loss; transport: {profile}")
+        progress(f"  links: {links}; transport: {profile}")
         group = ProcessGroup(run.out_dir / "logs", env)
         try:
             return _run(run, net, group, progress)

@@ -19,7 +19,13 @@ from csam_ros.core.csam import run_csam
 from csam_ros.core.result import RunSummary
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
-from csam_ros.run.hosts import MONITOR_RESULT, PREFIX, MonitorReport, missing_requirements
+from csam_ros.run.hosts import (
+    MONITOR_RESULT,
+    PREFIX,
+    Links,
+    MonitorReport,
+    missing_requirements,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIO = "map_joining"  # two robots, 40 s
@@ -27,9 +33,9 @@ SEED = 5
 RATE = "8"  # 5 s of data: joined maps arrive during it (the merger solves at most every 0.5 s)
 LOSSES = (0.0, 0.1, 0.3)
 
-pytestmark = pytest.mark.skipif(
-    missing_requirements(loss=0.1) is not None,
-    reason=f"multi-host runs: {missing_requirements(loss=0.1)}",
+needs_hosts = pytest.mark.skipif(
+    missing_requirements(Links(loss=0.1)) is not None,
+    reason=f"multi-host runs: {missing_requirements(Links(loss=0.1))}",
 )
 
 
@@ -73,6 +79,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[float, HostsRun]:
     return done
 
 
+@needs_hosts
 def test_clean_links_give_the_single_host_joined_map(runs: dict[float, HostsRun]) -> None:
     run = runs[0.0]
     assert run.returncode == 0, run.stdout + run.stderr
@@ -92,6 +99,7 @@ def test_clean_links_give_the_single_host_joined_map(runs: dict[float, HostsRun]
     assert report.joined_before_end > 1
 
 
+@needs_hosts
 @pytest.mark.parametrize("loss", [0.1, 0.3])
 def test_lossy_links_keep_the_joined_map_coming(runs: dict[float, HostsRun], loss: float) -> None:
     run = runs[loss]
@@ -111,3 +119,26 @@ def test_lossy_links_keep_the_joined_map_coming(runs: dict[float, HostsRun], los
         f"{loss:.0%} loss: {lag[0].strip()}; final joined map {report.end_to_final_s:.2f} s "
         "after the data"
     )
+
+
+@pytest.mark.parametrize(
+    ("args", "error"),
+    [
+        (["--loss", "0.1"], "--loss and --link-rate need --hosts"),
+        (["--hosts", "--loss", "1.5"], "--hosts: loss must be in [0, 1), got 1.5"),
+        (["--hosts", "--link-rate", "-3"], "--hosts: the link rate must be >= 0 kbit/s"),
+    ],
+)
+def test_bad_link_options_give_one_line_errors(args: list[str], error: str, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = subprocess.run(
+        [sys.executable, "-m", "csam_ros.cli", "demo", *args, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"csam demo: {error}"), result.stderr
+    assert not out.exists()  # refused before anything was made
