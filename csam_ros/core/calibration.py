@@ -59,6 +59,10 @@ Progress = Callable[[str], None]
 CAUCHY_SCALE = 2.3849  # 95% efficiency at the normal distribution
 MAD_TO_SIGMA = 1.4826
 # the values the estimation fits (the rendezvous factors come after, from its localisations)
+# Smallest odometry noise density a fit may return [m/sqrt(s), rad/sqrt(s)]: a density the
+# data drive to zero (MR.CLAM Dataset 4's first estimate of q_vlat: 6e-10) would make the
+# odometry factors of short intervals singular.
+DENSITY_FLOOR = 1e-3
 ESTIMATED = ("sigma_range", "sigma_range_per_m", "sigma_bearing", "q_v", "q_vlat", "q_omega")
 
 
@@ -477,7 +481,7 @@ def _fit_densities(
         sigma = covariance(q, everything)
         maha = np.einsum("ni,ni->n", e, np.linalg.solve(sigma, e[..., None])[..., 0])
         use = maha < chi2.ppf(0.999, 3)
-    return q, use
+    return np.maximum(q, DENSITY_FLOOR), use
 
 
 def estimate_odometry_noise(
@@ -799,6 +803,7 @@ def em_noise(
                 expected_nll, q0, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-6}
             ).x
         )
+        q = np.maximum(q, DENSITY_FLOOR)
         noise = replace(
             noise,
             sigma_range=float(intercept),

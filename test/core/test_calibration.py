@@ -135,3 +135,23 @@ def test_noise_model_from_a_mapping_and_its_checks() -> None:
         NoiseModel.from_dict({"sigma_range_per_m": -0.1}, start)
     with pytest.raises(ValueError, match="q_omega must be finite and > 0"):
         NoiseModel.from_dict({"q_omega": float("nan")}, start)
+
+
+def test_a_density_the_data_drive_to_zero_stays_at_the_floor() -> None:
+    """Pose-pair errors with no lateral noise at all (MR.CLAM Dataset 4's q_vlat came out
+    6e-10, and the odometry factors of short intervals were singular): the fitted density
+    stays at DENSITY_FLOOR, the others are found."""
+    from csam_ros.core.calibration import DENSITY_FLOOR, _fit_densities
+
+    rng = np.random.default_rng(4)
+    n = 2000
+    gaps = rng.uniform(1.0, 20.0, n)
+    a_terms = np.zeros((n, 3, 3, 3))
+    for k in range(3):
+        a_terms[:, k, k, k] = gaps
+    c = np.tile(np.eye(3) * 1e-6, (n, 1, 1))
+    truth = np.array([0.02, 0.0, 0.04])
+    e = rng.normal(size=(n, 3)) * np.sqrt(truth**2 * gaps[:, None] + 1e-6)
+    q, _ = _fit_densities(e, a_terms, c)
+    assert q[1] == DENSITY_FLOOR
+    np.testing.assert_allclose(q[[0, 2]], truth[[0, 2]], rtol=0.1)
