@@ -675,7 +675,8 @@ def parser() -> argparse.ArgumentParser:
         metavar="ROBOT:START-END[,...]|stress",
         help="MR.CLAM: drop a robot's landmark observations (not those of other robots) over "
         "windows of seconds after the data set's first stamp; 'stress': the robot that sees "
-        "landmarks least often, every other 90 s window from 90 s on (half its run)",
+        "landmarks least often, every other 90 s window from 90 s after its start (half its "
+        "run)",
     )
     imp.set_defaults(func=cmd_import)
 
