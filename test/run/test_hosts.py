@@ -7,6 +7,7 @@ they are missing.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -142,3 +143,46 @@ def test_bad_link_options_give_one_line_errors(args: list[str], error: str, tmp_
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"csam demo: {error}"), result.stderr
     assert not out.exists()  # refused before anything was made
+
+
+@needs_hosts
+def test_ctrl_c_stops_every_node_and_deletes_the_namespaces(tmp_path: Path) -> None:
+    before = _namespaces()
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "csam_ros.cli", "demo", "--hosts", "--isolated"]
+    argv += ["--loss", "0.3", "--out", str(out)]
+    proc = subprocess.Popen(
+        argv,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        # SIGINT as in a terminal, even where this test runs with it ignored (a CI job)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    try:
+        seen = []
+        assert proc.stdout is not None
+        for line in proc.stdout:  # wait until the nodes run on their hosts
+            seen.append(line)
+            if "answer over the links" in line:
+                break
+        assert _namespaces() - before, "".join(seen)
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, "".join(seen) + rest
+    assert "nodes stopped on SIGINT" in rest
+    assert not _namespaces() - before
+    # no node of the run is left (the recorder and monitor name its folder)
+    assert not [c for c in _command_lines() if str(out) in c]
+
+
+def _command_lines() -> list[str]:
+    lines = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            lines.append(cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace"))
+        except OSError:  # gone meanwhile
+            continue
+    return lines
