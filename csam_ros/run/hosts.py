@@ -35,12 +35,12 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from csam_ros.core.result import RunSummary
 from csam_ros.run.launch import ProcessGroup, executable
-from csam_ros.run.live import LiveRun, LiveRunError, _param
+from csam_ros.run.live import LiveRun, LiveRunError, _param, smoother_drops
 from csam_ros.run.ros_env import (
     reserve_domain_id,
     subnet_environment,
@@ -263,7 +263,14 @@ def _run(
             BASE, [executable("recorder"), "-o", str(run.out_dir / "bag"), "--topics", *topics]
         ),
     )
-    merger_params = {"robots": run.robots, "summary_path": str(summary_path), **run.merger_params}
+    # checkpoints as in a single-host run (there each host would keep its own on its disk)
+    state = run.out_dir / "state"
+    merger_params = {
+        "robots": run.robots,
+        "summary_path": str(summary_path),
+        "state_path": str(state / "merger.npz"),
+        **run.merger_params,
+    }
     group.start(
         "merger",
         net.command(
@@ -292,7 +299,11 @@ def _run(
         ),
     )
     for robot in run.robots:
-        params = {"robots": run.robots, **run.smoother_params}
+        params = {
+            "robots": run.robots,
+            "checkpoint_path": str(state / f"{robot}.npz"),
+            **run.smoother_params,
+        }
         group.start(
             f"smoother_{robot}",
             net.command(
@@ -374,7 +385,10 @@ def _run(
     stop_nodes(group, progress)
     if not summary_path.exists():
         raise LiveRunError(f"the merger wrote no summary:\n{group.log_tail('merger')}")
-    return RunSummary.read(summary_path)
+    dropped = smoother_drops(run.robots, state)
+    lost = "; ".join(f"{r} {d}" for r, d in dropped.items() if d) or "nothing"
+    progress(f"  the smoothers dropped (from their checkpoints): {lost}")
+    return replace(RunSummary.read(summary_path), dropped=dropped)
 
 
 def stop_nodes(group: ProcessGroup, progress: Callable[[str], None]) -> None:
