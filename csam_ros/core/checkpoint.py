@@ -37,7 +37,6 @@ from csam_ros.core.robust import RendezvousThinning
 from csam_ros.core.validation import (
     LocalMapArrays,
     MeasurementFilter,
-    _Stream,
 )
 
 FORMAT = "csam_ros state"
@@ -168,18 +167,11 @@ class FilterState:
 
     @classmethod
     def of(cls, checks: MeasurementFilter) -> FilterState:
-        streams = {
-            key: (
-                s.last,
-                None if s.held is None else (s.held[0], s.held[1].copy(), s.held[2].copy()),
-            )
-            for key, s in checks._streams.items()
-        }
-        return cls(streams, {r: c.as_dict() for r, c in checks.drops.items()})
+        return cls(checks.stream_state(), {r: c.as_dict() for r, c in checks.drops.items()})
 
     def restore(self, checks: MeasurementFilter) -> None:
         """Put this state into ``checks`` (a new filter with the same robots and bounds)."""
-        checks._streams = {key: _Stream(last, held) for key, (last, held) in self.streams.items()}
+        checks.restore_streams(self.streams)
         for robot, counts in self.drops.items():  # into its own counters: callers hold them
             counter = checks.counter(robot)
             counter.counts.clear()
@@ -227,14 +219,10 @@ class ThinningState:
 
     @classmethod
     def of(cls, thinning: RendezvousThinning) -> ThinningState:
-        return cls(
-            {pair: list(stamps) for pair, stamps in thinning._kept.items()},
-            dict(thinning._interval),
-        )
+        return cls(*thinning.state())
 
     def restore(self, thinning: RendezvousThinning) -> None:
-        thinning._kept = {pair: list(stamps) for pair, stamps in self.kept.items()}
-        thinning._interval = dict(self.interval)
+        thinning.restore(self.kept, self.interval)
 
     def to_header(self) -> dict[str, Any]:
         return {

@@ -24,7 +24,7 @@ CsamConfig`), so the nodes and an offline replay apply them alike.
 from __future__ import annotations
 
 import bisect
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -142,6 +142,19 @@ class RendezvousThinning:
 
     def kept_stamps(self, observer: str, observed: str) -> list[float]:
         return list(self._kept.get((observer, observed), ()))
+
+    def state(self) -> tuple[dict[tuple[str, str], list[float]], dict[tuple[str, str], float]]:
+        """The kept stamps and current interval of each pair (copies), for :meth:`restore`."""
+        return {pair: list(s) for pair, s in self._kept.items()}, dict(self._interval)
+
+    def restore(
+        self,
+        kept: Mapping[tuple[str, str], Sequence[float]],
+        interval: Mapping[tuple[str, str], float],
+    ) -> None:
+        """Continue from :meth:`state` of an earlier thinning with the same settings."""
+        self._kept = {pair: list(s) for pair, s in kept.items()}
+        self._interval = dict(interval)
 
 
 def thin_rendezvous(

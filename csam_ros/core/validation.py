@@ -351,6 +351,20 @@ class MeasurementFilter:
     def _stream(self, robot: str, stream: str) -> _Stream:
         return self._streams.setdefault((robot, stream), _Stream())
 
+    def stream_state(self) -> dict[tuple[str, str], tuple[float, OdometrySample | None]]:
+        """Each (robot, stream)'s last accepted stamp and held-back odometry sample (copies):
+        what :meth:`restore_streams` puts back."""
+        return {
+            key: (s.last, None if s.held is None else (s.held[0], *(a.copy() for a in s.held[1:])))
+            for key, s in self._streams.items()
+        }
+
+    def restore_streams(
+        self, streams: Mapping[tuple[str, str], tuple[float, OdometrySample | None]]
+    ) -> None:
+        """Continue from :meth:`stream_state` of an earlier filter."""
+        self._streams = {key: _Stream(last, held) for key, (last, held) in streams.items()}
+
     def _known(self, robot: str) -> bool:
         return self.robots is None or robot in self.robots
 

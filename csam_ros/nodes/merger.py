@@ -6,7 +6,8 @@ those in ``robots`` when that allow-list is set (they are subscribed from the st
 reference is ``reference`` (else the first of ``robots``) if it has a map, else the first
 robot heard from; the choice is kept once made and named in ``/csam/status``, the joined map
 and the summary. Smoothers' first maps come in any order, so the first solve waits up to
-``reference_wait`` seconds after the first map for the configured reference's. When a local
+``reference_wait`` seconds after the first map for the configured reference's, and for the
+maps and rendezvous of every robot on the allow-list. When a local
 map or rendezvous part changes it re-solves (at most every ``solve_period`` wall-clock
 seconds) with the core's :func:`~csam_ros.core.csam.join_maps`, then writes
 ``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
@@ -150,7 +151,7 @@ class Merger(Node):
             "reference_wait",
             5.0,
             "wall-clock s the first solve waits, after the first local map, for the configured "
-            "reference's (0: none)",
+            "reference's and every listed robot's (0: none)",
             0.0,
         )
         self.stale_after = declare(
@@ -416,7 +417,7 @@ class Merger(Node):
                 self.dirty = False
                 if not self.heard:
                     return False
-                if not self._choose_reference():
+                if not (self._first_inputs_complete() and self._choose_reference()):
                     self.dirty = True  # the timer asks again
                     return False
                 order = [self.reference] + [r for r in self.heard if r != self.reference]
@@ -433,6 +434,16 @@ class Merger(Node):
                 with self._lock:
                     self.solving = False
             return True
+
+    def _first_inputs_complete(self) -> bool:
+        """Whether the first solve may run: every listed robot's local map and rendezvous
+        have come, or ``reference_wait`` has passed since the first map (a merger started
+        beside running smoothers gets their latched inputs within moments, in any order; one
+        solve then joins them all). Call under the lock."""
+        if self.reference:
+            return True
+        waiting = [r for r in self.allowed if r not in self.local_maps or r not in self.rendezvous]
+        return not waiting or time.monotonic() - self._first_heard_at >= self.reference_wait
 
     def _choose_reference(self) -> bool:
         """The configured reference if it has a map, else, once ``reference_wait`` has passed
