@@ -481,6 +481,7 @@ def cmd_import(args: argparse.Namespace) -> int:
         from csam_ros.datasets.mrclam import (
             MrclamFormatError,
             import_mrclam,
+            landmark_swaps_of,
             load_config,
             parse_occlusion,
         )
@@ -501,7 +502,7 @@ def cmd_import(args: argparse.Namespace) -> int:
                 start=args.start,
                 duration=args.duration,
                 noise=config["noise"],
-                landmark_swaps=[tuple(p) for p in config.get("landmark_swaps") or ()],
+                landmark_swaps=landmark_swaps_of(config),
                 range_scale=config.get("range_scale"),
                 occlusion=occlusion,
             )
@@ -527,7 +528,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Estimate a data set's noise model and range scales; write them as a config file."""
     from csam_ros.core.config_file import ConfigFileError, resolve_config_path
-    from csam_ros.datasets.mrclam import MrclamFormatError, load_config
+    from csam_ros.datasets.mrclam import MrclamFormatError, landmark_swaps_of, load_config
     from csam_ros.datasets.mrclam_calibration import (
         calibrate_mrclam,
         calibration_config,
@@ -542,7 +543,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise CliError(f"--rounds must be at least 1, got {args.rounds}")
     try:
         base = resolve_config_path(args.config or "mrclam")
-        swaps = load_config(base).get("landmark_swaps") or []
+        swaps = landmark_swaps_of(load_config(base))
     except (ConfigFileError, OSError, ValueError) as err:
         raise CliError(f"--config: {err}") from None
     robots = _robot_numbers(args.robots)

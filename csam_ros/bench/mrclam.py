@@ -59,14 +59,20 @@ from csam_ros.core.local_map import LocalMapConfig, build_local_map
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.robust import select_rendezvous, thin_rendezvous
-from csam_ros.datasets.mrclam import default_dataset_dir, import_mrclam, load_config
+from csam_ros.datasets.mrclam import (
+    LandmarkSwaps,
+    default_dataset_dir,
+    import_mrclam,
+    landmark_swaps_of,
+    load_config,
+)
 from csam_ros.datasets.mrclam_calibration import calibrate_mrclam, range_scales
 
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "mrclam.yaml"
 DEFAULT_DATASET = default_dataset_dir()
 
 
-def _print_noise(estimate: NoiseEstimate, landmark_swaps: list[tuple[int, int]]) -> None:
+def _print_noise(estimate: NoiseEstimate, landmark_swaps: LandmarkSwaps) -> None:
     s, o, n = estimate.sensor, estimate.odometry, estimate.noise
     print("1. first estimate from snapshot localisation (no odometry)")
     print(
@@ -207,7 +213,7 @@ def prepare_mrclam(
         duration=options.duration,
         noise=config["noise"],
         label_seed=int(config.get("label_seed", 0)),
-        landmark_swaps=config.get("landmark_swaps") or [],
+        landmark_swaps=landmark_swaps_of(config),
         range_scale=config.get("range_scale"),
     )
     timing["import"] = time.perf_counter() - clock
@@ -427,8 +433,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         return 0
     if args.command == "noise":
-        swaps = [] if args.no_swaps else load_config(args.config).get("landmark_swaps") or []
-        swaps = [(int(a), int(b)) for a, b in swaps]
+        swaps = [] if args.no_swaps else landmark_swaps_of(load_config(args.config))
         progress = None if args.json else lambda line: print(line, flush=True)
         estimate = calibrate_mrclam(args.dataset, swaps, rounds=args.rounds, progress=progress)
         if args.json:

@@ -46,8 +46,12 @@ or ``RobotN_Measurement.dat``, that is missing, unreadable or without one valid 
 - Ground-truth corrections: ``landmark_swaps`` exchanges the true positions of pairs of
   landmark subjects (Dataset 1 as distributed here has subjects 11 and 17 exchanged: every
   measurement of either is ~4-5 m off the listed position while the other 13 landmarks agree
-  to centimetres; ``csam calibrate mrclam`` without the swap shows it). Applied swaps are
-  listed in ``ImportReport.truth_corrections``; nothing is swapped unless asked.
+  to centimetres; Datasets 2 and 4 have no swap). With ``landmark_swaps: auto``
+  (``config/mrclam.yaml``) the pairs are found from the measurements themselves: the
+  robots are localised snapshot by snapshot on the listed landmarks, and two subjects whose
+  measurements nearly all miss their own positions and fit each other's are exchanged
+  (:func:`~csam_ros.core.calibration.detect_landmark_swaps`). Applied swaps are listed in
+  ``ImportReport.truth_corrections``; nothing is swapped unless asked.
 - Range calibration: ``range_scale`` maps robot numbers to the ratio of measured to true
   range of that robot's camera (a per-camera scale error, estimated against the landmark
   ground truth by ``csam calibrate mrclam``, listed in ``config/mrclam.yaml``).
@@ -64,11 +68,12 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core.calibration import NoiseModel
+from csam_ros.core.calibration import NoiseModel, detect_landmark_swaps, exchange_landmarks
 from csam_ros.core.log import (
     FeatureLog,
     GroundTruth,
@@ -81,6 +86,8 @@ from csam_ros.core.log import (
 FloatArray = NDArray[np.float64]
 
 BARCODES_FILE = "Barcodes.dat"
+AUTO = "auto"  # landmark_swaps found from the measurements
+LandmarkSwaps = Sequence[tuple[int, int]] | str  # subject pairs, or AUTO
 LANDMARKS_FILE = "Landmark_Groundtruth.dat"
 _ROBOT_FILE = re.compile(r"^Robot(\d+)_(Odometry|Measurement)\.dat$")
 _MAX_NOTES = 40
@@ -156,15 +163,30 @@ def load_config(path: str | Path) -> dict:
         )
     swaps = section.get("landmark_swaps")
     pair = list | tuple
-    if swaps is not None and not (
-        isinstance(swaps, pair)
-        and all(isinstance(p, pair) and len(p) == 2 and _numbers(dict(enumerate(p))) for p in swaps)
+    if (
+        swaps is not None
+        and swaps != AUTO
+        and not (
+            isinstance(swaps, pair)
+            and all(
+                isinstance(p, pair) and len(p) == 2 and _numbers(dict(enumerate(p))) for p in swaps
+            )
+        )
     ):
         raise ConfigFileError(
-            f"{path}: mrclam.landmark_swaps: expected a list of [subject, subject] pairs, "
-            f"got {swaps!r}"
+            f"{path}: mrclam.landmark_swaps: expected {AUTO!r} or a list of [subject, subject] "
+            f"pairs, got {swaps!r}"
         )
     return section
+
+
+def landmark_swaps_of(config: Mapping[str, Any]) -> LandmarkSwaps:
+    """A config's ``landmark_swaps`` as :func:`import_mrclam` takes it: :data:`AUTO` or a
+    list of subject pairs (none when absent)."""
+    swaps = config.get("landmark_swaps")
+    if swaps == AUTO:
+        return AUTO
+    return [(int(a), int(b)) for a, b in swaps or ()]
 
 
 @dataclass
@@ -527,7 +549,7 @@ def import_mrclam(
     duration: float | None = None,
     noise: NoiseModel | None = None,
     label_seed: int = 0,
-    landmark_swaps: Sequence[tuple[int, int]] = (),
+    landmark_swaps: LandmarkSwaps = (),
     range_scale: Mapping[int, float] | None = None,
     occlusion: str | Sequence[tuple[int, float, float]] | None = None,
 ) -> tuple[MultiRobotLog, ImportReport]:
@@ -537,7 +559,9 @@ def import_mrclam(
     ``duration`` [s] cut a window relative to the data set's first stamp. Returns the log
     (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
     label -> subject map) and the :class:`ImportReport`. ``landmark_swaps`` lists pairs of
-    landmark subjects whose true positions are exchanged, ``range_scale`` each robot's ratio of
+    landmark subjects whose true positions are exchanged, or is :data:`AUTO`: the pairs are
+    found from the measurements (:func:`~csam_ros.core.calibration.detect_landmark_swaps`).
+    ``range_scale`` each robot's ratio of
     measured to true range (module docstring). ``occlusion`` drops landmark observations:
     :data:`STRESS` or windows ``(robot number, start, end)`` (:func:`occlude_landmarks`).
     """
@@ -574,7 +598,7 @@ def import_mrclam(
     barcode_to_subject = _read_barcodes(directory, counter)
     landmark_subjects, landmark_xy = _read_landmarks(directory, counter)
     corrections = []
-    for pair in landmark_swaps:
+    for pair in () if landmark_swaps == AUTO else landmark_swaps:
         a, b = (int(v) for v in pair)
         rows = np.searchsorted(landmark_subjects, [a, b])
         if not all(
@@ -632,8 +656,6 @@ def import_mrclam(
             counter,
         )
         logs[name] = RobotLog(name, odometry[name], features, rendezvous)
-    occluded = occlude_landmarks(logs, occlusion, counter) if occlusion else {}
-
     truth = GroundTruth(
         feature_ids=landmark_subjects,
         feature_positions=landmark_xy,
@@ -641,6 +663,12 @@ def import_mrclam(
             name: {label: subject for subject, label in labels[name].items()} for name in names
         },
     )
+    if landmark_swaps == AUTO:
+        for swap in detect_landmark_swaps(MultiRobotLog(logs, truth), noise):
+            truth = exchange_landmarks(truth, *swap.subjects)
+            corrections.append(swap.line())
+    occluded = occlude_landmarks(logs, occlusion, counter) if occlusion else {}
+
     report = ImportReport(
         dataset=str(directory),
         epoch=epoch,

@@ -11,19 +11,18 @@ from __future__ import annotations
 
 import re
 import textwrap
-from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 
 from csam_ros.core.calibration import NoiseEstimate, NoiseModel, Progress, estimate_noise
-from csam_ros.datasets.mrclam import import_mrclam, load_config
+from csam_ros.datasets.mrclam import LandmarkSwaps, import_mrclam, landmark_swaps_of, load_config
 
 _TOP_LEVEL_KEY = re.compile(r"^[A-Za-z_][\w-]*:")
 
 
 def calibrate_mrclam(
     directory: str | Path,
-    landmark_swaps: Sequence[tuple[int, int]] = (),
+    landmark_swaps: LandmarkSwaps = (),
     robots: list[int] | None = None,
     start: float = 0.0,
     duration: float | None = None,
@@ -39,7 +38,7 @@ def calibrate_mrclam(
         robots=robots,
         start=start,
         duration=duration,
-        landmark_swaps=[(int(a), int(b)) for a, b in landmark_swaps],
+        landmark_swaps=landmark_swaps,
     )
     return estimate_noise(log, rounds=rounds, progress=progress)
 
@@ -110,8 +109,8 @@ def calibration_config(estimate: NoiseEstimate, base: str | Path, source: str) -
         + "}",
         "",
         "  # Ground-truth correction (scoring only): pairs of landmark subjects whose listed",
-        "  # positions are exchanged.",
-        f"  landmark_swaps: {_flow([list(p) for p in settings.get('landmark_swaps') or []])}",
+        "  # positions are exchanged, or auto: found from the measurements.",
+        f"  landmark_swaps: {_swaps_text(landmark_swaps_of(settings))}",
     ]
     rest = _other_sections(Path(base).read_text())
     return "\n".join(lines) + "\n" + ("\n" + rest if rest else "")
@@ -134,6 +133,10 @@ def _noise_lines(noise: NoiseModel) -> list[str]:
         entry = f"    {key}: {value:.6g}"
         lines.append(f"{entry:<35} # {notes[key]}" if notes[key] else entry)
     return lines
+
+
+def _swaps_text(swaps: LandmarkSwaps) -> str:
+    return swaps if isinstance(swaps, str) else _flow([list(p) for p in swaps])
 
 
 def _flow(value: object) -> str:

@@ -13,6 +13,7 @@ from mrclam_files import BARCODES, LANDMARKS, clean_odometry, write_dataset
 
 from csam_ros.core.calibration import NoiseModel
 from csam_ros.datasets.mrclam import (
+    AUTO,
     MRCLAM_NOISE,
     MrclamFormatError,
     default_dataset_dir,
@@ -247,7 +248,7 @@ def test_bad_requests_raise_clear_errors(tmp_path: Path) -> None:
 def test_config_file_loads() -> None:
     config = load_config(ROOT / "config" / "mrclam.yaml")
     assert config["noise"] == MRCLAM_NOISE  # the importer's default is the config's model
-    assert config["landmark_swaps"] == [[11, 17]]
+    assert config["landmark_swaps"] == "auto"
     assert sorted(config["range_scale"]) == [1, 2, 3, 4, 5]
     assert all(0.95 < v < 1.05 for v in config["range_scale"].values())
 
@@ -547,3 +548,14 @@ def _import_with(
     code = main([*args, "--out", str(tmp_path / "bag"), *extra])
     captured = capsys.readouterr()
     return code, captured.out, captured.err
+
+
+@pytest.mark.skipif(DATASET is None or not DATASET.is_dir(), reason="MR.CLAM Dataset 1 not present")
+def test_auto_finds_dataset_1s_swap_and_none_in_datasets_2_and_4() -> None:
+    _, report = import_mrclam(DATASET, landmark_swaps=AUTO)
+    (line,) = report.truth_corrections
+    assert line.startswith("true positions of landmark subjects 11 and 17 exchanged (detected")
+    for other in ("MRCLAM_Dataset2", "MRCLAM_Dataset4"):  # beside Dataset 1, when there
+        if (DATASET.parent / other).is_dir():
+            _, report = import_mrclam(DATASET.parent / other, landmark_swaps=AUTO)
+            assert report.truth_corrections == [], other
