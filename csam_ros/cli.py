@@ -181,16 +181,28 @@ def demo_live_run(
     )
 
 
+def _link_cut(text: str | None) -> tuple[str, float, float] | None:
+    """``--cut ROBOT:START-END`` as (robot, start, end); ValueError naming what does not read."""
+    if text is None:
+        return None
+    robot, _, window = text.partition(":")
+    start, _, end = window.partition("-")
+    try:
+        return robot, float(start), float(end)
+    except ValueError:
+        raise ValueError(f"--cut: expected ROBOT:START-END (seconds), got {text!r}") from None
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from csam_ros.datasets.scenario import load_scenario
     from csam_ros.run.hosts import HostsError, Links, missing_requirements, run_hosts
     from csam_ros.run.live import run_live
 
-    if (args.loss or args.link_rate) and not args.hosts:
-        raise CliError("--loss and --link-rate need --hosts (links between hosts)")
+    if (args.loss or args.link_rate or args.cut) and not args.hosts:
+        raise CliError("--loss, --link-rate and --cut need --hosts (links between hosts)")
     if args.hosts:
         try:
-            links = Links(args.loss, args.link_rate)
+            links = Links(args.loss, args.link_rate, _link_cut(args.cut))
         except ValueError as err:
             raise CliError(f"--hosts: {err}") from None
         if (reason := missing_requirements(links)) is not None:
@@ -627,6 +639,12 @@ def parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="KBIT_S",
         help="with --hosts: each host's link carries at most this many kbit/s each way",
+    )
+    demo.add_argument(
+        "--cut",
+        metavar="ROBOT:START-END",
+        help="with --hosts: cut that robot's link from START to END wall-clock seconds after "
+        "its data starts (the robot goes on alone and comes back)",
     )
     demo.set_defaults(func=cmd_demo)
 

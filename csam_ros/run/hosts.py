@@ -18,8 +18,11 @@ joined map of those final local maps, and writes what it saw to ``hosts.json``.
 Link faults (:class:`Links`): every IP packet a host receives over its link is dropped with
 probability ``loss`` (iptables' ``statistic`` match in the raw table, before reassembly, so a
 lost fragment is lost alone, as on a radio link); ``kbit_s`` caps each link's rate both ways
-(a token bucket, ``tc qdisc tbf``, with 400 ms of queue). Needs root, ``ip``, for loss
-``iptables`` and for a rate ``tc``.
+(a token bucket, ``tc qdisc tbf``, with 400 ms of queue); ``cut`` takes one host's link
+down (its bridge port) over a window of the run and restores it: what it sends meanwhile is
+lost without an error, as out of radio range. In simulation the cut host also loses /clock,
+so its nodes pause until the link returns (real robots keep their own clocks). Needs root,
+``ip``, for loss ``iptables`` and for a rate ``tc``.
 """
 
 from __future__ import annotations
@@ -65,16 +68,24 @@ class Links:
 
     loss: float = 0.0  # probability that a packet is dropped on receipt
     kbit_s: float = 0.0  # rate limit each way (0: none)
+    # (host, start, end): that host's link cut from start to end s after the data starts
+    cut: tuple[str, float, float] | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.loss < 1.0:
             raise ValueError(f"loss must be in [0, 1), got {self.loss}")
         if not self.kbit_s >= 0:
             raise ValueError(f"the link rate must be >= 0 kbit/s, got {self.kbit_s}")
+        if self.cut is not None and not 0 <= self.cut[1] < self.cut[2]:
+            raise ValueError(f"a link cut needs 0 <= start < end, got {self.cut[1:]}")
 
     def __str__(self) -> str:
         rate = f", {self.kbit_s:g} kbit/s each way" if self.kbit_s else ""
-        return f"{self.loss:.0%} packet loss{rate}"
+        cut = ""
+        if self.cut is not None:
+            host, start, end = self.cut
+            cut = f", {host}'s link cut from {start:g} to {end:g} s after the data starts"
+        return f"{self.loss:.0%} packet loss{rate}{cut}"
 
 
 def missing_requirements(links: Links = Links()) -> str | None:
@@ -114,6 +125,12 @@ class Network:
     links: Links = Links()
     namespaces: dict[str, str] = field(default_factory=dict)
     addresses: dict[str, str] = field(default_factory=dict)
+    ports: dict[str, str] = field(default_factory=dict)  # each host's port on the bridge
+
+    def set_link(self, host: str, up: bool) -> None:
+        """Connect or cut ``host``'s link (its bridge port up or down; what it sends
+        meanwhile is lost without an error, as over a radio link out of range)."""
+        _in(self.switch, "ip", "link", "set", self.ports[host], "up" if up else "down")
 
     @property
     def switch(self) -> str:
@@ -162,7 +179,7 @@ def _connect(net: Network) -> None:
         _ip("netns", "add", name)
         net.namespaces[host] = name
         net.addresses[host] = f"{SUBNET}.{k + 1}"
-        port = f"port{k}"
+        port = net.ports[host] = f"port{k}"
         _in(net.switch, "ip", "link", "add", port, "type", "veth", "peer", "eth0", "netns", name)
         _in(net.switch, "ip", "link", "set", port, "master", "br0", "up")
         _in(name, "ip", "link", "set", "lo", "up")
@@ -233,6 +250,8 @@ def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], N
     if BASE in run.robots:
         raise HostsError(f"a robot named {BASE!r} would share the base station's host name")
     hosts = [*run.robots, BASE]
+    if links.cut is not None and links.cut[0] not in run.robots:
+        raise HostsError(f"--cut names {links.cut[0]!r}, not one of the robots {run.robots}")
     env = with_dds_profile(subnet_environment(domain))
     profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
     with network(hosts, links) as net:
@@ -358,9 +377,11 @@ def _run(
             ),
         )
     sources = [f"{run.source_name}_{r}" for r in run.robots]
+    cut = LinkCut(net, progress)
     while any(group.processes[s].poll() is None for s in sources):
         check(set(sources))
         relay()
+        cut.follow()
         time.sleep(0.1)
     for source in sources:
         code = group.processes[source].returncode
@@ -378,7 +399,9 @@ def _run(
     while group.processes["monitor"].poll() is None:
         check({*sources, "monitor"})
         relay()
+        cut.follow()
         time.sleep(0.1)
+    cut.restore()
     relay()
     if group.processes["monitor"].returncode != 0:
         raise LiveRunError(f"the monitor failed:\n{group.log_tail('monitor')}")
@@ -389,6 +412,36 @@ def _run(
     lost = "; ".join(f"{r} {d}" for r, d in dropped.items() if d) or "nothing"
     progress(f"  the smoothers dropped (from their checkpoints): {lost}")
     return replace(RunSummary.read(summary_path), dropped=dropped)
+
+
+class LinkCut:
+    """Cuts and restores the link of :attr:`Links.cut` as the run's wall clock passes its
+    window (counted from this object's creation: the start of the data)."""
+
+    def __init__(self, net: Network, progress: Callable[[str], None]) -> None:
+        self.net, self.progress = net, progress
+        self.start = time.monotonic()
+        self.state = "before"
+
+    def follow(self) -> None:
+        cut = self.net.links.cut
+        if cut is None or self.state == "after":
+            return
+        host, begin, end = cut
+        elapsed = time.monotonic() - self.start
+        if self.state == "before" and elapsed >= begin:
+            self.net.set_link(host, up=False)
+            self.state = "cut"
+            self.progress(f"  {host}'s link cut at {elapsed:.1f} s")
+        if self.state == "cut" and elapsed >= end:
+            self.restore()
+
+    def restore(self) -> None:
+        if self.state == "cut":
+            host = self.net.links.cut[0]  # type: ignore[index]
+            self.net.set_link(host, up=True)
+            self.progress(f"  {host}'s link restored at {time.monotonic() - self.start:.1f} s")
+        self.state = "after"
 
 
 def stop_nodes(group: ProcessGroup, progress: Callable[[str], None]) -> None:

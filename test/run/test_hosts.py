@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from csam_ros.core.csam import run_csam
-from csam_ros.core.result import RunSummary
+from csam_ros.core.result import CsamResult, RunSummary
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.run.hosts import (
@@ -33,6 +33,9 @@ SCENARIO = "map_joining"  # two robots, 40 s
 SEED = 5
 RATE = "8"  # 5 s of data: joined maps arrive during it (the merger solves at most every 0.5 s)
 LOSSES = (0.0, 0.1, 0.3)
+# robot2's link cut, after its first local maps reached the base, for longer than the
+# merger's stale_after (30 s): at real time (40 s of data), beside the other runs
+CUT = ("robot2", 6.0, 40.0)
 
 needs_hosts = pytest.mark.skipif(
     missing_requirements(Links(loss=0.1)) is not None,
@@ -54,39 +57,40 @@ class HostsRun:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[float, HostsRun]:
-    """``csam demo --hosts`` on clean links, at 10% and at 30% loss: three runs at once, each
-    on its own namespaces (they must not clash); no namespace is left behind."""
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[float | str, HostsRun]:
+    """``csam demo --hosts`` on clean links, at 10% and at 30% loss, and with robot2's link
+    cut for a while (key "cut"): four runs at once, each on its own namespaces (they must not
+    clash); no namespace is left behind."""
     before = _namespaces()
     started = {}
-    for loss in LOSSES:
-        out = tmp_path_factory.mktemp(f"hosts-{loss}") / "run"
+    robot, start, end = CUT
+    cut = ["--rate", "1", "--cut", f"{robot}:{start:g}-{end:g}"]
+    for key, args in [
+        *((loss, ["--rate", RATE, "--loss", str(loss)]) for loss in LOSSES),
+        ("cut", cut),
+    ]:
+        out = tmp_path_factory.mktemp(f"hosts-{key}") / "run"
         argv = [sys.executable, "-m", "csam_ros.cli", "demo", "--hosts", "--isolated"]
-        argv += ["--scenario", SCENARIO, "--seed", str(SEED), "--rate", RATE]
-        argv += ["--loss", str(loss), "--out", str(out)]
+        argv += ["--scenario", SCENARIO, "--seed", str(SEED), *args, "--out", str(out)]
         proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        started[loss] = (out, proc)
+        started[key] = (out, proc)
     done = {}
-    for loss, (out, proc) in started.items():
+    for key, (out, proc) in started.items():
         try:
             stdout, stderr = proc.communicate(timeout=300)
         except subprocess.TimeoutExpired:
             proc.terminate()  # the run deletes its namespaces on SIGTERM
             stdout, stderr = proc.communicate(timeout=60)
         print(stdout)
-        done[loss] = HostsRun(out, proc.returncode, stdout, stderr)
+        done[key] = HostsRun(out, proc.returncode, stdout, stderr)
     left = _namespaces() - before
     assert not left, f"namespaces left behind: {left}"
     return done
 
 
-@needs_hosts
-def test_clean_links_give_the_single_host_joined_map(runs: dict[float, HostsRun]) -> None:
-    run = runs[0.0]
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert "base 10.231.0.3" in run.stdout  # three hosts on one subnet
-    live = RunSummary.read(run.out / "summary.json").result
-    # the single-host run of this scenario and seed (csam demo equals it to 1e-6: test_cli)
+def assert_single_host_map(live: CsamResult) -> None:
+    """``live`` equals the single-host run of this scenario and seed (csam demo equals the
+    core's to 1e-6: test_cli)."""
     single = run_csam(simulate(load_scenario(SCENARIO), seed=SEED))
     assert set(live.robots) == set(single.robots) == {"robot1", "robot2"}
     for name, robot in single.robots.items():
@@ -96,13 +100,44 @@ def test_clean_links_give_the_single_host_joined_map(runs: dict[float, HostsRun]
         [f.xy for f in live.features], [f.xy for f in single.features], atol=1e-6
     )
     assert {(x.a, x.b) for x in live.associations} == {(x.a, x.b) for x in single.associations}
+
+
+@needs_hosts
+def test_clean_links_give_the_single_host_joined_map(runs: dict[float | str, HostsRun]) -> None:
+    run = runs[0.0]
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "base 10.231.0.3" in run.stdout  # three hosts on one subnet
+    assert_single_host_map(RunSummary.read(run.out / "summary.json").result)
     report = MonitorReport.read(run.out / MONITOR_RESULT)
     assert report.joined_before_end > 1
 
 
 @needs_hosts
+def test_a_robot_cut_off_is_stale_then_fresh_and_the_final_map_is_the_clean_one(
+    runs: dict[float | str, HostsRun],
+) -> None:
+    from csam_ros.bag import read_bag_messages
+    from csam_ros.ros.topics import STATUS
+
+    run = runs["cut"]
+    assert run.returncode == 0, run.stdout + run.stderr
+    robot = CUT[0]
+    assert f"{robot}'s link cut at" in run.stdout and f"{robot}'s link restored at" in run.stdout
+    stale = []  # the merger's word on robot2, in the order it said it
+    for m in read_bag_messages(run.out / "bag", [STATUS.name]):
+        for status in m.message.status:
+            if status.name == f"merger/{robot}":
+                stale.append({kv.key: kv.value for kv in status.values}["stale"] == "True")
+    first = stale.index(True)  # reported stale while cut off
+    assert False in stale[first:], "never fresh again"
+    assert_single_host_map(RunSummary.read(run.out / "summary.json").result)
+
+
+@needs_hosts
 @pytest.mark.parametrize("loss", [0.1, 0.3])
-def test_lossy_links_keep_the_joined_map_coming(runs: dict[float, HostsRun], loss: float) -> None:
+def test_lossy_links_keep_the_joined_map_coming(
+    runs: dict[float | str, HostsRun], loss: float
+) -> None:
     run = runs[loss]
     assert run.returncode == 0, run.stdout + run.stderr
     assert f"links: {loss:.0%} packet loss" in run.stdout
@@ -125,7 +160,9 @@ def test_lossy_links_keep_the_joined_map_coming(runs: dict[float, HostsRun], los
 @pytest.mark.parametrize(
     ("args", "error"),
     [
-        (["--loss", "0.1"], "--loss and --link-rate need --hosts"),
+        (["--loss", "0.1"], "--loss, --link-rate and --cut need --hosts"),
+        (["--hosts", "--cut", "robot2:5"], "--hosts: --cut: expected ROBOT:START-END"),
+        (["--hosts", "--cut", "robot2:9-3"], "--hosts: a link cut needs 0 <= start < end"),
         (["--hosts", "--loss", "1.5"], "--hosts: loss must be in [0, 1), got 1.5"),
         (["--hosts", "--link-rate", "-3"], "--hosts: the link rate must be >= 0 kbit/s"),
     ],
