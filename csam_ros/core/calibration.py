@@ -161,7 +161,12 @@ def snapshot_localisation(
     obs = np.flatnonzero(keep_frame[frame])
     snap = renumber[frame[obs]]
     n_snap = frame_ids.size
-    width = int(counts[frame_ids].max()) if n_snap else 0
+    if n_snap == 0:  # no frame sees enough landmarks (a short window)
+        none, ids = np.zeros(0), np.zeros(0, dtype=np.int64)
+        return Snapshots(
+            robot.name, none, np.zeros((0, 3)), np.zeros((0, 3, 3)), ids, ids, *[none] * 5
+        )
+    width = int(counts[frame_ids].max())
     # padded (S, M) layout
     order = np.argsort(snap, kind="stable")
     obs, snap = obs[order], snap[order]
@@ -977,7 +982,7 @@ def detect_landmark_swaps(
     noise: NoiseModel,
     misfit: float = 0.5,
     fit: float = 0.1,
-    min_measurements: int = 20,
+    min_measurements: int = 5,
 ) -> list[LandmarkSwap]:
     """Pairs of landmark subjects whose true positions are exchanged in ``log.truth``.
 
