@@ -60,7 +60,7 @@ def _robot_numbers(text: str | None) -> list[int] | None:
     return numbers
 
 
-MERGER_KEYS = {"solve_period"}
+MERGER_KEYS = {"solve_period", "stale_after"}  # merger node parameters, seconds
 
 
 def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
@@ -82,7 +82,7 @@ def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
 
 def _csam_params(document: dict) -> dict:
     """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
-    section's ``solve_period``."""
+    section's ``solve_period`` and ``stale_after``."""
     from csam_ros.core.csam import MERGER, CsamConfig
 
     csam = _node_params(document, "csam", CsamConfig, MERGER)
@@ -90,10 +90,11 @@ def _csam_params(document: dict) -> dict:
     unknown = sorted(set(merger) - MERGER_KEYS) if isinstance(merger, dict) else ["(not a map)"]
     if unknown:
         raise CliError(f"merger: unknown key(s) {unknown}; allowed: {sorted(MERGER_KEYS)}")
-    period = merger.get("solve_period", 0.5)
-    if isinstance(period, bool) or not isinstance(period, int | float) or not period >= 0:
-        raise CliError(f"merger.solve_period: expected seconds >= 0, got {period!r}")
-    return {**csam, **merger, "solve_period": float(period)}
+    seconds = {"solve_period": 0.5, **merger}
+    for key, value in seconds.items():
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+            raise CliError(f"merger.{key}: expected seconds >= 0, got {value!r}")
+    return {**csam, **{key: float(value) for key, value in seconds.items()}}
 
 
 def _smoother_params(document: dict) -> dict:
