@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 from merger_harness import ROBOTS, MergerHarness, joined_view, run_messages
+from node_group import smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -453,8 +454,7 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
 
     from csam_ros.core.csam import run_csam
     from csam_ros.nodes.common import publisher
-    from csam_ros.nodes.merger import Merger
-    from csam_ros.nodes.smoother import OUTSIDE_TRAJECTORY, Smoother
+    from csam_ros.nodes.smoother import OUTSIDE_TRAJECTORY
     from csam_ros.ros.conversions import log_to_messages
     from csam_ros.ros.topics import parse
 
@@ -462,24 +462,7 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
     log = _clock_offset(clean, "robot2", OFFSET)
     expected = run_csam(log)
     robots = list(log.robots)
-    smoothers = {
-        r: Smoother(
-            context=ros_context,
-            namespace=r,
-            parameter_overrides=[
-                Parameter("robots", value=robots),
-                Parameter("publish_period", value=1000.0),
-            ],
-        )
-        for r in robots
-    }
-    merger = Merger(
-        context=ros_context,
-        parameter_overrides=[
-            Parameter("robots", value=robots),
-            Parameter("solve_period", value=0.05),
-        ],
-    )
+    smoothers, merger = smoothers_and_merger(ros_context, robots)
     source = rclpy.create_node("clock_offset_source", context=ros_context)
     messages = log_to_messages(log, with_truth=False)
     pubs = {}

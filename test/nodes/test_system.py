@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from node_group import smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -33,30 +34,9 @@ def _nodes(
     extra_smoother: list[Parameter] | None = None,
     summary_path: Path | None = None,
 ):
-    from csam_ros.nodes.merger import Merger
     from csam_ros.nodes.simulator import Simulator
-    from csam_ros.nodes.smoother import Smoother
 
-    smoothers = {
-        r: Smoother(
-            context=context,
-            namespace=r,
-            parameter_overrides=[
-                Parameter("robots", value=robots),
-                Parameter("publish_period", value=1000.0),
-                *(extra_smoother or []),
-            ],
-        )
-        for r in robots
-    }
-    merger = Merger(
-        context=context,
-        parameter_overrides=[
-            Parameter("robots", value=robots),
-            Parameter("solve_period", value=0.05),
-            *([Parameter("summary_path", value=str(summary_path))] if summary_path else []),
-        ],
-    )
+    smoothers, merger = smoothers_and_merger(context, robots, extra_smoother, summary_path)
     simulator = Simulator(
         context=context,
         parameter_overrides=[
