@@ -42,8 +42,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from csam_ros.core.result import RunSummary
-from csam_ros.run.launch import ProcessGroup, executable
-from csam_ros.run.live import LiveRun, LiveRunError, _param, smoother_drops
+from csam_ros.run.launch import ProcessGroup
+from csam_ros.run.live import LiveRun, LiveRunError, ros_params, smoother_drops
 from csam_ros.run.ros_env import (
     reserve_domain_id,
     subnet_environment,
@@ -269,73 +269,17 @@ def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], N
 def _run(
     run: LiveRun, net: Network, group: ProcessGroup, progress: Callable[[str], None]
 ) -> RunSummary:
-    summary_path = run.out_dir / "summary.json"
+    summary_path = run.summary_path
     for stale in (MONITOR_READY, MONITOR_END, MONITOR_RESULT, summary_path.name):
         (run.out_dir / stale).unlink(missing_ok=True)
-    sim_time = _param("use_sim_time", True)
-    from csam_ros.ros.topics import recorded_topics
-
-    topics = recorded_topics(run.robots) + run.extra_topics
-    group.start(
-        "recorder",
-        net.command(
-            BASE, [executable("recorder"), "-o", str(run.out_dir / "bag"), "--topics", *topics]
-        ),
-    )
-    # checkpoints as in a single-host run (there each host would keep its own on its disk)
-    state = run.out_dir / "state"
-    merger_params = {
-        "robots": run.robots,
-        "summary_path": str(summary_path),
-        "state_path": str(state / "merger.npz"),
-        **run.merger_params,
-    }
-    group.start(
-        "merger",
-        net.command(
-            BASE,
-            [
-                executable("merger"),
-                "--ros-args",
-                *sim_time,
-                *sum((_param(k, v) for k, v in merger_params.items()), []),
-            ],
-        ),
-    )
-    group.start(
-        "monitor",
-        net.command(
-            BASE,
-            [
-                sys.executable,
-                "-m",
-                "csam_ros.run.hosts",
-                "--out",
-                str(run.out_dir),
-                "--robots",
-                *run.robots,
-            ],
-        ),
-    )
+    # the nodes of a single-host run, each on its host (checkpoints in the run folder here;
+    # real hosts keep their own on their disks)
+    group.start("recorder", net.command(BASE, run.recorder_argv()))
+    group.start("merger", net.command(BASE, run.merger_argv()))
+    monitor = [sys.executable, "-m", "csam_ros.run.hosts", "--out", str(run.out_dir)]
+    group.start("monitor", net.command(BASE, [*monitor, "--robots", *run.robots]))
     for robot in run.robots:
-        params = {
-            "robots": run.robots,
-            "checkpoint_path": str(state / f"{robot}.npz"),
-            **run.smoother_params,
-        }
-        group.start(
-            f"smoother_{robot}",
-            net.command(
-                robot,
-                [
-                    executable("smoother"),
-                    "--ros-args",
-                    *("-r", f"__ns:=/{robot}"),
-                    *sim_time,
-                    *sum((_param(k, v) for k, v in params.items()), []),
-                ],
-            ),
-        )
+        group.start(f"smoother_{robot}", net.command(robot, run.smoother_argv(robot)))
     start = time.monotonic()
     shown = 0
 
@@ -369,10 +313,14 @@ def _run(
                 [
                     *run.source_argv,
                     "--ros-args",
-                    *sim_time,
                     *run.source_ros_args,
-                    *_param("emit_robots", [robot]),
-                    *_param("publish_clock", k == 0),  # the one source of sim time
+                    *ros_params(
+                        {
+                            "use_sim_time": True,
+                            "emit_robots": [robot],
+                            "publish_clock": k == 0,  # the one source of sim time
+                        }
+                    ),
                 ],
             ),
         )
@@ -408,7 +356,7 @@ def _run(
     stop_nodes(group, progress)
     if not summary_path.exists():
         raise LiveRunError(f"the merger wrote no summary:\n{group.log_tail('merger')}")
-    dropped = smoother_drops(run.robots, state)
+    dropped = smoother_drops(run.robots, run.state_dir)
     lost = "; ".join(f"{r} {d}" for r, d in dropped.items() if d) or "nothing"
     progress(f"  the smoothers dropped (from their checkpoints): {lost}")
     return replace(RunSummary.read(summary_path), dropped=dropped)

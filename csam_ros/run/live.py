@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -48,6 +49,49 @@ class LiveRun:
     # tools see the run; True: a private domain with discovery on this host only (tests)
     isolated: bool = False
 
+    @property
+    def summary_path(self) -> Path:
+        return self.out_dir / "summary.json"
+
+    @property
+    def state_dir(self) -> Path:
+        """Checkpoints and the merger's state: a node restarted by hand with the same
+        parameters resumes from them."""
+        return self.out_dir / "state"
+
+    def recorder_argv(self) -> list[str]:
+        from csam_ros.ros.topics import recorded_topics
+
+        topics = recorded_topics(self.robots) + self.extra_topics
+        return [executable("recorder"), "-o", str(self.out_dir / "bag"), "--topics", *topics]
+
+    def merger_argv(self) -> list[str]:
+        params = {
+            "robots": self.robots,
+            "summary_path": str(self.summary_path),
+            "state_path": str(self.state_dir / "merger.npz"),
+            **self.merger_params,
+        }
+        return [executable("merger"), "--ros-args", *ros_params({"use_sim_time": True, **params})]
+
+    def smoother_argv(self, robot: str) -> list[str]:
+        params = {
+            "robots": self.robots,
+            "checkpoint_path": str(self.state_dir / f"{robot}.npz"),
+            **self.smoother_params,
+        }
+        return [
+            executable("smoother"),
+            "--ros-args",
+            *("-r", f"__ns:=/{robot}"),
+            *ros_params({"use_sim_time": True, **params}),
+        ]
+
+
+def ros_params(params: Mapping[str, object]) -> list[str]:
+    """``-p name:=value`` arguments of a node's ``--ros-args``."""
+    return [arg for name, value in params.items() for arg in _param(name, value)]
+
 
 def _param(name: str, value: object) -> list[str]:
     if isinstance(value, bool):
@@ -77,59 +121,25 @@ def run_live(run: LiveRun, progress=print) -> RunSummary:
 def _run_with(run: LiveRun, env: dict[str, str], progress) -> RunSummary:
     group = ProcessGroup(run.out_dir / "logs", with_dds_profile(env))  # the shipped transport
     try:
-        return _run(run, group, run.out_dir / "summary.json", progress)
+        return _run(run, group, progress)
     finally:
         group.stop_all()
 
 
-def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> RunSummary:
+def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import CLOCK, JOINED_MAP, MARKERS, recorded_topics
+    from csam_ros.ros.topics import CLOCK, JOINED_MAP, MARKERS
 
     sim_time = _param("use_sim_time", True)
-    topics = recorded_topics(run.robots) + run.extra_topics
-    group.start(
-        "recorder", [executable("recorder"), "-o", str(run.out_dir / "bag"), "--topics", *topics]
-    )
-    # checkpoints in the run folder: a node restarted by hand with the same parameters resumes
-    state = run.out_dir / "state"
-    merger_params = {
-        "robots": run.robots,
-        "summary_path": str(summary_path),
-        "state_path": str(state / "merger.npz"),
-        **run.merger_params,
-    }
-    group.start(
-        "merger",
-        [
-            executable("merger"),
-            "--ros-args",
-            *sim_time,
-            *sum((_param(k, v) for k, v in merger_params.items()), []),
-        ],
-    )
+    group.start("recorder", run.recorder_argv())
+    group.start("merger", run.merger_argv())
     for robot in run.robots:
-        params = {
-            "robots": run.robots,
-            "checkpoint_path": str(state / f"{robot}.npz"),
-            **run.smoother_params,
-        }
-        group.start(
-            f"smoother_{robot}",
-            [
-                executable("smoother"),
-                "--ros-args",
-                "-r",
-                f"__ns:=/{robot}",
-                *sim_time,
-                *sum((_param(k, v) for k, v in params.items()), []),
-            ],
-        )
+        group.start(f"smoother_{robot}", run.smoother_argv(robot))
 
     rclpy.init()
     node = rclpy.create_node("csam_run_monitor")
@@ -230,8 +240,8 @@ def _run(run: LiveRun, group: ProcessGroup, summary_path: Path, progress) -> Run
         rclpy.try_shutdown()
     group.stop("recorder", timeout=20)
     group.stop_all()
-    summary = RunSummary.read(summary_path)
-    return replace(summary, dropped=smoother_drops(run.robots, run.out_dir / "state"))
+    summary = RunSummary.read(run.summary_path)
+    return replace(summary, dropped=smoother_drops(run.robots, run.state_dir))
 
 
 def smoother_drops(robots: list[str], folder: Path) -> dict[str, dict[str, int]]:
