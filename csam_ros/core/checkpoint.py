@@ -182,7 +182,7 @@ class FilterState:
         return {
             "streams": [
                 [robot, stream, _stamp(last)]
-                + ([] if held is None else [held[0], held[1].tolist(), held[2].tolist()])
+                + ([] if held is None else [held[0], *(a.tolist() for a in held[1:])])
                 for (robot, stream), (last, held) in self.streams.items()
             ],
             "drops": self.drops,
@@ -194,10 +194,10 @@ class FilterState:
             streams = {}
             for row in node["streams"]:
                 held = None
-                if len(row) == 6:
-                    held = (float(row[3]), np.array(row[4], float), np.array(row[5], float))
-                    if held[1].shape != (3,) or held[2].shape != (3,):
-                        raise ValueError("a held odometry sample is not 3 + 3 numbers")
+                if len(row) == 7:  # stamp, input, sigmas, correlations
+                    held = (float(row[3]), *(np.array(v, float) for v in row[4:]))
+                    if any(a.shape != (3,) for a in held[1:]):
+                        raise ValueError("a held odometry sample is not 3 + 3 + 3 numbers")
                 elif len(row) != 3:
                     raise ValueError(f"stream entry of {len(row)} items")
                 streams[(str(row[0]), str(row[1]))] = (_unstamp(row[2]), held)

@@ -275,19 +275,13 @@ class LocalMap:
         sigma_range: ArrayLike,
         sigma_bearing: ArrayLike,
     ) -> None:
-        """Add range-bearing observations of labelled point features (any stamp order)."""
+        """Add range-bearing observations of labelled point features (any stamp order): as
+        Cartesian points with their first-order covariance (:meth:`add_points`)."""
         t = np.atleast_1d(np.asarray(stamps, dtype=float))
         if len(t) == 0:
             return
-        if not np.all(np.isfinite(t)):
-            bad = np.flatnonzero(~np.isfinite(t))[0]
-            raise ValueError(f"{self.name}: feature observation {bad}: stamp is not finite")
-        lab = np.atleast_1d(np.asarray(labels)).astype(np.int64)
         z, cov = sensor.polar_to_cartesian(ranges, bearings, sigma_range, sigma_bearing)
-        if z.shape[0] != len(t) or lab.shape != t.shape:
-            raise ValueError(f"{self.name}: feature arrays have different lengths")
-        w = sqrt_information_from_covariance(cov, f"{self.name} feature observations")
-        self._feat_chunks.append((t, lab, z, w))
+        self.add_points(t, labels, z, cov)
 
     def add_points(
         self, stamps: ArrayLike, labels: ArrayLike, points: ArrayLike, covariances: ArrayLike
@@ -299,16 +293,16 @@ class LocalMap:
             return
         if not np.all(np.isfinite(t)):
             bad = np.flatnonzero(~np.isfinite(t))[0]
-            raise ValueError(f"{self.name}: feature point {bad}: stamp is not finite")
+            raise ValueError(f"{self.name}: feature observation {bad}: stamp is not finite")
         lab = np.atleast_1d(np.asarray(labels)).astype(np.int64)
         z = np.asarray(points, dtype=float).reshape(-1, 2)
         cov = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
         if not len(z) == len(cov) == len(t) == len(lab):
-            raise ValueError(f"{self.name}: feature point arrays have different lengths")
+            raise ValueError(f"{self.name}: feature observation arrays have different lengths")
         bad = np.flatnonzero(~np.isfinite(z).all(axis=1))
         if bad.size:
-            raise ValueError(f"{self.name}: feature point {bad[0]} is not finite")
-        w = sqrt_information_from_covariance(cov, f"{self.name} feature points")
+            raise ValueError(f"{self.name}: feature observation {bad[0]} is not finite")
+        w = sqrt_information_from_covariance(cov, f"{self.name} feature observations")
         self._feat_chunks.append((t, lab, z, w))
 
     def request_poses(self, stamps: ArrayLike) -> None:

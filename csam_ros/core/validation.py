@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 from csam_ros.core.config_file import from_mapping, setting
 from csam_ros.core.factors import singular_sqrt_information
 from csam_ros.core.local_map import SMOOTHER
+from csam_ros.core.log import correlations_valid
 
 # Reasons, as they appear in /csam/status and summary.json.
 NOT_FINITE = "not_finite"
@@ -280,7 +281,16 @@ def odometry_fault(inputs: ArrayLike, sigmas: ArrayLike, bounds: InputBounds) ->
     return None
 
 
-OdometrySample = tuple[float, NDArray[np.float64], NDArray[np.float64]]  # stamp, input, sigmas
+# stamp, input, sigmas, correlations of the input noise (log.CORRELATION_PAIRS; zeros: none)
+def correlation_fault(correlations: ArrayLike) -> str | None:
+    """Why an odometry sample's input correlations (3,) are unusable, or None."""
+    rho = np.asarray(correlations, dtype=float).reshape(1, 3)
+    if not np.isfinite(rho).all():
+        return NOT_FINITE
+    return None if correlations_valid(rho)[0] else SIGMA_OUT_OF_BOUNDS
+
+
+OdometrySample = tuple[float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
 @dataclass
@@ -369,21 +379,35 @@ class MeasurementFilter:
         return self.robots is None or robot in self.robots
 
     def odometry(
-        self, robot: str, stamp: float, inputs: ArrayLike, sigmas: ArrayLike
+        self,
+        robot: str,
+        stamp: float,
+        inputs: ArrayLike,
+        sigmas: ArrayLike,
+        correlations: ArrayLike | None = None,
     ) -> list[OdometrySample]:
         """The samples to add for one odometry message, in stamp order: none (dropped or held
-        back), the sample, or after a gap the held sample of unknown motion and this one."""
+        back), the sample, or after a gap the held sample of unknown motion and this one.
+        ``correlations`` of the input noise travel with the sample (zeros when None)."""
         drops = self.counter(robot)
         if not self._known(robot):
             drops.add(UNKNOWN_ROBOT)
             return []
+        rho = np.zeros(3) if correlations is None else np.asarray(correlations, dtype=float)
         fault = (
-            NOT_FINITE if not np.isfinite(stamp) else odometry_fault(inputs, sigmas, self.bounds)
+            NOT_FINITE
+            if not np.isfinite(stamp)
+            else odometry_fault(inputs, sigmas, self.bounds) or correlation_fault(rho)
         )
         if fault is not None:
             drops.add(fault)
             return []
-        sample = (float(stamp), np.asarray(inputs, dtype=float), np.asarray(sigmas, dtype=float))
+        sample = (
+            float(stamp),
+            np.asarray(inputs, dtype=float),
+            np.asarray(sigmas, dtype=float),
+            rho.reshape(3),
+        )
         s, jump = self._stream(robot, "odometry"), self.bounds.max_stamp_jump
         held = s.held
         follows_held = held is not None and 0 < stamp - held[0] <= jump
@@ -408,7 +432,7 @@ class MeasurementFilter:
             assert held is not None
             drops.reclassify(STAMP_JUMP, STAMP_GAP)
             gap = held[0] - s.last
-            unknown = (held[0], np.zeros(3), np.full(3, GAP_SIGMA / gap))
+            unknown = (held[0], np.zeros(3), np.full(3, GAP_SIGMA / gap), np.zeros(3))
             s.last, s.held = sample[0], None
             return [unknown, sample]
         drops.add(STAMP_JUMP)

@@ -67,8 +67,6 @@ from csam_ros.nodes.common import (
     subscribe,
 )
 from csam_ros.ros.conversions import (
-    PendingCorrelations,
-    correlation_fault,
     feature_points_from_message,
     features_from_message,
     ns_to_time,
@@ -156,7 +154,6 @@ class Smoother(Node):
         subscribe(self, ODOM, guarded(self, self.drops, self.on_odometry))
         subscribe(self, FEATURES, guarded(self, self.drops, self.on_features))
         subscribe(self, FEATURE_POINTS, guarded(self, self.drops, self.on_feature_points))
-        self.pending_correlations = PendingCorrelations()
         subscribe(self, RENDEZVOUS, guarded(self, self.drops, self.on_own_rendezvous))
         on_peer = guarded(self, self.drops, self.on_peer_rendezvous)
         for peer in self.robots:
@@ -180,22 +177,14 @@ class Smoother(Node):
     # -- input ----------------------------------------------------------------------------------
 
     def on_odometry(self, msg: Odometry) -> None:
-        stamp, inputs, sigmas = odometry_from_message(msg)
-        correlations = odometry_correlations(msg)
-        fault = correlation_fault(correlations)
-        if fault is not None:
-            self.drops.add(fault)
-            return
-        self.pending_correlations.offer(stamp, sigmas, correlations)
-        samples = self.filter.odometry(self.robot, stamp, inputs, sigmas)
+        samples = self.filter.odometry(
+            self.robot, *odometry_from_message(msg), odometry_correlations(msg)
+        )
         if samples:
             if self._resumed_after is not None:
                 self._count_lost(samples[0][0])
-            rho = self.pending_correlations.released(samples)
-            stamps, inputs, sigmas = zip(*samples, strict=True)
-            self.map.add_odometry(
-                stamps, np.stack(inputs), np.stack(sigmas), rho if rho.any() else None
-            )
+            stamps, inputs, sigmas, rho = (np.stack(a) for a in zip(*samples, strict=True))
+            self.map.add_odometry(stamps, inputs, sigmas, rho if rho.any() else None)
             self.last_odometry_ns = time_to_ns(msg.header.stamp)
             self.dirty = True
 

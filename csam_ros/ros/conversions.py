@@ -41,10 +41,9 @@ from csam_ros.core.log import (
     OdometryLog,
     RendezvousLog,
     RobotLog,
-    correlations_valid,
     empty_points,
 )
-from csam_ros.core.validation import NOT_FINITE, SIGMA_OUT_OF_BOUNDS, InputBounds, MeasurementFilter
+from csam_ros.core.validation import InputBounds, MeasurementFilter, OdometrySample
 from csam_ros.ros.topics import (
     FEATURE_POINTS,
     FEATURES,
@@ -152,42 +151,6 @@ def odometry_correlations(msg: Odometry) -> np.ndarray | None:
         return np.array(
             [upper[k] / np.sqrt(s[i] * s[j]) for k, (i, j) in enumerate(CORRELATION_PAIRS)]
         )
-
-
-class PendingCorrelations:
-    """Odometry messages' correlations until the measurement filter releases their samples
-    (it holds one back at a start or a gap): a released sample gets its message's
-    correlations, a sample the filter made up (unknown motion across a gap) none."""
-
-    def __init__(self) -> None:
-        self._pending: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-
-    def offer(self, stamp: float, sigmas: np.ndarray, correlations: np.ndarray | None) -> None:
-        """Note one message's correlations (only the newest two are kept: at most one sample
-        is held back)."""
-        if correlations is not None:
-            self._pending[stamp] = (np.asarray(sigmas, dtype=float), correlations)
-            while len(self._pending) > 2:
-                del self._pending[next(iter(self._pending))]
-
-    def released(self, samples: Sequence[tuple[float, np.ndarray, np.ndarray]]) -> np.ndarray:
-        """The correlations ``(len(samples), 3)`` of released samples (zeros where none)."""
-        out = np.zeros((len(samples), 3))
-        for k, (stamp, _, sigmas) in enumerate(samples):
-            noted = self._pending.get(stamp)
-            if noted is not None and np.array_equal(noted[0], sigmas):
-                out[k] = noted[1]
-                del self._pending[stamp]
-        return out
-
-
-def correlation_fault(correlations: np.ndarray | None) -> str | None:
-    """Why an odometry sample's correlations are unusable (a drop reason), or None."""
-    if correlations is None:
-        return None
-    if not np.isfinite(correlations).all():
-        return NOT_FINITE
-    return None if correlations_valid(correlations)[0] else SIGMA_OUT_OF_BOUNDS
 
 
 def _observations_message(
@@ -436,9 +399,7 @@ class LogBuilder:
     ) -> None:
         self.filter = MeasurementFilter(robots, field_of_view, bounds)
         self._order: list[str] = list(robots or [])
-        self._odometry: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
-        self._pending: dict[str, PendingCorrelations] = {}
-        self._correlations: dict[str, list[np.ndarray]] = {}  # per accepted sample (K, 3)
+        self._odometry: dict[str, list[OdometrySample]] = {}
         self._features: dict[str, list[tuple[float, dict[str, np.ndarray]]]] = {}
         self._points: dict[str, list[tuple[float, dict[str, np.ndarray]]]] = {}
         self._rendezvous: dict[str, list[tuple[float, dict[str, object]]]] = {}
@@ -457,19 +418,15 @@ class LogBuilder:
         if topic is FEATURES_TRUTH:
             self.truth = truth_from_message(msg)  # type: ignore[arg-type]
         elif topic is ODOM:
-            stamp, inputs, sigmas = odometry_from_message(msg)  # type: ignore[arg-type]
-            rho = odometry_correlations(msg)  # type: ignore[arg-type]
-            fault = correlation_fault(rho)
-            if fault is not None:
-                self.filter.counter(robot).add(fault)
-                return
-            pending = self._pending.setdefault(robot, PendingCorrelations())
-            pending.offer(stamp, sigmas, rho)
-            samples = self.filter.odometry(robot, stamp, inputs, sigmas)
+            correlations = odometry_correlations(msg)  # type: ignore[arg-type]
+            samples = self.filter.odometry(
+                robot,
+                *odometry_from_message(msg),  # type: ignore[arg-type]
+                correlations,
+            )
             if samples:
                 self._robot(robot)
                 self._odometry.setdefault(robot, []).extend(samples)
-                self._correlations.setdefault(robot, []).append(pending.released(samples))
         elif topic is FEATURE_POINTS:
             stamp, a = feature_points_from_message(msg)  # type: ignore[arg-type]
             keep = self.filter.points(robot, stamp, a["points"], a["covariances"])
@@ -508,7 +465,7 @@ class LogBuilder:
         robots: dict[str, RobotLog] = {}
         for name in self._order:
             odo = self._odometry.get(name, [])
-            rho = np.concatenate([np.zeros((0, 3)), *self._correlations.get(name, [])])
+            rho = np.array([o[3] for o in odo], dtype=float).reshape(-1, 3)
             odometry = OdometryLog(
                 np.array([o[0] for o in odo], dtype=float),
                 np.array([o[1] for o in odo], dtype=float).reshape(-1, 3),

@@ -26,7 +26,7 @@ U, S = np.array([0.5, 0.0, 0.1]), np.array([0.02, 0.01, 0.01])
 
 def _odometry(checks: MeasurementFilter, stamps, inputs=U, robot: str = "r") -> list[float]:
     """Stamps of the samples accepted for odometry messages at ``stamps``."""
-    return [t for stamp in stamps for t, _, _ in checks.odometry(robot, stamp, inputs, S)]
+    return [t for stamp in stamps for t, *_ in checks.odometry(robot, stamp, inputs, S)]
 
 
 def _scan(checks: MeasurementFilter, stamp: float, r=3.0, sr=0.01, sb=0.01):
@@ -87,9 +87,10 @@ def test_real_gap_in_odometry_is_accepted_after_it_as_one_weak_factor() -> None:
     good = _odometry(checks, np.arange(0.0, 5.05, 0.1))
     samples = [checks.odometry("r", t, U, S) for t in (1e6, 1e6 + 0.1, 1e6 + 0.2)]
     assert samples[0] == [] and [len(s) for s in samples[1:]] == [2, 1]
-    (t_gap, u_gap, s_gap), (t_next, _, _) = samples[1]
+    (t_gap, u_gap, s_gap, rho_gap), (t_next, *_) = samples[1]
     assert (t_gap, t_next) == (1e6, 1e6 + 0.1)
     np.testing.assert_array_equal(u_gap, 0.0)  # unknown motion: zero input, sigma GAP_SIGMA
+    np.testing.assert_array_equal(rho_gap, 0.0)  # and independent inputs
     np.testing.assert_allclose(s_gap * (1e6 - good[-1]), GAP_SIGMA)
     assert checks.counter("r").as_dict() == {STAMP_GAP: 1}
     # the local map bridges it with one factor: no million regular key poses, and it solves
@@ -99,7 +100,7 @@ def test_real_gap_in_odometry_is_accepted_after_it_as_one_weak_factor() -> None:
     local.update(converge=True)
     before = local.poses.copy()
     for batch in samples[1:]:
-        stamps, inputs, sigmas = zip(*batch, strict=True)
+        stamps, inputs, sigmas, _ = zip(*batch, strict=True)
         local.add_odometry(stamps, np.stack(inputs), np.stack(sigmas))
     local.add_features([1e6 + 0.2], [7], [3.0], [0.2], [0.01], [0.01])
     local.update(converge=True)
