@@ -43,7 +43,14 @@ from pathlib import Path
 
 from csam_ros.core.result import RunSummary
 from csam_ros.run.launch import ProcessGroup
-from csam_ros.run.live import LiveRun, LiveRunError, ros_params, smoother_drops
+from csam_ros.run.live import (
+    LiveRun,
+    LiveRunError,
+    joined_map_is_final,
+    recorder_holds_results,
+    ros_params,
+    smoother_drops,
+)
 from csam_ros.run.ros_env import (
     reserve_domain_id,
     subnet_environment,
@@ -459,8 +466,7 @@ def monitor(
     from std_srvs.srv import Trigger
 
     from csam_ros.nodes.common import subscribe
-    from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS
+    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP
 
     rclpy.init()
     node = rclpy.create_node("csam_run_monitor")
@@ -518,13 +524,7 @@ def monitor(
             spin(0.5)
             previous, final = final, flush_all()
 
-        def is_final() -> bool:
-            if not joined:
-                return False
-            stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in joined[-1].base_nodes}
-            return all(stamps.get(r) == s for r, s in final.items())
-
-        while not is_final():
+        while not joined_map_is_final(joined[-1] if joined else None, final):
             spin(0.05)
         end_to_final = time.time() - end
         before_end = sum(t < end for t in received)
@@ -533,14 +533,8 @@ def monitor(
             f"({before_end} joined maps during the run, {calls} flush calls)"
         )
 
-        def recorder_has_results() -> bool:
-            return all(
-                any(i.node_name == "recorder" for i in node.get_subscriptions_info_by_topic(t))
-                for t in (JOINED_MAP.name, MARKERS.name)
-            )
-
         until = time.monotonic() + 15
-        while not recorder_has_results() and time.monotonic() < until:
+        while not recorder_holds_results(node) and time.monotonic() < until:
             spin(0.1)
         spin(1.0)
         return MonitorReport(before_end, len(joined), end_to_final, calls, final)

@@ -17,6 +17,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 from csam_ros.core.result import RunSummary
 from csam_ros.run.launch import ProcessGroup, executable
@@ -105,6 +106,28 @@ def _param(name: str, value: object) -> list[str]:
     return ["-p", f"{name}:={text}"]
 
 
+def joined_map_is_final(joined: Any, final: Mapping[str, int]) -> bool:
+    """Whether the JoinedMap ``joined`` (None: none yet) used each robot's local map of stamp
+    ``final[robot]`` (ns)."""
+    if joined is None:
+        return False
+    from csam_ros.ros.conversions import time_to_ns
+
+    stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in joined.base_nodes}
+    return all(stamps.get(r) == s for r, s in final.items())
+
+
+def recorder_holds_results(node: Any) -> bool:
+    """Whether the recorder subscribes to the merger's (latched) results, as it must before
+    it is stopped."""
+    from csam_ros.ros.topics import JOINED_MAP, MARKERS
+
+    return all(
+        any(i.node_name == "recorder" for i in node.get_subscriptions_info_by_topic(t))
+        for t in (JOINED_MAP.name, MARKERS.name)
+    )
+
+
 def run_live(run: LiveRun, progress=print) -> RunSummary:
     """Run the nodes; returns the merger's final summary (``out_dir/summary.json``)."""
     run.out_dir.mkdir(parents=True, exist_ok=True)
@@ -133,7 +156,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import CLOCK, JOINED_MAP, MARKERS
+    from csam_ros.ros.topics import CLOCK, JOINED_MAP
 
     sim_time = _param("use_sim_time", True)
     group.start("recorder", run.recorder_argv())
@@ -206,14 +229,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
         progress("  waiting for the merger's final joined map")
         deadline = time.monotonic() + 300
 
-        def joined_is_final() -> bool:
-            joined = latest["joined"]
-            if joined is None:
-                return False
-            stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in joined.base_nodes}
-            return all(stamps.get(r) == s for r, s in final.items())
-
-        while not joined_is_final():
+        while not joined_map_is_final(latest["joined"], final):
             _check_alive(group, ignore=run.source_name)
             executor.spin_once(timeout_sec=0.1)
             if time.monotonic() > deadline:
@@ -221,15 +237,8 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
                     f"no final joined map from the merger within 300 s:\n{group.log_tail('merger')}"
                 )
 
-        def recorder_has_results() -> bool:
-            # the recorder must hold the final (latched) results before it is stopped
-            return all(
-                any(i.node_name == "recorder" for i in node.get_subscriptions_info_by_topic(t))
-                for t in (JOINED_MAP.name, MARKERS.name)
-            )
-
         deadline = time.monotonic() + 15
-        while not recorder_has_results() and time.monotonic() < deadline:
+        while not recorder_holds_results(node) and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.1)
         grace = time.monotonic() + 1.0
         while time.monotonic() < grace:
