@@ -1,13 +1,14 @@
 """The merger's solves replayed from a recorded live run, cold against warm:
 ``python -m csam_ros.bench.merger_replay BAG [--config FILE] [--every S]``.
 
-A live run's bag holds every local map and rendezvous poses message the merger received
-(``/<robot>/local_map``, ``/<robot>/rendezvous_poses``). Read in log-time order, the inputs are
-taken every ``--every`` seconds of log time (and at the end), and each is joined twice by the
-core: cold (:func:`~csam_ros.core.csam.join_maps` from scratch) and warm (from the previous
-warm result, with the local views kept between solves, as the merger does). The table gives
-each solve's time and iterations and the largest difference between the warm and the cold
-joined map (poses and features); the last line the distribution of the solve times.
+A live run's bag holds every local map update and rendezvous poses message the merger
+received (``/<robot>/local_map_updates``, ``/<robot>/rendezvous_poses``). Read in log-time
+order, the inputs are taken every ``--every`` seconds of log time (and at the end), and each
+is joined twice by the core: cold (:func:`~csam_ros.core.csam.join_maps` from scratch) and
+warm (from the previous warm result, with the local views kept between solves, as the merger
+does). The table gives each solve's time and iterations and the largest difference between
+the warm and the cold joined map (poses and features); the last line the distribution of the
+solve times.
 """
 
 from __future__ import annotations
@@ -26,11 +27,14 @@ import numpy as np  # noqa: E402
 from csam_ros.bag.reader import inspect_bag, read_bag_messages  # noqa: E402
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps  # noqa: E402
 from csam_ros.core.joining import RobotMap  # noqa: E402
+from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update  # noqa: E402
 from csam_ros.core.result import CsamResult  # noqa: E402
 from csam_ros.ros.map_messages import (  # noqa: E402
+    checked_robot_map,
+    map_update_from_message,
     rendezvous_log_from_message,
-    robot_map_from_message,
 )
+from csam_ros.ros.topics import LOCAL_MAP_UPDATES, RENDEZVOUS_POSES, parse  # noqa: E402
 
 
 def difference(a: CsamResult, b: CsamResult) -> float:
@@ -56,10 +60,10 @@ def difference(a: CsamResult, b: CsamResult) -> float:
 def snapshots(bag: Path, every: float):
     """(s since the first message, the maps in first-heard order, the rendezvous messages,
     the robots) every ``every`` s of log time."""
-    robots = sorted(
-        name.split("/")[1] for name in inspect_bag(bag).topics if name.endswith("/local_map")
-    )
-    topics = [f"/{r}/{t}" for r in robots for t in ("local_map", "rendezvous_poses")]
+    declared = [parse(name) for name in inspect_bag(bag).topics]
+    robots = sorted(d[1] for d in declared if d is not None and d[0] is LOCAL_MAP_UPDATES)
+    topics = [t.of(r) for r in robots for t in (LOCAL_MAP_UPDATES, RENDEZVOUS_POSES)]
+    held: dict[str, HeldMap] = {}
     maps: dict[str, RobotMap] = {}
     rendezvous: dict[str, object] = {}
     first = next_t = None
@@ -69,8 +73,13 @@ def snapshots(bag: Path, every: float):
         first = message.log_time_ns if first is None else first
         t = (message.log_time_ns - first) / 1e9
         robot, kind = message.topic.split("/")[1:3]
-        if kind == "local_map":
-            maps[robot] = robot_map_from_message(message.message, robot)
+        if kind == LOCAL_MAP_UPDATES.name:
+            try:
+                update = map_update_from_message(message.message, robot)
+                held[robot] = apply_update(held.get(robot), update)
+            except MissingBaseError:
+                continue  # recorded before the robot's first whole map
+            maps[robot] = checked_robot_map(robot, held[robot].map.arrays())
         else:
             rendezvous[robot] = message.message
         pending = True

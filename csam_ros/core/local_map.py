@@ -133,6 +133,19 @@ class LocalMapConfig:
         node=SMOOTHER,
     )
 
+    update_tolerance_m: float = setting(
+        1e-3,
+        "m a pose or feature moves before a smoother sends it again (0: every change)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+    update_tolerance_rad: float = setting(
+        1e-3,
+        "rad a pose turns before a smoother sends it again (0: every change)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+
     @classmethod
     def from_dict(cls, node: Mapping[str, Any] | None, source: str = "local_map") -> LocalMapConfig:
         """Build from a mapping; unknown keys and bad values are errors naming them."""

@@ -1,8 +1,13 @@
 """merger: joins every robot's local map by C-SAM and publishes the joined map.
 
-Subscribes to ``/<robot>/local_map`` and ``/<robot>/rendezvous_poses`` (transient local) of
-every robot found on the ROS graph publishing a local map (checked every second), or only of
-those in ``robots`` when that allow-list is set (they are subscribed from the start). The
+Subscribes to ``/<robot>/local_map_updates`` and ``/<robot>/rendezvous_poses`` (transient
+local) of every robot found on the ROS graph publishing local map updates (checked every
+second), or only of those in ``robots`` when that allow-list is set (they are subscribed from
+the start). It holds each robot's local map by applying its updates in turn
+(:mod:`csam_ros.core.map_updates`); while it holds none of a robot, and when an update does not
+apply to the one it holds (it missed one, or it restarted), it asks that robot's smoother for
+the whole map (``/<robot>/smoother/resync``, at most every ``RESYNC_RETRY_S`` seconds),
+counted as ``resync_requests`` in ``/csam/status``. The
 reference is ``reference`` (else the first of ``robots``) if it has a map, else the first
 robot heard from; the choice is kept once made and named in ``/csam/status``, the joined map
 and the summary. Smoothers' first maps come in any order, so the first solve waits up to
@@ -50,10 +55,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from csam_msgs.msg import LocalMap, RendezvousPoses
+from csam_msgs.msg import LocalMapUpdate, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
+from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
 from csam_ros.core import se2
@@ -61,6 +67,7 @@ from csam_ros.core.checkpoint import CheckpointError, MergerState
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
+from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
 from csam_ros.core.validation import CALLBACK_ERROR, FAILED_SOLVE, DropCounter
 from csam_ros.nodes.common import (
@@ -74,15 +81,27 @@ from csam_ros.nodes.common import (
 )
 from csam_ros.ros.conversions import tf_message, time_to_ns
 from csam_ros.ros.map_messages import (
+    LocalMapError,
     RefusedMessageError,
+    checked_robot_map,
     joined_map_message,
+    map_update_from_message,
     rendezvous_log_from_message,
-    robot_map_from_message,
 )
 from csam_ros.ros.markers import joined_map_markers
-from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, MARKERS, RENDEZVOUS_POSES, STATUS, TF
+from csam_ros.ros.topics import (
+    JOINED_MAP,
+    LOCAL_MAP_UPDATES,
+    MARKERS,
+    RENDEZVOUS_POSES,
+    RESYNC,
+    STATUS,
+    TF,
+    smoother_service,
+)
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
+RESYNC_RETRY_S = 2.0  # s between requests for a robot's whole local map
 SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for a running solve before leaving it behind
 
 
@@ -179,6 +198,10 @@ class Merger(Node):
         # the last valid local map (and its message's stamp) and rendezvous measurements: each
         # dict is replaced, never mutated, so a solve's snapshot of them stays as it was taken
         self.local_maps: dict[str, RobotMap] = {}
+        self.held: dict[str, HeldMap] = {}  # each robot's map as its updates built it
+        self.resync_requests: dict[str, int] = {}
+        self._resync_clients: dict[str, Any] = {}
+        self._resync_asked: dict[str, float] = {}  # steady clock s of the last request
         self.robots: list[str] = []  # subscribed to, in the order found
         self.heard: list[str] = []  # robots in the order their first local map arrived
         self.reference = ""  # chosen at the first solve, then kept
@@ -206,7 +229,7 @@ class Merger(Node):
         self._publish_lock = threading.Lock()
         self._requested = False  # the timer asked the worker for a solve
         self._stopping = False
-        self._on_map = guarded(self, self.drops, self.on_local_map)
+        self._on_map = guarded(self, self.drops, self.on_local_map_update)
         self._on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
         resumed = self.state_path is not None and self.resume(self.state_path)
         for robot in self.allowed:  # listed robots' latched maps may come before discovery
@@ -279,8 +302,12 @@ class Merger(Node):
         return True
 
     def _subscribe(self, robot: str) -> None:
-        """Subscribe to ``robot``'s local map and rendezvous poses (the topic names it)."""
-        subscribe(self, LOCAL_MAP, lambda m: self._on_map(robot, m), LOCAL_MAP.of(robot))
+        """Subscribe to ``robot``'s local map updates and rendezvous poses (the topic names
+        it)."""
+        subscribe(
+            self, LOCAL_MAP_UPDATES, lambda m: self._on_map(robot, m), LOCAL_MAP_UPDATES.of(robot)
+        )
+        self._resync_clients[robot] = self.create_client(Trigger, smoother_service(robot, RESYNC))
         subscribe(
             self,
             RENDEZVOUS_POSES,
@@ -291,11 +318,11 @@ class Merger(Node):
             self.robots = [*self.robots, robot]
 
     def discover(self) -> None:
-        """Subscribe to every robot newly seen publishing a local map on the ROS graph
-        (``/<robot>/local_map``), unless an allow-list leaves it out (logged once)."""
+        """Subscribe to every robot newly seen publishing local map updates on the ROS graph
+        (``/<robot>/local_map_updates``), unless an allow-list leaves it out (logged once)."""
         for name, types in self.get_topic_names_and_types():
-            robot = LOCAL_MAP.robot_of(name)
-            if robot is None or LOCAL_MAP.type_name not in types or robot in self.robots:
+            robot = LOCAL_MAP_UPDATES.robot_of(name)
+            if robot is None or LOCAL_MAP_UPDATES.type_name not in types or robot in self.robots:
                 continue
             if self.allowed and robot not in self.allowed:
                 if robot not in self._ignored:
@@ -309,12 +336,31 @@ class Merger(Node):
         self.drops.add(error.reason)
         self.get_logger().warning(f"dropped a {what} on {robot}'s topic ({error.reason}): {error}")
 
-    def on_local_map(self, robot: str, msg: LocalMap) -> None:
-        """Keep the local map on ``robot``'s topic if it is valid (else the last valid one)."""
+    def on_local_map_update(self, robot: str, msg: LocalMapUpdate) -> None:
+        """Apply an update on ``robot``'s topic to the map held of it, and keep that map if
+        it is valid (else the last valid one stays in use)."""
         try:
-            new = robot_map_from_message(msg, robot)
+            held = apply_update(self.held.get(robot), map_update_from_message(msg, robot))
+        except MissingBaseError as error:
+            self._ask_resync(robot, str(error))
+            return
         except RefusedMessageError as error:
-            self._refuse(robot, "local map", error)
+            self._refuse(robot, "local map update", error)
+            return
+        except ValueError as error:  # it does not fit the map held
+            self._refuse(robot, "local map update", LocalMapError(f"{robot}: {error}"))
+            return
+        if held is self.held.get(robot):
+            return  # delivered again: nothing to solve
+        self.held[robot] = held
+        try:
+            new = checked_robot_map(robot, held.map.arrays())
+        except ValueError as error:  # LocalMapError, or a factor at a stamp with no pose
+            self._refuse(
+                robot,
+                "local map update",
+                error if isinstance(error, LocalMapError) else LocalMapError(f"{robot}: {error}"),
+            )
             return
         with self._lock:
             old = self.local_maps.get(robot)
@@ -322,8 +368,6 @@ class Merger(Node):
                 self._note_restart(robot, old, new)
             self.map_arrival[robot] = time.monotonic()
             stamp = time_to_ns(msg.header.stamp)
-            if old is not None and self.local_map_stamps[robot] == stamp and _same_map(old, new):
-                return  # delivered again: nothing to solve
             if robot not in self.heard:
                 if not self.heard:
                     self._first_heard_at = time.monotonic()
@@ -384,8 +428,26 @@ class Merger(Node):
             self.rendezvous = {**self.rendezvous, robot: log}
             self.dirty = True
 
+    def _ask_resync(self, robot: str, reason: str) -> None:
+        """Ask ``robot``'s smoother for its whole local map (at most every
+        ``RESYNC_RETRY_S``, once its service is there)."""
+        now = time.monotonic()
+        client = self._resync_clients.get(robot)
+        if client is None or now - self._resync_asked.get(robot, -np.inf) < RESYNC_RETRY_S:
+            return
+        if not client.service_is_ready():
+            return
+        self._resync_asked[robot] = now
+        self.resync_requests[robot] = self.resync_requests.get(robot, 0) + 1
+        self.get_logger().info(f"{robot}: asking for its whole local map ({reason})")
+        client.call_async(Trigger.Request())
+
     def on_timer(self) -> None:
-        """Wake the solve worker when the inputs changed and it is idle; publish the status."""
+        """Wake the solve worker when the inputs changed and it is idle; ask for the maps of
+        robots none is held of; publish the status."""
+        for robot in self.robots:
+            if robot not in self.held:
+                self._ask_resync(robot, "no local map held yet")
         with self._lock:
             if self.dirty and not self.solving:
                 self._requested = True
@@ -594,6 +656,8 @@ class Merger(Node):
                 "solve_seconds": round(self.solve_seconds, 4),
                 "restarts": self.restarts.get(robot, 0),
                 "restart_poses_lost": self.restart_poses_lost.get(robot, 0),
+                "update": self.held[robot].sequence if robot in self.held else 0,
+                "resync_requests": self.resync_requests.get(robot, 0),
             }
             array.status.append(
                 DiagnosticStatus(
@@ -616,6 +680,7 @@ class Merger(Node):
             "converged": result.converged if result is not None else "",
             "dropped": self.drops.total,
             "restarts": sum(self.restarts.values()),
+            "resync_requests": sum(self.resync_requests.values()),
             # rendezvous the last solve left out: stamped outside a robot's trajectory
             "outside_trajectory": _outside_trajectory(result),
             "last_error": self.last_error,
@@ -658,17 +723,6 @@ def _outside_trajectory(result: CsamResult | None) -> int:
     """Rendezvous measurements a solve left out as stamped outside a map's span."""
     report = result.rendezvous_filter.get("trajectory_span") if result is not None else None
     return report.total("outside_trajectory") if report is not None else 0
-
-
-def _same_map(a: RobotMap, b: RobotMap) -> bool:
-    """Whether two local maps hold the same poses, features and factors (a map delivered
-    again)."""
-    return (
-        np.array_equal(a.stamps, b.stamps)
-        and np.array_equal(a.problem.values, b.problem.values)
-        and np.array_equal(a.feature_labels, b.feature_labels)
-        and len(a.problem.factors) == len(b.problem.factors)
-    )
 
 
 def _non_finite(result: CsamResult) -> str:

@@ -2,11 +2,19 @@
 
 Subscribes to ``odom``, ``features`` and ``rendezvous`` (relative names: run it with
 ``-r __ns:=/robot1``) and to every peer's ``/<peer>/rendezvous`` so that it holds a pose at the
-stamp of every rendezvous measurement that involves its robot. Publishes ``local_map``,
-``rendezvous_poses``, ``path`` and ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest
-pose every ``publish_period`` seconds (of the node's clock, so sim
-time under ``use_sim_time``) when new data arrived, and when asked through ``~/flush``
-(std_srvs/Trigger; the reply's message is the published local map's stamp in nanoseconds).
+stamp of every rendezvous measurement that involves its robot. Every ``publish_period`` seconds
+(of the node's clock, so sim time under ``use_sim_time``) when new data arrived, and when asked
+through ``~/flush`` (std_srvs/Trigger; the reply's message is the published local map's stamp in
+nanoseconds), it publishes:
+
+- ``local_map_updates``: what changed in the local map since the last update
+  (:mod:`csam_ros.core.map_updates`; estimates that moved beyond ``update_tolerance_m`` and
+  ``update_tolerance_rad``, every one exactly after ``~/flush``). The first update of a run is
+  the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
+  for a receiver that missed one;
+- ``rendezvous_poses`` when its measurements changed (latched);
+- ``path`` and ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest pose;
+- ``local_map``, the whole map with covariances, only while something subscribes to it.
 Every field of every sensor message is checked against the ``input:`` bounds
 (:class:`~csam_ros.core.validation.InputBounds`, the same checks as offline replay); bad input is
 dropped and counted (``/csam/status``), and every callback is guarded, so an unexpected error
@@ -24,6 +32,7 @@ robot, is one logged error: the node starts empty.
 
 from __future__ import annotations
 
+import os
 import pathlib
 import sys
 import time
@@ -56,6 +65,8 @@ from csam_ros.core.joining import RobotMap
 from csam_ros.core.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.local_map import LocalMapConfig
 from csam_ros.core.log import RendezvousLog
+from csam_ros.core.map_arrays import robot_map_arrays
+from csam_ros.core.map_updates import UpdateSender, UpdateTolerance
 from csam_ros.core.robust import select_rendezvous
 from csam_ros.core.validation import InputBounds, MeasurementFilter
 from csam_ros.nodes.common import (
@@ -79,15 +90,21 @@ from csam_ros.ros.conversions import (
     time_to_ns,
     yaw_quaternion,
 )
-from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
+from csam_ros.ros.map_messages import (
+    local_map_update_message,
+    rendezvous_poses_message,
+    robot_map_to_message,
+)
 from csam_ros.ros.topics import (
     FEATURE_POINTS,
     FEATURES,
     LOCAL_MAP,
+    LOCAL_MAP_UPDATES,
     ODOM,
     PATH,
     RENDEZVOUS,
     RENDEZVOUS_POSES,
+    RESYNC,
     STATUS,
     TF,
 )
@@ -124,6 +141,13 @@ class Smoother(Node):
         local_map = declare_settings(self, LocalMapConfig)
         self.publish_period = local_map.publish_period
         self.map = CoreLocalMap(self.robot, local_map.options())
+        # a new session at every start: a receiver takes up its updates from a whole map
+        self.sender = UpdateSender(
+            int.from_bytes(os.urandom(4)),
+            UpdateTolerance(local_map.update_tolerance_m, local_map.update_tolerance_rad),
+        )
+        self.resyncs = 0
+        self._rendezvous_sent: tuple | None = None
         self.thinning = declare_settings(self, CsamConfig).thinning()
         self.robots = list(dict.fromkeys([self.robot, *peers]))
         bounds = declare_settings(self, InputBounds)
@@ -165,11 +189,13 @@ class Smoother(Node):
                     RENDEZVOUS.of(peer),
                 )
         self.local_map_pub = publisher(self, LOCAL_MAP)
+        self.update_pub = publisher(self, LOCAL_MAP_UPDATES)
         self.rendezvous_pub = publisher(self, RENDEZVOUS_POSES)
         self.path_pub = publisher(self, PATH)
         self.tf_pub = publisher(self, TF)
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
+        self.create_service(Trigger, f"~/{RESYNC}", self.on_resync)
         self.create_timer(self.publish_period, guarded(self, self.drops, self.on_timer))
         if self.restarts and self.published_ns >= 0 and len(self.map.stamps) >= 2:
             guarded(self, self.drops, self.publish)(0)  # the resumed map, latched, at once
@@ -257,6 +283,19 @@ class Smoother(Node):
         response.message = str(self.published_ns)
         return response
 
+    def on_resync(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Publish the whole local map as it was last sent, as one update (a receiver missed
+        one); the reply's message is that update's sequence number (0: nothing sent yet)."""
+        update = self.sender.resend()
+        if update is not None:
+            self.resyncs += 1
+            self.update_pub.publish(
+                local_map_update_message(update, self.robot, max(self.published_ns, 0))
+            )
+        response.success = update is not None
+        response.message = str(update.sequence if update is not None else 0)
+        return response
+
     def solve_and_publish(self, converge: bool = False) -> None:
         """Update the local map and publish it (``converge``: iterate to the batch optimum,
         else the online policy's capped update); a failure is logged and counted, never fatal
@@ -276,21 +315,29 @@ class Smoother(Node):
         self.dirty = False
         if len(self.map.stamps) < 2:  # only the start pose: nothing to publish yet
             return
-        self.publish(report.solve.iterations if report.solve is not None else 0)
+        self.publish(report.solve.iterations if report.solve is not None else 0, exact=converge)
 
-    def publish(self, iterations: int) -> None:
-        """Publish the local map as it is (and write the checkpoint, when on)."""
+    def publish(self, iterations: int, exact: bool = False) -> None:
+        """Publish the local map's update (every estimate exactly when ``exact``) and what
+        goes with it (and write the checkpoint, when on)."""
         robot_map = robot_map_from_local_map(self.map)
         stamp_ns = self.last_odometry_ns
-        msg = robot_map_to_message(
-            robot_map,
-            stamp_ns,
-            self.map.pose_covariances(),
-            self.map.landmark_covariances(),
-            iterations,
-        )
-        self.local_map_pub.publish(msg)
-        self.rendezvous_pub.publish(self.rendezvous_poses(robot_map, stamp_ns))
+        update = self.sender.update(robot_map_arrays(robot_map), exact=exact)
+        self.update_pub.publish(local_map_update_message(update, self.robot, stamp_ns, iterations))
+        if self.local_map_pub.get_subscription_count():
+            self.local_map_pub.publish(
+                robot_map_to_message(
+                    robot_map,
+                    stamp_ns,
+                    self.map.pose_covariances(),
+                    self.map.landmark_covariances(),
+                    iterations,
+                )
+            )
+        rendezvous, content = self.rendezvous_poses(robot_map, stamp_ns)
+        if exact or content != self._rendezvous_sent:  # its poses are for a look only
+            self.rendezvous_pub.publish(rendezvous)
+            self._rendezvous_sent = content
         self.path_pub.publish(self.path(stamp_ns))
         latest = (f"{self.robot}/map", f"{self.robot}/base_link", self.map.poses[-1])
         self.tf_pub.publish(tf_message([latest], stamp_to_ns(self.map.stamps[-1])))
@@ -392,7 +439,9 @@ class Smoother(Node):
             "the smoother was down"
         )
 
-    def rendezvous_poses(self, robot_map: RobotMap, stamp_ns: int) -> RendezvousPoses:
+    def rendezvous_poses(self, robot_map: RobotMap, stamp_ns: int) -> tuple[RendezvousPoses, tuple]:
+        """The rendezvous poses message, and what the merger reads of it (the measurements,
+        and where their poses are) to compare with the last one sent."""
         measurements, stamps = self.kept_rendezvous()
         tolerance = self.map.options.stamp_tolerance
         early = stamps[stamps < self.map.stamps[0] - tolerance]
@@ -409,7 +458,14 @@ class Smoother(Node):
             (stamps >= self.map.stamps[0] - tolerance) & (stamps <= self.map.stamps[-1])
         ]
         indices = np.unique(self.map.pose_index(stamps)) if len(stamps) else np.zeros(0, int)
-        return rendezvous_poses_message(robot_map, stamp_ns, indices, measurements)
+        content = (
+            indices.tobytes(),
+            measurements.stamps.tobytes(),
+            tuple(measurements.observed),
+            measurements.ranges.tobytes(),
+            measurements.bearings.tobytes(),
+        )
+        return rendezvous_poses_message(robot_map, stamp_ns, indices, measurements), content
 
     def kept_rendezvous(self) -> tuple[RendezvousLog, np.ndarray]:
         """This robot's kept measurements, and the stamps of every kept measurement that
@@ -447,6 +503,8 @@ class Smoother(Node):
             "dropped": drops.total,
             "errors": self.errors,
             "restarts": self.restarts,
+            "complete_updates": self.sender.complete_updates,
+            "resyncs": self.resyncs,
             "lost_seconds": round(self.lost_seconds, 3),
             **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
         }

@@ -9,6 +9,7 @@ computes in-process.
 
 from __future__ import annotations
 
+import array
 from collections.abc import Sequence
 
 import numpy as np
@@ -18,6 +19,7 @@ from csam_msgs.msg import (
     FeatureEstimate,
     JoinedMap,
     LocalMap,
+    LocalMapUpdate,
     ObservationFactor,
     OdometryFactor,
     RendezvousPoses,
@@ -35,6 +37,7 @@ from csam_ros.core.factors import (
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.map_arrays import robot_map_from_arrays
+from csam_ros.core.map_updates import KeyedMap, MapUpdate
 from csam_ros.core.result import CsamResult
 from csam_ros.core.solver import SingularProblemError
 from csam_ros.core.validation import (
@@ -209,15 +212,20 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
     """Rebuild the local problem of a local map message at its published estimate.
 
     ``robot`` is the robot of the topic it came on (None: trust the message's ``robot``).
-    Every field is checked first (:func:`~csam_ros.core.validation.local_map_fault`), then
-    the problem is linearised and factored once at the estimate (non-finite or singular
-    information, which C-SAM would meet at every solve): a message C-SAM could not use raises
-    :class:`LocalMapError` naming the fault, with the reason to count it under
-    (``malformed_local_map`` or ``robot_mismatch``).
+    A message C-SAM could not use raises :class:`LocalMapError` (:func:`checked_robot_map`).
     """
     name = _robot_of(msg, robot, LocalMapError)
+    return checked_robot_map(name, local_map_arrays(msg, name))
+
+
+def checked_robot_map(name: str, arrays: LocalMapArrays) -> RobotMap:
+    """The local problem of ``arrays``: every field is checked first
+    (:func:`~csam_ros.core.validation.local_map_fault`), then the problem is linearised and
+    factored once at the estimate (non-finite or singular information, which C-SAM would meet
+    at every solve). Raises :class:`LocalMapError` naming the fault, with the reason to count
+    it under (``malformed_local_map``)."""
     try:
-        robot_map = robot_map_from_arrays(name, local_map_arrays(msg, name))
+        robot_map = robot_map_from_arrays(name, arrays)
     except ValueError as error:
         raise LocalMapError(str(error)) from None
     problem = robot_map.problem
@@ -230,6 +238,115 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
         except (FloatingPointError, SingularProblemError) as error:
             raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
     return robot_map
+
+
+def _numbers(values: np.ndarray, typecode: str) -> array.array:
+    """A flat message field of ``values`` (``'d'`` float64, ``'q'`` int64), copied at once."""
+    field = array.array(typecode)
+    field.frombytes(
+        np.ascontiguousarray(values, dtype=np.float64 if typecode == "d" else np.int64).tobytes()
+    )
+    return field
+
+
+def local_map_update_message(
+    update: MapUpdate, robot: str, stamp_ns: int, iterations: int = 0
+) -> LocalMapUpdate:
+    """The message of one update of ``robot``'s local map (the latest odometry at ``stamp_ns``)."""
+    c = update.changes
+    msg = LocalMapUpdate()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = f"{robot}/map"
+    msg.robot = robot
+    msg.session, msg.sequence = update.session, update.sequence
+    msg.base_sequence = update.base_sequence
+    msg.pose_stamps = _numbers(c.pose_stamps, "q")
+    msg.poses = _numbers(c.poses, "d")
+    msg.feature_labels = _numbers(c.feature_labels, "q")
+    msg.features = _numbers(c.feature_xy, "d")
+    msg.first_pose_prior_sqrt_information = np.asarray(c.prior_sqrt_information, dtype=float)
+    msg.odometry_stamps = _numbers(c.odometry_stamps, "q")
+    msg.odometry_deltas = _numbers(c.odometry_delta, "d")
+    msg.odometry_sqrt_information = _numbers(c.odometry_sqrt_information, "d")
+    msg.observations_before = update.observations_before
+    msg.observation_stamps = _numbers(c.observation_stamps, "q")
+    msg.observation_labels = _numbers(c.observation_label, "q")
+    msg.observation_points = _numbers(c.observation_xy, "d")
+    msg.observation_sqrt_information = _numbers(c.observation_sqrt_information, "d")
+    msg.observation_robust_kernel = c.robust_kernel
+    msg.observation_robust_parameter = float(c.robust_parameter)
+    msg.iterations = int(iterations)
+    msg.cost = float(c.cost)
+    return msg
+
+
+def map_update_from_message(msg: LocalMapUpdate, robot: str | None = None) -> MapUpdate:
+    """The update a message carries; :class:`LocalMapError` when its fields do not fit
+    together (the map it leads to is checked where it is applied, :func:`checked_robot_map`)."""
+    name = _robot_of(msg, robot, LocalMapError)
+
+    def rows(
+        values: Sequence[float] | Sequence[int], width: int, what: str, dtype: type
+    ) -> np.ndarray:
+        flat = np.asarray(values, dtype=dtype)
+        if len(flat) % width:
+            raise LocalMapError(f"{name}: {len(flat)} {what} values, not {width} per row")
+        return flat.reshape(-1, width)
+
+    pose_stamps = rows(msg.pose_stamps, 1, "pose stamp", np.int64)[:, 0]
+    odometry_stamps = rows(msg.odometry_stamps, 2, "odometry stamp", np.int64)
+    changes = KeyedMap(
+        pose_stamps=pose_stamps,
+        poses=rows(msg.poses, 3, "pose", float),
+        feature_labels=rows(msg.feature_labels, 1, "feature label", np.int64)[:, 0],
+        feature_xy=rows(msg.features, 2, "feature", float),
+        prior_sqrt_information=np.asarray(msg.first_pose_prior_sqrt_information, dtype=float),
+        odometry_stamps=odometry_stamps,
+        odometry_delta=rows(msg.odometry_deltas, 3, "odometry delta", float),
+        odometry_sqrt_information=rows(
+            msg.odometry_sqrt_information, 9, "odometry information", float
+        ),
+        observation_stamps=rows(msg.observation_stamps, 1, "observation stamp", np.int64)[:, 0],
+        observation_label=rows(msg.observation_labels, 1, "observation label", np.int64)[:, 0],
+        observation_xy=rows(msg.observation_points, 2, "observation", float),
+        observation_sqrt_information=rows(
+            msg.observation_sqrt_information, 4, "observation information", float
+        ),
+        robust_kernel=msg.observation_robust_kernel,
+        robust_parameter=float(msg.observation_robust_parameter),
+        cost=float(msg.cost),
+    )
+    counts = {
+        "poses": (len(changes.pose_stamps), len(changes.poses)),
+        "features": (len(changes.feature_labels), len(changes.feature_xy)),
+        "odometry factors": (
+            len(changes.odometry_stamps),
+            len(changes.odometry_delta),
+            len(changes.odometry_sqrt_information),
+        ),
+        "observation factors": (
+            len(changes.observation_stamps),
+            len(changes.observation_label),
+            len(changes.observation_xy),
+            len(changes.observation_sqrt_information),
+        ),
+    }
+    for what, lengths in counts.items():
+        if len(set(lengths)) > 1:
+            raise LocalMapError(f"{name}: the fields of its {what} differ in length {lengths}")
+    if np.any(np.diff(pose_stamps) <= 0):
+        raise LocalMapError(f"{name}: pose stamps do not increase")
+    if msg.sequence == 0 or msg.base_sequence >= msg.sequence:
+        raise LocalMapError(
+            f"{name}: update {msg.sequence} cannot apply to update {msg.base_sequence}"
+        )
+    return MapUpdate(
+        int(msg.session),
+        int(msg.sequence),
+        int(msg.base_sequence),
+        int(msg.observations_before),
+        changes,
+    )
 
 
 def rendezvous_poses_message(

@@ -16,6 +16,7 @@ from csam_msgs.msg import (
     FeaturesTruth,
     JoinedMap,
     LocalMap,
+    LocalMapUpdate,
     RendezvousObservations,
     RendezvousPoses,
 )
@@ -100,7 +101,11 @@ FEATURE_POINTS = Topic("feature_points", FeaturePoints, RELIABLE, sensor=True)
 RENDEZVOUS = Topic("rendezvous", RendezvousObservations, RELIABLE, sensor=True)
 GROUND_TRUTH = Topic("ground_truth", Odometry, SENSOR_DATA)
 FEATURES_TRUTH = Topic("/sim/features_truth", FeaturesTruth, LATCHED)
-LOCAL_MAP = Topic("local_map", LocalMap, LATCHED)
+# the whole local map, for a look on the robot (published only while subscribed, not recorded)
+LOCAL_MAP = Topic("local_map", LocalMap, LATCHED, recorded=False)
+# what the merger joins: the local map's changes (csam_ros/core/map_updates.py); every one is
+# kept (reliable, deep), a receiver that missed one asks the smoother for a resync
+LOCAL_MAP_UPDATES = Topic("local_map_updates", LocalMapUpdate, RELIABLE)
 RENDEZVOUS_POSES = Topic("rendezvous_poses", RendezvousPoses, LATCHED)
 PATH = Topic("path", Path, LATCHED)
 JOINED_MAP = Topic("/csam/joined_map", JoinedMap, LATCHED)
@@ -112,7 +117,7 @@ TF = Topic("/tf", TFMessage, QoSProfile(depth=100))
 CLOCK = Topic("/clock", Clock, SHALLOW)
 
 # what each robot sends to the base station (the merger subscribes to these)
-MERGER_INPUTS: tuple[Topic, ...] = (LOCAL_MAP, RENDEZVOUS_POSES)
+MERGER_INPUTS: tuple[Topic, ...] = (LOCAL_MAP_UPDATES, RENDEZVOUS_POSES)
 
 TOPICS: tuple[Topic, ...] = (
     ODOM,
@@ -122,6 +127,7 @@ TOPICS: tuple[Topic, ...] = (
     GROUND_TRUTH,
     FEATURES_TRUTH,
     LOCAL_MAP,
+    LOCAL_MAP_UPDATES,
     RENDEZVOUS_POSES,
     PATH,
     JOINED_MAP,
@@ -130,6 +136,17 @@ TOPICS: tuple[Topic, ...] = (
     TF,
     CLOCK,
 )
+# the smoother's services (std_srvs/Trigger): solve to convergence and publish; resend the
+# whole local map as one update
+FLUSH = "flush"
+RESYNC = "resync"
+
+
+def smoother_service(robot: str, service: str) -> str:
+    """The absolute name of ``robot``'s smoother service (the node is ``/<robot>/smoother``)."""
+    return f"/{robot}/smoother/{service}"
+
+
 _GLOBAL = {t.name: t for t in TOPICS if not t.per_robot}
 _PER_ROBOT = {t.name: t for t in TOPICS if t.per_robot}
 

@@ -466,7 +466,7 @@ def monitor(
     from std_srvs.srv import Trigger
 
     from csam_ros.nodes.common import subscribe
-    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP
+    from csam_ros.ros.topics import FLUSH, JOINED_MAP, LOCAL_MAP_UPDATES, smoother_service
 
     rclpy.init()
     node = rclpy.create_node("csam_run_monitor")
@@ -475,7 +475,7 @@ def monitor(
     joined: list = []  # every joined map received
     received: list[float] = []  # when (wall clock)
     subscribe(node, JOINED_MAP, lambda m: (joined.append(m), received.append(time.time())))
-    clients = {r: node.create_client(Trigger, f"/{r}/smoother/flush") for r in robots}
+    clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in robots}
     deadline = time.monotonic() + timeout_s
 
     def spin(seconds: float) -> None:
@@ -489,7 +489,7 @@ def monitor(
 
         def reached() -> bool:  # every smoother's flush service and local map seen
             return all(c.service_is_ready() for c in clients.values()) and all(
-                node.get_publishers_info_by_topic(LOCAL_MAP.of(r)) for r in robots
+                node.get_publishers_info_by_topic(LOCAL_MAP_UPDATES.of(r)) for r in robots
             )
 
         while not reached():

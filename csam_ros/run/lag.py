@@ -1,7 +1,7 @@
 """How long a live run's local maps take to reach the joined map, and the merger's solve times.
 
-A local map of robot ``r`` with header stamp ``s`` that arrives (is logged in the run's bag)
-at time ``a`` is *included* by the first joined map logged at a time ``t >= a`` whose base node
+A local map update of robot ``r`` with header stamp ``s`` that arrives (is logged in the run's
+bag) at time ``a`` is *included* by the first joined map logged at a time ``t >= a`` whose base node
 for ``r`` has ``local_map_stamp >= s``; its lag is ``t - a``. A map superseded before any
 joined map used it (the merger took a newer map of that robot first) therefore counts with the
 lag until the first joined map that includes a newer map of that robot. A map that no later
@@ -169,11 +169,11 @@ def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
     :func:`~csam_ros.bag.read_bag`)."""
     from csam_ros.bag import inspect_bag, read_bag_messages
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, STATUS, parse
+    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP_UPDATES, STATUS, parse
 
     declared = [parse(name) for name in inspect_bag(bag).topics]
-    robots = sorted(d[1] for d in declared if d is not None and d[0] is LOCAL_MAP)
-    topics = [LOCAL_MAP.of(r) for r in robots] + [JOINED_MAP.name, STATUS.name]
+    robots = sorted(d[1] for d in declared if d is not None and d[0] is LOCAL_MAP_UPDATES)
+    topics = [LOCAL_MAP_UPDATES.of(r) for r in robots] + [JOINED_MAP.name, STATUS.name]
     arrivals: dict[str, list[int]] = {r: [] for r in robots}
     stamps: dict[str, list[int]] = {r: [] for r in robots}
     joined: list[int] = []

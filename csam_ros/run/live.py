@@ -156,7 +156,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import CLOCK, JOINED_MAP
+    from csam_ros.ros.topics import CLOCK, FLUSH, JOINED_MAP, smoother_service
 
     sim_time = _param("use_sim_time", True)
     group.start("recorder", run.recorder_argv())
@@ -171,7 +171,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
     latest: dict[str, object] = {"clock": None, "joined": None}
     subscribe(node, CLOCK, lambda m: latest.__setitem__("clock", m))
     subscribe(node, JOINED_MAP, lambda m: latest.__setitem__("joined", m))
-    clients = {r: node.create_client(Trigger, f"/{r}/smoother/flush") for r in run.robots}
+    clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in run.robots}
     try:
         deadline = time.monotonic() + 60
         while not all(c.service_is_ready() for c in clients.values()):
