@@ -13,8 +13,9 @@ nanoseconds), it publishes:
   the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
   for a receiver that missed one;
 - ``rendezvous_poses`` when its measurements changed (latched);
-- ``path`` and ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest pose;
-- ``local_map``, the whole map with covariances, only while something subscribes to it.
+- ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest pose;
+- ``local_map`` (the whole map with covariances) and ``path``, only while something
+  subscribes to them (they are for a look on the robot, and grow with the run).
 Every field of every sensor message is checked against the ``input:`` bounds
 (:class:`~csam_ros.core.validation.InputBounds`, the same checks as offline replay); bad input is
 dropped and counted (``/csam/status``), and every callback is guarded, so an unexpected error
@@ -338,7 +339,8 @@ class Smoother(Node):
         if exact or content != self._rendezvous_sent:  # its poses are for a look only
             self.rendezvous_pub.publish(rendezvous)
             self._rendezvous_sent = content
-        self.path_pub.publish(self.path(stamp_ns))
+        if self.path_pub.get_subscription_count():
+            self.path_pub.publish(self.path(stamp_ns))
         latest = (f"{self.robot}/map", f"{self.robot}/base_link", self.map.poses[-1])
         self.tf_pub.publish(tf_message([latest], stamp_to_ns(self.map.stamps[-1])))
         self.published_ns = stamp_ns

@@ -315,3 +315,73 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
         )
     )
     assert np.abs(independent.poses[:, :2] - offline.poses[:, :2]).max() > 1e-4
+
+
+def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
+    ros_context, spin
+) -> None:
+    """A receiver over DDS that applies every ``local_map_updates`` message holds the
+    smoother's map: factors exactly, estimates within the tolerance, exactly after a flush.
+    A resync is one complete update, and the updates after it apply on top of it."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
+
+    from csam_ros.core.csam import robot_map_from_local_map
+    from csam_ros.core.map_arrays import robot_map_arrays
+    from csam_ros.core.map_updates import apply_update
+    from csam_ros.ros.map_messages import map_update_from_message
+    from csam_ros.ros.topics import LOCAL_MAP_UPDATES
+
+    messages = _good_messages()
+    node = new_smoother(ros_context)
+    receiver = rclpy.create_node("receiver", context=ros_context)
+    received: list = []
+    receiver.create_subscription(
+        LOCAL_MAP_UPDATES.msgtype,
+        LOCAL_MAP_UPDATES.of("robot1"),
+        received.append,
+        LOCAL_MAP_UPDATES.qos,
+    )
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(receiver)
+    try:
+        assert spin(executor, lambda: node.update_pub.get_subscription_count() == 1)
+        chunks = np.array_split(np.arange(len(messages)), 6)
+        for chunk in chunks:
+            for i in chunk:
+                deliver(node, messages[i].topic, messages[i].message)
+            node.solve_and_publish()
+            assert spin(executor, lambda: len(received) == node.sender.held.sequence)
+
+        def held():
+            h = None
+            for msg in received:
+                h = apply_update(h, map_update_from_message(msg, "robot1"))
+            return h
+
+        tolerance = node.sender.tolerance
+        current = robot_map_arrays(robot_map_from_local_map(node.map))
+        within = held().map.arrays()
+        np.testing.assert_array_equal(within.odometry_delta, current.odometry_delta)
+        np.testing.assert_array_equal(within.observation_xy, current.observation_xy)
+        assert np.abs(within.poses[:, :2] - current.poses[:, :2]).max() <= tolerance.position
+        assert [m.base_sequence for m in received][:2] == [0, 1]  # the first is the whole map
+        assert sum(len(m.observation_labels) for m in received) == len(current.observation_xy)
+
+        response = node.on_resync(Trigger.Request(), Trigger.Response())
+        assert response.success and node.resyncs == 1
+        assert spin(executor, lambda: len(received) == len(chunks) + 1)
+        assert received[-1].base_sequence == 0
+        assert len(received[-1].pose_stamps) == len(current.poses)
+        flushed_map(node)  # converged: every estimate exactly
+        assert spin(executor, lambda: len(received) == len(chunks) + 2)
+        assert received[-1].base_sequence == received[-2].sequence
+        exact = held().map.arrays()
+        final = robot_map_arrays(robot_map_from_local_map(node.map))
+        np.testing.assert_array_equal(exact.poses, final.poses)
+        np.testing.assert_array_equal(exact.feature_xy, final.feature_xy)
+    finally:
+        receiver.destroy_node()
+        node.destroy_node()
+        executor.shutdown()
