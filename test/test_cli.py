@@ -63,7 +63,7 @@ def test_demo_writes_bag_summary_and_figures(demo_run: Path) -> None:
         "/robot1/odom",
         "/robot1/features",
         "/robot2/rendezvous",
-        "/robot1/local_map",
+        "/robot1/local_map_updates",
         "/robot2/rendezvous_poses",
         "/csam/joined_map",
         "/csam/markers",
