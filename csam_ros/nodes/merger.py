@@ -200,6 +200,7 @@ class Merger(Node):
         self.local_maps: dict[str, RobotMap] = {}
         self.held: dict[str, HeldMap] = {}  # each robot's map as its updates built it
         self.resync_requests: dict[str, int] = {}
+        self._behind: set[str] = set()  # robots an update of did not apply: resync until one does
         self._resync_clients: dict[str, Any] = {}
         self._resync_asked: dict[str, float] = {}  # steady clock s of the last request
         self.robots: list[str] = []  # subscribed to, in the order found
@@ -342,6 +343,7 @@ class Merger(Node):
         try:
             held = apply_update(self.held.get(robot), map_update_from_message(msg, robot))
         except MissingBaseError as error:
+            self._behind.add(robot)
             self._ask_resync(robot, str(error))
             return
         except RefusedMessageError as error:
@@ -353,6 +355,7 @@ class Merger(Node):
         if held is self.held.get(robot):
             return  # delivered again: nothing to solve
         self.held[robot] = held
+        self._behind.discard(robot)
         try:
             new = checked_robot_map(robot, held.map.arrays())
         except ValueError as error:  # LocalMapError, or a factor at a stamp with no pose
@@ -448,6 +451,8 @@ class Merger(Node):
         for robot in self.robots:
             if robot not in self.held:
                 self._ask_resync(robot, "no local map held yet")
+            elif robot in self._behind:
+                self._ask_resync(robot, "an update did not apply to the map held")
         with self._lock:
             if self.dirty and not self.solving:
                 self._requested = True
