@@ -1,9 +1,10 @@
 """The merger's boundary: through a real merger node, with the messages smoothers publish.
 
-A malformed local map or rendezvous message never replaces good data: the joined map solved
-again afterwards is exactly the one before, and the message is counted once under its
+A malformed local map update or rendezvous message never replaces good data: the joined map
+solved again afterwards is exactly the one before, and the message is counted once under its
 reason. The topic names the robot. A smoother restart is reported once, and its new map
-taken.
+taken. A merger that missed an update asks for the whole map and ends where one that missed
+nothing does; an update delivered twice is applied once.
 """
 
 from __future__ import annotations
@@ -12,33 +13,48 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import pytest
 from csam_msgs.msg import (
-    LocalMap,
+    JoinedMap,
+    LocalMapUpdate,
     RendezvousObservation,
     RendezvousObservations,
     RendezvousPoses,
 )
 from diagnostic_msgs.msg import DiagnosticStatus
 from merger_harness import (
+    STAMP_NS,
     MergerHarness,
     RunMessages,
     copied,
     joined_view,
+    poses_of,
+    resent,
     run_messages,
     status_values,
 )
 
 import csam_ros.nodes.merger as merger_module
+from csam_ros.core.map_arrays import robot_map_arrays
+from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.result import RunSummary
-from csam_ros.ros.conversions import ns_to_time, time_to_ns
+from csam_ros.ros.conversions import ns_to_time
+from csam_ros.ros.map_messages import local_map_update_message
 
 RESTART_AT = 12.0  # s: robot2's smoother restarted here (the run: 0-40 s, rendezvous 18-22 s)
+CUTS = (20.0, 30.0, None)  # s: robot2's map at these moments of the run (None: its end)
 
 
 @pytest.fixture(scope="module")
 def good() -> RunMessages:
     return run_messages()
+
+
+@pytest.fixture(scope="module")
+def growing() -> list[RunMessages]:
+    """The smoothers' messages at three moments of the run: robot2's map grows."""
+    return [run_messages(end=t) for t in CUTS]
 
 
 @pytest.fixture
@@ -52,82 +68,105 @@ def _nan() -> float:
     return float("nan")
 
 
-def _set(path: Callable[[LocalMap], Any], name: str, value: Any) -> Callable[[LocalMap], None]:
-    return lambda m: setattr(path(m), name, value)
+def _set(name: str, index: int | slice, value: Any) -> Callable[[LocalMapUpdate], None]:
+    """Set element(s) ``index`` of the flat field ``name``."""
+
+    def change(m: LocalMapUpdate) -> None:
+        values = list(getattr(m, name))
+        values[index] = value
+        setattr(m, name, values)
+
+    return change
 
 
-def _empty(m: LocalMap) -> None:
-    for name in ("pose_stamps", "poses", "pose_covariances", "features"):
+def _cut(name: str, keep: int) -> Callable[[LocalMapUpdate], None]:
+    """Keep the first ``keep`` values of the flat field ``name``."""
+    return lambda m: setattr(m, name, list(getattr(m, name))[:keep])
+
+
+def _empty(m: LocalMapUpdate) -> None:
+    for name in (
+        "pose_stamps",
+        "poses",
+        "feature_labels",
+        "features",
+        "odometry_stamps",
+        "odometry_deltas",
+        "odometry_sqrt_information",
+        "observation_stamps",
+        "observation_labels",
+        "observation_points",
+        "observation_sqrt_information",
+    ):
         setattr(m, name, [])
-    m.odometry_factors, m.observation_factors = [], []
 
 
-def _drop_a_stamp(m: LocalMap) -> None:
-    del m.poses[3:]
-    del m.pose_stamps[2:]
+def _drop_a_stamp(m: LocalMapUpdate) -> None:
+    m.poses = list(m.poses)[: 3 * 3]
+    m.pose_stamps = list(m.pose_stamps)[:2]
 
 
-def _duplicate_label(m: LocalMap) -> None:
-    m.features[1].members = list(m.features[0].members)
+def _between_poses(m: LocalMapUpdate) -> int:
+    """A stamp inside robot2's map where it holds no pose."""
+    a, b = m.pose_stamps[10:12]
+    return (a + b) // 2
 
 
-# every malformation the issue lists, on robot2's good local map
-MALFORMED_MAPS: dict[str, Callable[[LocalMap], None]] = {
+def _odometry_off_the_poses(m: LocalMapUpdate) -> None:
+    _set("odometry_stamps", 2 * 5 + 1, _between_poses(m))(m)
+
+
+def _observation_after_the_poses(m: LocalMapUpdate) -> None:
+    _set("observation_stamps", 7, m.pose_stamps[-1] + 4_000_000_000)(m)
+
+
+def _duplicate_label(m: LocalMapUpdate) -> None:
+    _set("feature_labels", 1, m.feature_labels[0])(m)
+
+
+def _stamps_out_of_order(m: LocalMapUpdate) -> None:
+    stamps = list(m.pose_stamps)
+    stamps[3], stamps[4] = stamps[4], stamps[3]
+    m.pose_stamps = stamps
+
+
+# every malformation the issue lists, on robot2's good local map (sent as a new update)
+MALFORMED_MAPS: dict[str, Callable[[LocalMapUpdate], None]] = {
     "empty": _empty,
     "3 poses with 2 stamps": _drop_a_stamp,
-    "odometry index 1000": lambda m: setattr(m.odometry_factors[5], "to_pose", 1000),
-    "observation index 4e9": lambda m: setattr(m.observation_factors[7], "pose", 4_000_000_000),
-    "unknown label": lambda m: setattr(m.observation_factors[2], "label", 999_999),
+    "pose stamps out of order": _stamps_out_of_order,
+    "features one short of their labels": _cut("features", -2),
+    "odometry deltas one short": _cut("odometry_deltas", -3),
+    "observation information one short": _cut("observation_sqrt_information", -4),
+    "odometry stamp with no pose": _odometry_off_the_poses,
+    "observation 4 s after the last pose": _observation_after_the_poses,
+    "unknown label": _set("observation_labels", 2, 999_999),
     "duplicate labels": _duplicate_label,
-    "nan pose": lambda m: setattr(m.poses[4], "y", _nan()),
-    "nan odometry sqrt-information": lambda m: m.odometry_factors[3].sqrt_information.__setitem__(
-        4, _nan()
-    ),
-    "zero odometry sqrt-information": _set(
-        lambda m: m.odometry_factors[3], "sqrt_information", [0.0] * 9
-    ),
+    "nan pose": _set("poses", 3 * 4 + 1, _nan()),
+    "nan feature": _set("features", 2 * 3, _nan()),
+    "nan odometry sqrt-information": _set("odometry_sqrt_information", 9 * 3 + 4, _nan()),
+    "zero odometry sqrt-information": _set("odometry_sqrt_information", slice(27, 36), [0.0] * 9),
     "zero observation sqrt-information": _set(
-        lambda m: m.observation_factors[3], "sqrt_information", [0.0] * 4
+        "observation_sqrt_information", slice(12, 16), [0.0] * 4
     ),
     "zero gauge sqrt-information": lambda m: setattr(
         m, "first_pose_prior_sqrt_information", [0.0] * 9
     ),
-    "nan observation sqrt-information": lambda m: m.observation_factors[
-        0
-    ].sqrt_information.__setitem__(0, _nan()),
+    "nan observation sqrt-information": _set("observation_sqrt_information", 0, _nan()),
+    "unknown robust kernel": lambda m: setattr(m, "observation_robust_kernel", "tukey"),
+    "sequence 0": lambda m: setattr(m, "sequence", 0),
 }
-
-
-def test_feature_without_members_is_dropped_not_fatal(harness, good, ros_context, spin) -> None:
-    """Case 1: a FeatureEstimate with no members raised IndexError and killed the merger,
-    and a merger restarted while that map stayed latched died again."""
-    before = joined_view(harness.start(good))
-    bad = copied(good.local_maps["robot2"])
-    bad.features[0].members = []
-    counts = harness.send_and_wait_drop("robot2", bad)
-    assert counts == {"malformed_local_map": 1}
-    assert joined_view(harness.resolve()) == before
-    assert harness.merger.drops.as_dict() == {"malformed_local_map": 1}
-
-    # a second merger starting while the bad map is latched comes up and counts it once
-    late = MergerHarness(ros_context, spin)
-    try:
-        late.publish("robot1", good.local_maps["robot1"])  # its own injector, latched too
-        late.wait(lambda: late.merger.drops.total >= 1 and "robot1" in late.merger.local_maps)
-        late.settle(0.3)
-        assert late.merger.drops.as_dict() == {"malformed_local_map": 1}
-        assert "robot2" not in late.merger.local_maps
-    finally:
-        late.close()
 
 
 @pytest.mark.parametrize("malformation", MALFORMED_MAPS, ids=list(MALFORMED_MAPS))
 def test_malformed_local_map_keeps_the_last_valid_one(harness, good, malformation) -> None:
     """Case 5: a malformed map replaced the robot's good one (84 -> 74 features, 65 -> 0
-    associations) and was counted at every solve."""
+    associations) and was counted at every solve. Case 1: a feature a map could not name
+    (a FeatureEstimate with no members then, a feature without its label now) killed the
+    merger."""
     before = harness.start(good)
     assert len(before.associations) > 0
-    bad = copied(good.local_maps["robot2"])
+    bad = resent(good.local_maps["robot2"])  # a new update: the same one again is no news
     MALFORMED_MAPS[malformation](bad)
     counts = harness.send_and_wait_drop("robot2", bad)
     assert counts == {"malformed_local_map": 1}
@@ -140,10 +179,14 @@ def test_topic_names_the_robot(harness, good) -> None:
     """Case 6: a robot2 map sent on /robot1/local_map replaced robot2's real one."""
     before = joined_view(harness.start(good))
     held = dict(harness.merger.local_maps)
-    counts = harness.send_and_wait_drop("robot1", good.local_maps["robot2"])
+    counts = harness.send_and_wait_drop("robot1", resent(good.local_maps["robot2"]))
     assert counts == {"robot_mismatch": 1}
     counts = harness.send_and_wait_drop("robot1", good.rendezvous["robot2"])
     assert counts == {"robot_mismatch": 2}
+    elsewhere = resent(good.local_maps["robot1"])  # robot1's map in another frame
+    elsewhere.header.frame_id = "world"
+    counts = harness.send_and_wait_drop("robot1", elsewhere)
+    assert counts == {"robot_mismatch": 3}
     assert harness.merger.local_maps == held
     assert joined_view(harness.resolve()) == before
 
@@ -158,12 +201,6 @@ def _row(observed: str, stamp_ns: int) -> RendezvousObservations:
         )
     ]
     return group
-
-
-def _between_poses(m: LocalMap) -> int:
-    """A stamp inside robot2's map where it holds no pose."""
-    a, b = (time_to_ns(t) for t in m.pose_stamps[10:12])
-    return (a + b) // 2
 
 
 @pytest.mark.parametrize(
@@ -204,10 +241,10 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
     harness.start(good)
     restarted = run_messages(restart_at=RESTART_AT)
     new_map = restarted.local_maps["robot2"]
-    old_stamps = [time_to_ns(t) for t in good.local_maps["robot2"].pose_stamps]
-    new_start = time_to_ns(new_map.pose_stamps[0])
-    lost = sum(t < new_start for t in old_stamps)
-    assert lost > 0 and len(new_map.poses) < len(old_stamps)
+    old_stamps = list(good.local_maps["robot2"].pose_stamps)
+    lost = sum(t < new_map.pose_stamps[0] for t in old_stamps)
+    assert lost > 0 and poses_of(new_map) < len(old_stamps)
+    assert new_map.session != good.local_maps["robot2"].session
 
     status: dict[str, dict[str, str]] = {}
     harness.injector.create_subscription(
@@ -221,7 +258,7 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
     harness.publish("robot2", new_map)
     harness.wait(
         lambda: (
-            len(harness.merger.local_maps["robot2"].stamps) == len(new_map.poses)
+            len(harness.merger.local_maps["robot2"].stamps) == poses_of(new_map)
             and harness.merger.solves > solves
             and status.get("merger/robot2", {}).get("restarts") == "1"
         )
@@ -239,7 +276,7 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
     assert summary.merger.restarts == {"robot2": 1}
     assert summary.merger.restart_poses_lost == {"robot2": lost}
     result = harness.merger.last_result
-    assert result is not None and len(result.robots["robot2"].stamps) == len(new_map.poses)
+    assert result is not None and len(result.robots["robot2"].stamps) == poses_of(new_map)
 
 
 def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypatch) -> None:
@@ -279,7 +316,7 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypa
         harness.publish("robot2", new_map)
         harness.wait(
             lambda: (
-                len(harness.merger.local_maps["robot2"].stamps) == len(new_map.poses)
+                len(harness.merger.local_maps["robot2"].stamps) == poses_of(new_map)
                 and harness.merger.dirty
             )
         )
@@ -299,10 +336,10 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypa
     )
     harness.settle(0.5)
     assert harness.merger.solves == solves + 2 and len(solved) == 2
-    assert solved[0]["robot2"] == len(good.local_maps["robot2"].poses)
-    assert solved[1]["robot2"] == len(new_map.poses)
+    assert solved[0]["robot2"] == poses_of(good.local_maps["robot2"])
+    assert solved[1]["robot2"] == poses_of(new_map)
     result = harness.merger.last_result
-    assert result is not None and len(result.robots["robot2"].stamps) == len(new_map.poses)
+    assert result is not None and len(result.robots["robot2"].stamps) == poses_of(new_map)
     assert harness.merger.drops.total == 0
 
 
@@ -354,3 +391,146 @@ def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
         assert any(n.startswith("joint solve not converged") for n in summary.result.notes)
     finally:
         h.close()
+
+
+def _message(update: MapUpdate | None) -> LocalMapUpdate | None:
+    return None if update is None else local_map_update_message(update, "robot2", STAMP_NS)
+
+
+def _keyed_equal(a: KeyedMap, b: KeyedMap) -> None:
+    for name in KeyedMap.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        assert np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y, name
+
+
+def _assert_joined_close(a: JoinedMap, b: JoinedMap, atol: float) -> None:
+    """The same joined map, its numbers to ``atol``."""
+    (fa, aa, na, ta), (fb, ab, nb, tb) = joined_view(a), joined_view(b)
+    assert [f[0] for f in fa] == [f[0] for f in fb]
+    np.testing.assert_allclose([f[1:3] + f[3] for f in fa], [f[1:3] + f[3] for f in fb], 0, atol)
+    assert [x[:2] for x in aa] == [x[:2] for x in ab]
+    np.testing.assert_allclose([x[2] for x in aa], [x[2] for x in ab], 0, atol)
+    assert [n[:2] for n in na] == [n[:2] for n in nb] and ta == tb
+    np.testing.assert_allclose([n[2:] for n in na], [n[2:] for n in nb], 0, atol)
+
+
+def _with_robot2(messages: RunMessages, update: LocalMapUpdate) -> RunMessages:
+    return RunMessages(
+        {**messages.local_maps, "robot2": update},
+        messages.rendezvous,
+        messages.logs,
+        messages.robot_maps,
+    )
+
+
+def _joined_from_updates(
+    context: Any, spin: Any, growing: list[RunMessages], missed: bool
+) -> JoinedMap:
+    """robot2's smoother sends updates 1 (whole), 2 and 3 of its growing map (with ``missed``,
+    2 never reaches the merger); the joined map once the merger holds what it sent."""
+    arrays = [robot_map_arrays(g.robot_maps["robot2"]) for g in growing]
+    last = growing[-1]
+    sender = UpdateSender(7)
+    h = MergerHarness(context, spin)
+    try:
+        h.smoothers.answer["robot2"] = lambda: _message(sender.resend())
+        h.smoothers.whole["robot1"] = last.local_maps["robot1"]
+        # both robots held nothing at the start: the merger asked for their maps
+        h.wait(lambda: h.smoothers.resyncs["robot2"] > 0 and "robot1" in h.merger.held)
+        for r in ("robot1", "robot2"):
+            h.publish(r, last.rendezvous[r])
+        first = _message(sender.update(arrays[0]))
+        h.publish("robot2", first)
+        h.wait(lambda: "robot2" in h.merger.held)
+        asked = h.merger.resync_requests.get("robot2", 0)
+        second, third = (_message(sender.update(a)) for a in arrays[1:])
+        assert first.base_sequence == 0 and second.base_sequence and third.base_sequence
+        if not missed:
+            h.publish("robot2", second)
+        h.publish("robot2", third)
+
+        def holds_what_was_sent() -> bool:
+            sent = sender.held  # a resync sends it again, as a new update
+            assert sent is not None
+            mine = h.merger.held["robot2"]
+            return (mine.session, mine.sequence) == (sent.session, sent.sequence)
+
+        h.wait(holds_what_was_sent)
+        held = h.merger.held["robot2"]
+        assert sender.held is not None
+        _keyed_equal(held.map, sender.held.map)
+        if missed:
+            assert h.merger.resync_requests["robot2"] > asked
+            assert held.sequence == third.sequence + 1  # the whole map, sent again
+        else:
+            assert h.merger.resync_requests.get("robot2", 0) == asked
+            assert held.sequence == third.sequence
+        h.wait(lambda: not h.merger.dirty and h.merger.solves > 0 and len(h.joined) > 0)
+        joined = h.resolve()
+        assert h.merger.drops.total == 0
+        assert len(h.merger.local_maps["robot2"].stamps) == len(arrays[-1].stamps)
+        return joined
+    finally:
+        h.close()
+
+
+def test_a_merger_that_missed_updates_resyncs_and_ends_equal(
+    ros_context, spin, growing: list[RunMessages]
+) -> None:
+    """A merger that never got update 2 cannot apply 3: it asks for the whole map, then holds
+    exactly what the smoother holds and joins what a merger given every update joins."""
+    missed = _joined_from_updates(ros_context, spin, growing, missed=True)
+    every = _joined_from_updates(ros_context, spin, growing, missed=False)
+    _assert_joined_close(missed, every, 1e-9)
+
+
+def test_an_update_delivered_twice_changes_nothing(harness, growing: list[RunMessages]) -> None:
+    """The same update (here one that adds to the map) delivered twice: applied once, one
+    solve, nothing dropped, the joined map that of the update."""
+    middle, last = growing[1], growing[2]
+    sender = UpdateSender(11)
+    first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
+    harness.start(_with_robot2(middle, first))
+    solves, published = harness.merger.solves, len(harness.joined)
+    update = _message(sender.update(robot_map_arrays(last.robot_maps["robot2"])))
+    assert update.base_sequence == first.sequence
+    harness.publish("robot2", update)
+    harness.publish("robot2", update)
+    harness.wait(
+        lambda: (
+            harness.merger.held["robot2"].sequence == update.sequence
+            and harness.merger.solves > solves
+            and not harness.merger.dirty
+            and not harness.merger.solving
+        )
+    )
+    harness.settle(0.5)  # both deliveries acknowledged: the second one is taken in here
+    assert harness.merger.solves == solves + 1 and len(harness.joined) == published + 1
+    assert harness.merger.drops.total == 0 and not harness.merger.dirty
+    assert len(harness.merger.local_maps["robot2"].stamps) == len(last.robot_maps["robot2"].stamps)
+    once = harness.joined[-1]
+    assert joined_view(harness.resolve()) == joined_view(once)
+
+
+def test_an_update_of_another_session_asks_for_the_whole_map(
+    harness, good, growing: list[RunMessages]
+) -> None:
+    """robot2's smoother restarted (a new session) and its first update, the whole map, did
+    not come: its next one names a base the merger never had. The merger asks for the whole
+    map (counted in the status), drops nothing, and takes the new session's map."""
+    harness.start(good)
+    before = int(status_values(harness.status[-1], "merger/robot2")["resync_requests"])
+    sender = UpdateSender(99)
+    sender.update(robot_map_arrays(growing[1].robot_maps["robot2"]))  # never arrives
+    update = _message(sender.update(robot_map_arrays(growing[2].robot_maps["robot2"])))
+    assert update.base_sequence != 0
+    harness.smoothers.answer["robot2"] = lambda: _message(sender.resend())
+    harness.publish("robot2", update)
+    harness.wait(lambda: harness.merger.held["robot2"].session == 99)
+    harness.wait(
+        lambda: int(status_values(harness.status[-1], "merger/robot2")["resync_requests"]) > before
+    )
+    assert int(status_values(harness.status[-1], "merger")["resync_requests"]) > before
+    assert sender.held is not None
+    _keyed_equal(harness.merger.held["robot2"].map, sender.held.map)
+    assert harness.merger.drops.total == 0 and harness.merger.restarts == {}
