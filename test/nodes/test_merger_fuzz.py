@@ -1,12 +1,14 @@
-"""Fuzz the merger's boundary: generated LocalMap and RendezvousPoses messages, after good maps.
+"""Fuzz the merger's boundary: generated LocalMapUpdate and RendezvousPoses messages, after
+good maps.
 
 Every message goes to a real in-process merger through its own (guarded) subscription
 callback, then the merger solves synchronously (``solve_pending``, what its worker thread
 runs). Properties, for every message:
 
 - no exception reaches ``guarded`` (``callback_error`` stays 0) and no solve fails;
-- a message that leaves the merger's data as it was (refused, or with its bad rows
-  dropped) leaves the joined map exactly as it was;
+- a message that leaves the merger's data as it was (refused, an update it already holds or
+  one whose base it lacks, or with its bad rows dropped) leaves the joined map exactly as it
+  was;
 - a message the merger takes is one it can solve with.
 
 Under the test profile each of the three tests draws ``CSAM_FUZZ_EXAMPLES`` examples
@@ -27,10 +29,7 @@ from typing import Any
 
 import pytest
 from csam_msgs.msg import (
-    FeatureEstimate,
-    LocalMap,
-    ObservationFactor,
-    OdometryFactor,
+    LocalMapUpdate,
     RendezvousObservation,
     RendezvousObservations,
     RendezvousPoses,
@@ -38,10 +37,10 @@ from csam_msgs.msg import (
 from geometry_msgs.msg import Pose2D
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from merger_harness import ROBOTS, MergerHarness, copied, run_messages
+from merger_harness import ROBOTS, MergerHarness, copied, resent, run_messages
 
 from csam_ros.core.result import CsamResult
-from csam_ros.ros.conversions import ns_to_time, time_to_ns
+from csam_ros.ros.conversions import ns_to_time
 
 EXAMPLES = int(os.environ.get("CSAM_FUZZ_EXAMPLES", "60"))
 FUZZ = settings(
@@ -57,69 +56,62 @@ floats = st.one_of(
 uint32 = st.one_of(st.integers(0, 6), st.sampled_from([1000, 2**31, 4_000_000_000, 2**32 - 1]))
 int64 = st.one_of(st.integers(-3, 6), st.sampled_from([999_999, -(2**63), 2**63 - 1]))
 names = st.sampled_from(["robot1", "robot2", "robot9", "", "robot2/", "/robot2"])
-member = st.one_of(
-    st.builds(lambda r, k: f"{r}/{k}", names, int64),
-    st.sampled_from(["", "robot2/x", "robot2/1e3", "robot2/" + "9" * 30, "robot2"]),
-)
 stamp_ns = st.one_of(st.integers(0, 40 * 10**9), st.sampled_from([0, 2**62]))
+int64_stamp = st.one_of(stamp_ns, st.sampled_from([-1, -(2**63), 2**63 - 1]))
+
+# each update's flat fields: (name, values per row, what a value is)
+POSE_FIELDS = (("pose_stamps", 1, "stamp"), ("poses", 3, "float"))
+FEATURE_FIELDS = (("feature_labels", 1, "label"), ("features", 2, "float"))
+ODOMETRY_FIELDS = (
+    ("odometry_stamps", 2, "stamp"),
+    ("odometry_deltas", 3, "float"),
+    ("odometry_sqrt_information", 9, "float"),
+)
+OBSERVATION_FIELDS = (
+    ("observation_stamps", 1, "stamp"),
+    ("observation_labels", 1, "label"),
+    ("observation_points", 2, "float"),
+    ("observation_sqrt_information", 4, "float"),
+)
+FLAT_FIELDS = POSE_FIELDS + FEATURE_FIELDS + ODOMETRY_FIELDS + OBSERVATION_FIELDS
 
 
-def _pose() -> st.SearchStrategy[Pose2D]:
-    return st.builds(Pose2D, x=floats, y=floats, theta=floats)
+def _values(kind: str, stamps: list[int]) -> st.SearchStrategy[Any]:
+    """One value of a flat field: a float, a label, or a stamp (often one of ``stamps``)."""
+    if kind == "float":
+        return floats
+    if kind == "label":
+        return int64
+    return st.one_of(int64_stamp, st.sampled_from(stamps)) if stamps else int64_stamp
 
 
 def _time() -> st.SearchStrategy[Any]:
     return stamp_ns.map(ns_to_time)
 
 
+def _pose() -> st.SearchStrategy[Pose2D]:
+    return st.builds(Pose2D, x=floats, y=floats, theta=floats)
+
+
 @st.composite
-def random_local_maps(draw: st.DrawFn) -> LocalMap:
-    """A local map with every field drawn: random lengths, indices, labels and numbers."""
+def random_map_updates(draw: st.DrawFn, stamps: list[int]) -> LocalMapUpdate:
+    """An update with every field drawn: rows of each group mostly of one count (the checks
+    then go deeper), any length otherwise; stamps often robot2's."""
     robot = draw(st.one_of(st.just("robot2"), names))  # mostly the topic's: checks go deeper
-    m = LocalMap(robot=robot)
+    m = LocalMapUpdate(robot=robot)
     m.header.frame_id = draw(st.sampled_from([f"{robot}/map", f"{robot}/map", "world"]))
-    small = st.integers(0, 5)
-    m.pose_stamps = draw(st.lists(_time(), max_size=6))
-    m.poses = draw(st.lists(_pose(), max_size=6))
-    m.pose_covariances = draw(st.lists(floats, max_size=12))
-    m.features = draw(
-        st.lists(
-            st.builds(
-                FeatureEstimate,
-                members=st.lists(member, max_size=2),
-                x=floats,
-                y=floats,
-                covariance=st.lists(floats, min_size=3, max_size=3),
-            ),
-            max_size=draw(small),
-        )
-    )
+    m.session = draw(st.one_of(st.just(1), uint32))
+    m.sequence = draw(uint32)
+    m.base_sequence = draw(uint32)
+    m.observations_before = draw(uint32)
+    for group in (POSE_FIELDS, FEATURE_FIELDS, ODOMETRY_FIELDS, OBSERVATION_FIELDS):
+        rows = draw(st.integers(0, 5))
+        for name, width, kind in group:
+            exact = draw(st.booleans()) or draw(st.booleans())
+            size = rows * width if exact else draw(st.integers(0, 6 * width))
+            values = draw(st.lists(_values(kind, stamps), min_size=size, max_size=size))
+            setattr(m, name, values)
     m.first_pose_prior_sqrt_information = draw(st.lists(floats, min_size=9, max_size=9))
-    m.odometry_factors = draw(
-        st.lists(
-            st.builds(
-                OdometryFactor,
-                from_pose=uint32,
-                to_pose=uint32,
-                delta=_pose(),
-                sqrt_information=st.lists(floats, min_size=9, max_size=9),
-            ),
-            max_size=draw(small),
-        )
-    )
-    m.observation_factors = draw(
-        st.lists(
-            st.builds(
-                ObservationFactor,
-                pose=uint32,
-                label=int64,
-                x=floats,
-                y=floats,
-                sqrt_information=st.lists(floats, min_size=4, max_size=4),
-            ),
-            max_size=draw(small),
-        )
-    )
     m.observation_robust_kernel = draw(st.sampled_from(["", "huber", "cauchy", "tukey"]))
     m.observation_robust_parameter = draw(floats)
     m.cost = draw(floats)
@@ -152,96 +144,48 @@ def _set_number(draw: st.DrawFn, items: list[Any], field: str, values: Any) -> N
             setattr(item, field, draw(values))
 
 
-def mutated_local_maps(good: LocalMap) -> st.SearchStrategy[LocalMap]:
-    """robot2's good map with one to three fields or lists changed."""
+def mutated_map_updates(good: LocalMapUpdate) -> st.SearchStrategy[LocalMapUpdate]:
+    """robot2's good whole map, sent again as a new update (or as one that adds it to itself),
+    with one to three values, rows or header fields changed."""
+    stamps = list(good.pose_stamps)
+    observations = len(good.observation_labels)
 
     @st.composite
-    def build(draw: st.DrawFn) -> LocalMap:
-        m = copied(good)
+    def build(draw: st.DrawFn) -> LocalMapUpdate:
+        m = resent(good)
+        if draw(st.booleans()):  # on top of the good map: every row again, as changes
+            m.base_sequence, m.observations_before = good.sequence, observations
         for _ in range(draw(st.integers(1, 3))):
-            target = draw(
-                st.sampled_from(
-                    [
-                        "pose", "stamp", "poses", "stamps", "covariances", "feature", "members",
-                        "features", "odometry", "odometry_index", "odometry_factors",
-                        "observation", "observation_index", "observation_label",
-                        "observation_factors", "prior", "kernel", "robot",
-                    ]
-                )
-            )  # fmt: skip
-            if target == "pose":
-                _set_number(draw, m.poses, draw(st.sampled_from(["x", "y", "theta"])), floats)
-            elif target == "stamp" and m.pose_stamps:
-                m.pose_stamps[draw(st.integers(0, len(m.pose_stamps) - 1))] = draw(_time())
-            elif target == "poses":
-                _mutate_list(draw, m.poses, _pose())
-            elif target == "stamps":
-                _mutate_list(draw, m.pose_stamps, _time())
-            elif target == "covariances":
-                values = list(m.pose_covariances)
-                _mutate_list(draw, values, floats)
-                m.pose_covariances = values
-            elif target == "feature":
-                _set_number(
-                    draw, m.features, draw(st.sampled_from(["x", "y", "covariance"])), floats
-                )
-            elif target == "members":
-                if m.features:
-                    i = draw(st.integers(0, len(m.features) - 1))
-                    m.features[i].members = draw(st.lists(member, max_size=2))
-            elif target == "features":
-                _mutate_list(
-                    draw,
-                    m.features,
-                    st.builds(
-                        FeatureEstimate, members=st.lists(member, max_size=2), x=floats, y=floats
-                    ),
-                )
-            elif target == "odometry":
-                field = draw(st.sampled_from(["sqrt_information", "delta"]))
-                if field == "delta":
-                    _set_number(draw, m.odometry_factors, "delta", _pose())
+            target = draw(st.sampled_from(["value", "values", "rows", "prior", "header", "kernel"]))
+            name, width, kind = draw(st.sampled_from(FLAT_FIELDS))
+            values = list(getattr(m, name))
+            if target == "value" and values:
+                values[draw(st.integers(0, len(values) - 1))] = draw(_values(kind, stamps))
+            elif target == "values":
+                _mutate_list(draw, values, _values(kind, stamps))
+            elif target == "rows" and values:  # whole rows: the group may still agree
+                rows = len(values) // width
+                i = draw(st.integers(0, rows - 1))
+                row = values[i * width : (i + 1) * width]
+                if draw(st.booleans()):
+                    del values[i * width : (i + 1) * width]
                 else:
-                    _set_number(draw, m.odometry_factors, field, floats)
-            elif target == "odometry_index":
-                _set_number(
-                    draw,
-                    m.odometry_factors,
-                    draw(st.sampled_from(["from_pose", "to_pose"])),
-                    uint32,
-                )
-            elif target == "odometry_factors":
-                _mutate_list(
-                    draw,
-                    m.odometry_factors,
-                    st.builds(OdometryFactor, from_pose=uint32, to_pose=uint32),
-                )
-            elif target == "observation":
-                _set_number(
-                    draw,
-                    m.observation_factors,
-                    draw(st.sampled_from(["x", "y", "sqrt_information"])),
-                    floats,
-                )
-            elif target == "observation_index":
-                _set_number(draw, m.observation_factors, "pose", uint32)
-            elif target == "observation_label":
-                _set_number(draw, m.observation_factors, "label", int64)
-            elif target == "observation_factors":
-                _mutate_list(
-                    draw,
-                    m.observation_factors,
-                    st.builds(ObservationFactor, pose=uint32, label=int64),
-                )
+                    values[i * width : i * width] = row
             elif target == "prior":
-                values = list(m.first_pose_prior_sqrt_information)
-                values[draw(st.integers(0, 8))] = draw(floats)
-                m.first_pose_prior_sqrt_information = values
+                prior = list(m.first_pose_prior_sqrt_information)
+                prior[draw(st.integers(0, 8))] = draw(floats)
+                m.first_pose_prior_sqrt_information = prior
+            elif target == "header":
+                field = draw(
+                    st.sampled_from(
+                        ["session", "sequence", "base_sequence", "observations_before", "robot"]
+                    )
+                )
+                setattr(m, field, draw(names if field == "robot" else uint32))
             elif target == "kernel":
                 m.observation_robust_kernel = draw(st.sampled_from(["", "huber", "cauchy", "x"]))
                 m.observation_robust_parameter = draw(floats)
-            elif target == "robot":
-                m.robot = draw(names)
+            setattr(m, name, values)
         return m
 
     return build()
@@ -350,6 +294,7 @@ class Fuzzer:
         self.harness = harness
         self.callbacks = {s.topic_name: s.callback for s in self.merger.subscriptions}
         self.maps = dict(self.merger.local_maps)
+        self.held = dict(self.merger.held)
         self.logs = dict(self.merger.rendezvous)
         self.stamps = dict(self.merger.local_map_stamps)
         self.result = self.merger.last_result
@@ -357,11 +302,12 @@ class Fuzzer:
 
     def feed(self, topic_robot: str, msg: Any) -> None:
         m = self.merger
-        m.local_maps, m.rendezvous = dict(self.maps), dict(self.logs)
+        m.local_maps, m.rendezvous, m.held = dict(self.maps), dict(self.logs), dict(self.held)
+        m._behind.clear()
         m.local_map_stamps, m.last_result, m.dirty = dict(self.stamps), self.result, False
         m.restarts.clear()
         m.restart_poses_lost.clear()
-        kind = "local_map" if isinstance(msg, LocalMap) else "rendezvous_poses"
+        kind = "local_map_updates" if isinstance(msg, LocalMapUpdate) else "rendezvous_poses"
         dropped = m.drops.total
         self.callbacks[f"/{topic_robot}/{kind}"](msg)
         m.solve_pending()
@@ -391,18 +337,18 @@ def fuzzer(ros_context, spin) -> Iterator[Fuzzer]:
 
 
 GOOD = run_messages()
-ROBOT2_STAMPS = [time_to_ns(t) for t in GOOD.local_maps["robot2"].pose_stamps]
+ROBOT2_STAMPS = list(GOOD.local_maps["robot2"].pose_stamps)
 
 
 @FUZZ
-@given(msg=random_local_maps())
-def test_random_local_maps(fuzzer: Fuzzer, msg: LocalMap) -> None:
+@given(msg=random_map_updates(ROBOT2_STAMPS))
+def test_random_map_updates(fuzzer: Fuzzer, msg: LocalMapUpdate) -> None:
     fuzzer.feed("robot2", msg)
 
 
 @FUZZ
-@given(msg=mutated_local_maps(GOOD.local_maps["robot2"]))
-def test_mutated_local_maps(fuzzer: Fuzzer, msg: LocalMap) -> None:
+@given(msg=mutated_map_updates(GOOD.local_maps["robot2"]))
+def test_mutated_map_updates(fuzzer: Fuzzer, msg: LocalMapUpdate) -> None:
     fuzzer.feed("robot2", msg)
 
 
