@@ -1,17 +1,17 @@
 """Faults on live nodes in the isolated domain: a smoother killed and restarted from its
-checkpoint, a merger killed and restarted (from the latched local maps, and from its saved
-state), checkpoints that cannot be used, and a robot whose clock is offset."""
+checkpoint, a merger killed and restarted (from the smoothers' whole maps sent again on its
+request, and from its saved state), checkpoints that cannot be used, and a robot whose clock
+is offset."""
 
 from __future__ import annotations
 
-import copy
 import signal
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from merger_harness import ROBOTS, MergerHarness, joined_view, run_messages
+from merger_harness import ROBOTS, MergerHarness, Smoothers, joined_view, run_messages
 from node_group import smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -23,6 +23,7 @@ from csam_ros.core.checkpoint import (
     missed_samples,
 )
 from csam_ros.core.log import MultiRobotLog
+from csam_ros.core.map_updates import HeldMap, KeyedMap, MissingBaseError, apply_update
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.run.live import smoother_drops
@@ -42,14 +43,23 @@ def _smoother_messages() -> tuple[list[Any], float]:
 
 
 class SmootherClient:
-    """A node that feeds a smoother process, flushes it and reads what it publishes."""
+    """A node that feeds a smoother process, flushes it and builds the map it sends from its
+    local map updates (asking for the whole map when one does not apply)."""
 
     def __init__(self, context: Any, spin: Any) -> None:
         import rclpy
         from std_srvs.srv import Trigger
 
         from csam_ros.nodes.common import publisher, subscribe
-        from csam_ros.ros.topics import FEATURES, LOCAL_MAP, ODOM, RENDEZVOUS, STATUS
+        from csam_ros.ros.topics import (
+            FEATURES,
+            LOCAL_MAP_UPDATES,
+            ODOM,
+            RENDEZVOUS,
+            RESYNC,
+            STATUS,
+            smoother_service,
+        )
 
         self.spin = spin
         self.node = rclpy.create_node("fault_client", context=context)
@@ -59,13 +69,33 @@ class SmootherClient:
             "/robot1/rendezvous": publisher(self.node, RENDEZVOUS, RENDEZVOUS.of("robot1")),
             "/robot2/rendezvous": publisher(self.node, RENDEZVOUS, RENDEZVOUS.of("robot2")),
         }
-        self.maps: list[Any] = []
+        self.updates: list[Any] = []  # every update message received
+        self.held: HeldMap | None = None  # the map they build
+        self.stamp_ns = -1  # of the last update applied
         self.status: dict[str, str] = {}
-        subscribe(self.node, LOCAL_MAP, self.maps.append, LOCAL_MAP.of("robot1"))
+        subscribe(self.node, LOCAL_MAP_UPDATES, self._on_update, LOCAL_MAP_UPDATES.of("robot1"))
         subscribe(self.node, STATUS, self._on_status)
         self.flush_client = self.node.create_client(Trigger, "/robot1/smoother/flush")
+        self.resync_client = self.node.create_client(Trigger, smoother_service("robot1", RESYNC))
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
+
+    def _on_update(self, msg: Any) -> None:
+        from csam_ros.ros.conversions import time_to_ns
+        from csam_ros.ros.map_messages import map_update_from_message
+
+        self.updates.append(msg)
+        try:
+            self.held = apply_update(self.held, map_update_from_message(msg, "robot1"))
+        except MissingBaseError:
+            return  # the test asks for the whole map
+        self.stamp_ns = time_to_ns(msg.header.stamp)
+
+    def resync(self) -> None:
+        """Ask the smoother for its whole map (the reply is not waited for)."""
+        from std_srvs.srv import Trigger
+
+        self.resync_client.call_async(Trigger.Request())
 
     def _on_status(self, msg: Any) -> None:
         for status in msg.status:
@@ -131,15 +161,13 @@ class SmootherClient:
         self.executor.shutdown()
 
 
-def _without_iterations(msg: Any) -> Any:
-    out = copy.deepcopy(msg)
-    out.iterations = 0
-    return out
+def _keyed_equal(a: KeyedMap, b: KeyedMap) -> None:
+    for name in KeyedMap.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        assert np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y, name
 
 
-def test_a_killed_smoother_resumes_from_its_checkpoint(
-    ros_context, spin, nodes, tmp_path, fields_equal
-) -> None:
+def test_a_killed_smoother_resumes_from_its_checkpoint(ros_context, spin, nodes, tmp_path) -> None:
     messages, t0 = _smoother_messages()
     stamp = [m.stamp_ns / 1e9 - t0 for m in messages]
     before = [m for m, t in zip(messages, stamp, strict=True) if t <= LOST_FROM]
@@ -161,18 +189,27 @@ def test_a_killed_smoother_resumes_from_its_checkpoint(
         first = nodes.start("smoother", *args)
         client.send(before)
         client.flush()
-        killed_map = client.maps[-1]
+        assert client.held is not None
+        killed, killed_ns = client.held, client.stamp_ns
         assert nodes.stop(first, signal.SIGKILL) == -signal.SIGKILL
         saved = SmootherCheckpoint.read(checkpoint, "robot1")
-        assert saved.published_ns == killed_map.header.stamp.sec * 10**9 + (
-            killed_map.header.stamp.nanosec
-        )
+        assert saved.published_ns == killed_ns
 
-        published, old_readers = len(client.maps), client.readers()
+        old_readers = client.readers()
         second = nodes.start("smoother", *args)
-        # the restarted smoother publishes the map it had, before any new data
-        client.wait(lambda: len(client.maps) > published)
-        fields_equal(_without_iterations(killed_map), _without_iterations(client.maps[-1]))
+        # the restarted smoother (a new session) sends the map it had before any new data:
+        # at its start, or again when asked (this reader may not have matched it in time)
+
+        def resumed() -> bool:
+            return client.held is not None and client.held.session != killed.session
+
+        for _ in range(60):
+            if client.spin(client.executor, resumed, 0.5):
+                break
+            client.resync()
+        assert resumed(), "the restarted smoother's map never came"
+        assert client.held is not None
+        _keyed_equal(client.held.map, killed.map)
 
         # the first odometry after the restart, then the rest (it comes again: a duplicate)
         client.send([], old_readers)
@@ -188,19 +225,18 @@ def test_a_killed_smoother_resumes_from_its_checkpoint(
         client.wait(lambda: client.status.get(f"dropped/{LOST_WHILE_DOWN}") == str(lost))
         assert client.status["restarts"] == "1"
         assert float(client.status["lost_seconds"]) == pytest.approx(lost * 0.5, abs=1e-3)
-        final = client.maps[-1]
+        final = client.held.map
         # what it had accepted before the kill is all there
-        old = {(s.sec, s.nanosec) for s in killed_map.pose_stamps}
-        new = {(s.sec, s.nanosec) for s in final.pose_stamps}
-        assert old <= new and final.pose_stamps[0] == killed_map.pose_stamps[0]
-        assert len(final.poses) > len(killed_map.poses)
+        old, new = set(killed.map.pose_stamps.tolist()), set(final.pose_stamps.tolist())
+        assert old <= new and final.pose_stamps[0] == killed.map.pose_stamps[0]
+        assert len(final.pose_stamps) > len(killed.map.pose_stamps)
         # a live run's summary takes each smoother's counts from its checkpoint
         dropped = smoother_drops(["robot1", "robot2"], tmp_path)
         assert list(dropped) == ["robot1"] and dropped["robot1"][LOST_WHILE_DOWN] == lost
         nodes.stop(second)
         print(
             f"smoother killed after {LOST_FROM:g} s, restarted at {LOST_TO:g} s: "
-            f"{len(killed_map.poses)} poses resumed, {lost} odometry samples lost"
+            f"{len(killed.map.pose_stamps)} poses resumed, {lost} odometry samples lost"
         )
     finally:
         client.close()
@@ -271,17 +307,19 @@ def _replace_merger(harness: MergerHarness, context: Any, **parameters: Any) -> 
 
 
 def test_a_killed_merger_republishes_the_joined_map_in_one_solve(ros_context, spin, nodes) -> None:
-    """A merger process killed (SIGKILL) and started again: from the smoothers' latched
-    local maps alone it publishes the same joined map, after one solve."""
+    """A merger process killed (SIGKILL) and started again: from the smoothers' whole local
+    maps, which it asks for, and their latched rendezvous poses alone it publishes the same
+    joined map, after one solve."""
     import rclpy
 
     from csam_ros.nodes.common import publisher, subscribe
-    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP, RENDEZVOUS_POSES, STATUS
+    from csam_ros.ros.topics import JOINED_MAP, RENDEZVOUS_POSES, STATUS
 
     messages = run_messages()
-    node = rclpy.create_node("latched_maps", context=ros_context)
-    for r in ROBOTS:  # held by this node as the smoothers hold them (transient local)
-        publisher(node, LOCAL_MAP, LOCAL_MAP.of(r)).publish(messages.local_maps[r])
+    node = rclpy.create_node("smoothers", context=ros_context)
+    smoothers = Smoothers(node, ROBOTS)  # they send their whole maps when a merger asks
+    for r in ROBOTS:
+        smoothers.whole[r] = messages.local_maps[r]
         publisher(node, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of(r)).publish(messages.rendezvous[r])
     joined: list[Any] = []
     solves: list[str] = []
@@ -299,7 +337,7 @@ def test_a_killed_merger_republishes_the_joined_map_in_one_solve(ros_context, sp
     )
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
-    # the default solve period (0.5 s): maps and rendezvous poses, latched, arrive together
+    # the default solve period (0.5 s): it asks for both maps at once, so they arrive together
     args = ["--ros-args", "-p", "robots:=[robot1,robot2]"]
     try:
         first = nodes.start("merger", *args)
@@ -313,36 +351,10 @@ def test_a_killed_merger_republishes_the_joined_map_in_one_solve(ros_context, sp
         assert spin(executor, lambda: len(solves) > 0, 10)
         assert solves[-1] == "1"
         assert joined_view(joined[-1]) == joined_view(before)
+        assert all(smoothers.resyncs[r] >= 2 for r in ROBOTS)  # one per merger at least
     finally:
         node.destroy_node()
         executor.shutdown()
-
-
-def _messages_until(end: float) -> Any:
-    """map_joining's last smoother messages (as merger_harness.run_messages) with robot2's
-    map and measurements cut at ``end`` s: an earlier moment of the same run."""
-    from log_slices import robot_log_between
-    from merger_harness import STAMP_NS, RunMessages
-
-    from csam_ros.core.csam import robot_map_from_local_map
-    from csam_ros.core.local_map import build_local_map
-    from csam_ros.core.rendezvous import required_stamps
-    from csam_ros.ros.map_messages import rendezvous_poses_message, robot_map_to_message
-
-    logs = dict(simulate(load_scenario("map_joining"), seed=2).robots)
-    logs["robot2"] = robot_log_between(logs["robot2"], end=end)
-    stamps = required_stamps({n: r.rendezvous for n, r in logs.items()})
-    maps, rendezvous = {}, {}
-    for name, log in logs.items():
-        extra = stamps[name][stamps[name] <= log.odometry.stamps[-1]]
-        local = build_local_map(log, extra)
-        m = robot_map_from_local_map(local)
-        maps[name] = robot_map_to_message(
-            m, STAMP_NS, local.pose_covariances(), local.landmark_covariances()
-        )
-        indices = np.unique(local.pose_index(extra))
-        rendezvous[name] = rendezvous_poses_message(m, STAMP_NS, indices, log.rendezvous)
-    return RunMessages(maps, rendezvous, logs)
 
 
 def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
@@ -352,16 +364,16 @@ def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
     takes it up with no smoother left (its joined map comes from the state alone), then both
     whole maps arrive: the joined map equals the one of a merger that never stopped."""
     from csam_ros.nodes.common import publisher
-    from csam_ros.ros.topics import LOCAL_MAP, RENDEZVOUS_POSES
+    from csam_ros.ros.topics import RENDEZVOUS_POSES
 
     state = tmp_path / "merger.npz"
-    early, whole = _messages_until(25.0), run_messages()
+    early, whole = run_messages(end=25.0), run_messages(session=2)
     harness = MergerHarness(ros_context, spin, state_path=str(state))
     try:
         joined = harness.start(early)
         solves = harness.merger.solves
         for r in ROBOTS:  # the smoothers are gone: nothing holds their maps any more
-            harness.injector.destroy_publisher(harness.maps[r])
+            harness.smoothers.destroy(r)
             harness.injector.destroy_publisher(harness.rendezvous[r])
         _replace_merger(harness, ros_context, state_path=str(state))
         published = len(harness.joined)
@@ -371,11 +383,11 @@ def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
         assert joined_view(harness.joined[-1]) == joined_view(joined)
 
         # the smoothers are back with their whole maps: the merger goes on from its state
-        harness.maps = {r: publisher(harness.injector, LOCAL_MAP, LOCAL_MAP.of(r)) for r in ROBOTS}
+        harness.smoothers = Smoothers(harness.injector, ROBOTS)
         harness.rendezvous = {
             r: publisher(harness.injector, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of(r)) for r in ROBOTS
         }
-        poses = len(whole.local_maps["robot2"].poses)
+        poses = len(whole.local_maps["robot2"].pose_stamps)
 
         def robot2_whole() -> bool:
             return any(
@@ -389,7 +401,7 @@ def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
         continued = harness.resolve()
         assert harness.merger.restarts == {}
 
-        # a merger that never stopped, on the same maps
+        # a merger that never stopped, on the same maps (it asks the smoothers for them)
         _replace_merger(harness, ros_context)
         published = len(harness.joined)
         harness.wait(lambda: len(harness.joined) > published)
