@@ -1,4 +1,5 @@
-"""Local maps survive the trip through their messages: the merger sees what the smoother had."""
+"""Local maps and their updates survive the trip through their messages: the merger sees what
+the smoother had."""
 
 from __future__ import annotations
 
@@ -9,12 +10,17 @@ from visualization_msgs.msg import Marker
 from csam_ros.core.csam import join_maps, robot_map_from_local_map
 from csam_ros.core.factors import Cauchy, Huber
 from csam_ros.core.local_map import LocalMapOptions, build_local_map
+from csam_ros.core.map_arrays import robot_map_arrays
+from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
+    LocalMapError,
     joined_map_message,
+    local_map_update_message,
+    map_update_from_message,
     rendezvous_log_from_message,
     rendezvous_poses_message,
     robot_map_from_message,
@@ -111,3 +117,73 @@ def test_joined_map_message_and_markers_carry_the_result(maps_and_logs) -> None:
     assert len(markers[("features/shared", 0)].points) == shared > 0
     assert len(markers[("features/single", 1)].points) == len(result.features) - shared
     assert all(m.header.frame_id == "robot1/map" for m in lines)
+
+
+@pytest.fixture(scope="module")
+def robot2_updates() -> list[MapUpdate]:
+    """robot2's local map at 25 s, then at the end of the run, as one smoother sends them:
+    the whole map, then what changed."""
+    from log_slices import robot_log_between
+
+    log = simulate(load_scenario("map_joining"), seed=2).robots["robot2"]
+    sender = UpdateSender(12345)
+    return [
+        sender.update(robot_map_arrays(robot_map_from_local_map(build_local_map(part))))
+        for part in (robot_log_between(log, end=25.0), log)
+    ]
+
+
+def _assert_updates_equal(a: MapUpdate, b: MapUpdate) -> None:
+    assert (a.session, a.sequence, a.base_sequence, a.observations_before) == (
+        b.session,
+        b.sequence,
+        b.base_sequence,
+        b.observations_before,
+    )
+    for name in KeyedMap.__dataclass_fields__:
+        x, y = getattr(a.changes, name), getattr(b.changes, name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape, name
+            np.testing.assert_array_equal(x, y, err_msg=name)
+        else:
+            assert x == y, name
+
+
+def test_local_map_updates_round_trip_field_for_field(robot2_updates) -> None:
+    whole, changes = robot2_updates
+    assert whole.complete and not changes.complete
+    assert len(changes.changes.pose_stamps) > 0 and changes.base_sequence == whole.sequence
+    assert changes.changes.num_observations > 0
+    for update in (whole, changes):
+        msg = local_map_update_message(update, "robot2", 7_000_000_000, iterations=3)
+        assert msg.header.frame_id == "robot2/map" and msg.iterations == 3
+        assert time_to_ns(msg.header.stamp) == 7_000_000_000
+        _assert_updates_equal(map_update_from_message(msg, "robot2"), update)
+
+
+@pytest.mark.parametrize(
+    ("field", "width"),
+    [
+        ("pose_stamps", 1),
+        ("poses", 3),
+        ("poses", 1),
+        ("feature_labels", 1),
+        ("features", 2),
+        ("features", 1),
+        ("odometry_stamps", 2),
+        ("odometry_stamps", 1),
+        ("odometry_deltas", 3),
+        ("odometry_sqrt_information", 9),
+        ("observation_stamps", 1),
+        ("observation_labels", 1),
+        ("observation_points", 2),
+        ("observation_sqrt_information", 4),
+        ("observation_sqrt_information", 1),
+    ],
+)
+def test_an_update_whose_fields_differ_in_length_is_refused(robot2_updates, field, width) -> None:
+    """One row (or one value: a row cut in two) less in one field of a group."""
+    msg = local_map_update_message(robot2_updates[1], "robot2", 1)
+    setattr(msg, field, list(getattr(msg, field))[:-width])
+    with pytest.raises(LocalMapError, match="robot2: .*(differ in length|per row)"):
+        map_update_from_message(msg, "robot2")
