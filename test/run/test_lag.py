@@ -97,16 +97,16 @@ def test_printouts() -> None:
 
 
 def _write_run_bag(path: Path) -> None:
-    """Local maps of two robots, joined maps and merger status at known log times."""
-    from csam_msgs.msg import BaseNode, JoinedMap, LocalMap
+    """Local map updates of two robots, joined maps and merger status at known log times."""
+    from csam_msgs.msg import BaseNode, JoinedMap, LocalMapUpdate
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
     from csam_ros.bag import BagWriter, msgtype_of
     from csam_ros.ros.conversions import ns_to_time
     from csam_ros.ros.topics import qos_of
 
-    def local_map(robot: str, stamp_s: float) -> LocalMap:
-        m = LocalMap(robot=robot)
+    def local_map(robot: str, stamp_s: float) -> LocalMapUpdate:
+        m = LocalMapUpdate(robot=robot)
         m.header.stamp = ns_to_time(int(stamp_s * SECOND))
         return m
 
@@ -128,13 +128,13 @@ def _write_run_bag(path: Path) -> None:
 
     t0 = 1_700_000_000 * SECOND
     messages = [
-        (0.0, "/robot1/local_map", local_map("robot1", 1.0)),
-        (0.2, "/robot2/local_map", local_map("robot2", 1.0)),
+        (0.0, "/robot1/local_map_updates", local_map("robot1", 1.0)),
+        (0.2, "/robot2/local_map_updates", local_map("robot2", 1.0)),
         (0.5, "/csam/status", status(0, 0.0)),
-        (1.0, "/robot1/local_map", local_map("robot1", 2.0)),
+        (1.0, "/robot1/local_map_updates", local_map("robot1", 2.0)),
         (1.4, "/csam/joined_map", joined({"robot1": 2.0, "robot2": 1.0})),
         (1.5, "/csam/status", status(1, 0.25)),
-        (2.0, "/robot2/local_map", local_map("robot2", 3.0)),  # never included
+        (2.0, "/robot2/local_map_updates", local_map("robot2", 3.0)),  # never included
         (2.5, "/csam/status", status(3, 0.75)),  # two solves, one time
     ]
     with BagWriter(path) as bag:
