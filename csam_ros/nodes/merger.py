@@ -6,7 +6,7 @@ second), or only of those in ``robots`` when that allow-list is set (they are su
 the start). It holds each robot's local map by applying its updates in turn
 (:mod:`csam_ros.core.map_updates`); while it holds none of a robot, and when an update does not
 apply to the one it holds (it missed one, or it restarted), it asks that robot's smoother for
-the whole map (``/<robot>/smoother/resync``, at most every ``RESYNC_RETRY_S`` seconds),
+the whole map (``/<robot>/smoother/resync``; one request at a time, see ``RESYNC_TIMEOUT_S``),
 counted as ``resync_requests`` in ``/csam/status``. The
 reference is ``reference`` (else the first of ``robots``) if it has a map, else the first
 robot heard from; the choice is kept once made and named in ``/csam/status``, the joined map
@@ -101,7 +101,13 @@ from csam_ros.ros.topics import (
 )
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
-RESYNC_RETRY_S = 2.0  # s between requests for a robot's whole local map
+# asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
+# long after it was subscribed to (its first update, whole, usually comes first); a request
+# stands this long before another is made (the whole map may take long on a slow link), and
+# one the smoother could not serve (nothing sent yet) is made again after RESYNC_RETRY_S
+RESYNC_FIRST_S = 3.0
+RESYNC_TIMEOUT_S = 30.0
+RESYNC_RETRY_S = 2.0
 SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for a running solve before leaving it behind
 
 
@@ -202,7 +208,7 @@ class Merger(Node):
         self.resync_requests: dict[str, int] = {}
         self._behind: set[str] = set()  # robots an update of did not apply: resync until one does
         self._resync_clients: dict[str, Any] = {}
-        self._resync_asked: dict[str, float] = {}  # steady clock s of the last request
+        self._resync_next: dict[str, float] = {}  # steady clock s from which to ask again
         self.robots: list[str] = []  # subscribed to, in the order found
         self.heard: list[str] = []  # robots in the order their first local map arrived
         self.reference = ""  # chosen at the first solve, then kept
@@ -309,6 +315,7 @@ class Merger(Node):
             self, LOCAL_MAP_UPDATES, lambda m: self._on_map(robot, m), LOCAL_MAP_UPDATES.of(robot)
         )
         self._resync_clients[robot] = self.create_client(Trigger, smoother_service(robot, RESYNC))
+        self._resync_next[robot] = time.monotonic() + RESYNC_FIRST_S
         subscribe(
             self,
             RENDEZVOUS_POSES,
@@ -356,6 +363,8 @@ class Merger(Node):
             return  # delivered again: nothing to solve
         self.held[robot] = held
         self._behind.discard(robot)
+        if msg.base_sequence == 0:
+            self._resync_next.pop(robot, None)  # a whole map came: a request no longer stands
         try:
             new = checked_robot_map(robot, held.map.arrays())
         except ValueError as error:  # LocalMapError, or a factor at a stamp with no pose
@@ -432,18 +441,25 @@ class Merger(Node):
             self.dirty = True
 
     def _ask_resync(self, robot: str, reason: str) -> None:
-        """Ask ``robot``'s smoother for its whole local map (at most every
-        ``RESYNC_RETRY_S``, once its service is there)."""
+        """Ask ``robot``'s smoother for its whole local map, unless a request stands (see
+        ``RESYNC_TIMEOUT_S``) or its service is not there yet."""
         now = time.monotonic()
         client = self._resync_clients.get(robot)
-        if client is None or now - self._resync_asked.get(robot, -np.inf) < RESYNC_RETRY_S:
+        if client is None or now < self._resync_next.get(robot, 0.0):
             return
         if not client.service_is_ready():
             return
-        self._resync_asked[robot] = now
+        self._resync_next[robot] = now + RESYNC_TIMEOUT_S
         self.resync_requests[robot] = self.resync_requests.get(robot, 0) + 1
         self.get_logger().info(f"{robot}: asking for its whole local map ({reason})")
-        client.call_async(Trigger.Request())
+        future = client.call_async(Trigger.Request())
+        future.add_done_callback(lambda done: self._on_resync_reply(robot, done))
+
+    def _on_resync_reply(self, robot: str, future: Any) -> None:
+        """A smoother that had sent nothing yet is asked again after ``RESYNC_RETRY_S``."""
+        reply = future.result()
+        if reply is not None and not reply.success:
+            self._resync_next[robot] = time.monotonic() + RESYNC_RETRY_S
 
     def on_timer(self) -> None:
         """Wake the solve worker when the inputs changed and it is idle; ask for the maps of
