@@ -134,14 +134,20 @@ class LocalMapConfig:
     )
 
     update_tolerance_m: float = setting(
-        1e-3,
-        "m a pose or feature moves before a smoother sends it again (0: every change)",
+        0.02,
+        "m a pose moves before a smoother sends it again (0: every change)",
         minimum=0.0,
         node=SMOOTHER,
     )
     update_tolerance_rad: float = setting(
-        1e-3,
+        0.02,
         "rad a pose turns before a smoother sends it again (0: every change)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+    update_key_tolerance: float = setting(
+        1e-3,
+        "m (and rad) a feature or rendezvous pose moves before a smoother sends it again",
         minimum=0.0,
         node=SMOOTHER,
     )

@@ -4,7 +4,10 @@ A local map only grows. Poses and features are added; factors are added, and a p
 in the past splits the odometry factor of its interval into two. So against the map its
 receivers hold, a smoother sends (:func:`map_changes`):
 
-- the poses and features that are new or moved beyond a tolerance (:class:`UpdateTolerance`);
+- the poses and features that are new or moved beyond a tolerance (:class:`UpdateTolerance`):
+  a loose one for most poses, which the merger uses only as linearisation points and initial
+  values (it re-solves them), a tight one for the features and the rendezvous poses, whose
+  estimates it takes as the means of its alignment and association;
 - the odometry factors that are new or replaced, keyed by the stamp of their first pose;
 - the observation factors after the ones held.
 
@@ -38,14 +41,16 @@ IntArray = NDArray[np.int64]
 @dataclass(frozen=True)
 class UpdateTolerance:
     """How far an estimate may move before it is sent again: a receiver's copy of every pose
-    and feature is within these bounds of the sender's (exact after an ``exact`` update)."""
+    is within ``position`` and ``heading`` of the sender's, of every key pose (rendezvous) and
+    feature within ``key`` (m and rad); exact after an ``exact`` update."""
 
-    position: float = 1e-3  # m
-    heading: float = 1e-3  # rad
+    position: float = 0.02  # m
+    heading: float = 0.02  # rad
+    key: float = 1e-3  # m and rad
 
     @classmethod
     def exact(cls) -> UpdateTolerance:
-        return cls(0.0, 0.0)
+        return cls(0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,11 +165,13 @@ class MissingBaseError(ValueError):
     """An update on top of one the receiver does not hold: it needs a complete update."""
 
 
-def _within(a: Array, b: Array, tolerance: UpdateTolerance) -> NDArray[np.bool_]:
-    """Row by row: are poses (or points, two columns) ``a`` within ``tolerance`` of ``b``?"""
-    near = np.all(np.abs(a[:, :2] - b[:, :2]) <= tolerance.position, axis=1)
+def _within(
+    a: Array, b: Array, position: float | Array, heading: float | Array = 0.0
+) -> NDArray[np.bool_]:
+    """Row by row: are poses (or points, two columns) ``a`` within the bounds of ``b``?"""
+    near = np.all(np.abs(a[:, :2] - b[:, :2]) <= np.reshape(position, (-1, 1)), axis=1)
     if a.shape[1] == 3:
-        near &= np.abs(se2.wrap_angle(a[:, 2] - b[:, 2])) <= tolerance.heading
+        near &= np.abs(se2.wrap_angle(a[:, 2] - b[:, 2])) <= heading
     return near
 
 
@@ -178,9 +185,15 @@ def _positions(held: IntArray, current: IntArray) -> IntArray | None:
     return order[where] if len(held) else np.zeros(0, dtype=np.int64)
 
 
-def map_changes(held: KeyedMap, current: KeyedMap, tolerance: UpdateTolerance) -> KeyedMap | None:
-    """What ``current`` adds to ``held`` beyond ``tolerance``, or None when ``current`` is not
-    a growth of ``held`` (then only a complete update will do)."""
+def map_changes(
+    held: KeyedMap,
+    current: KeyedMap,
+    tolerance: UpdateTolerance,
+    key_stamps: IntArray | None = None,
+) -> KeyedMap | None:
+    """What ``current`` adds to ``held`` beyond ``tolerance`` (``key_stamps``: the poses held
+    to the key tolerance), or None when ``current`` is not a growth of ``held`` (then only a
+    complete update will do)."""
     if (
         held.robust_kernel != current.robust_kernel
         or held.robust_parameter != current.robust_parameter
@@ -207,10 +220,16 @@ def map_changes(held: KeyedMap, current: KeyedMap, tolerance: UpdateTolerance) -
         if not np.array_equal(getattr(held, name), getattr(current, name)[:k]):
             return None
     send_pose = np.ones(len(current.pose_stamps), dtype=bool)
-    send_pose[poses_at] = ~_within(current.poses[poses_at], held.poses, tolerance)
+    key = np.isin(held.pose_stamps, key_stamps if key_stamps is not None else [])
+    send_pose[poses_at] = ~_within(
+        current.poses[poses_at],
+        held.poses,
+        np.where(key, tolerance.key, tolerance.position),
+        np.where(key, tolerance.key, tolerance.heading),
+    )
     send_feature = np.ones(len(current.feature_labels), dtype=bool)
     send_feature[features_at] = ~_within(
-        current.feature_xy[features_at], held.feature_xy, tolerance
+        current.feature_xy[features_at], held.feature_xy, tolerance.key
     )
     send_factor = np.ones(len(current.odometry_stamps), dtype=bool)
     send_factor[factors_at] = ~(
@@ -325,16 +344,22 @@ class UpdateSender:
         self.complete_updates = 0  # sent as complete maps (the first, resyncs, non-growth)
 
     def update(
-        self, current: LocalMapArrays, exact: bool = False, complete: bool = False
+        self,
+        current: LocalMapArrays,
+        exact: bool = False,
+        complete: bool = False,
+        key_poses: IntArray | None = None,
     ) -> MapUpdate:
-        """The update that brings the receivers to ``current`` (every estimate exactly when
-        ``exact``; the whole map when ``complete``, or when ``current`` is not a growth)."""
+        """The update that brings the receivers to ``current`` (``key_poses``: indices of the
+        poses held to the key tolerance; every estimate exactly when ``exact``; the whole map
+        when ``complete``, or when ``current`` is not a growth)."""
         keyed = KeyedMap.of(current)
         sequence = 1 if self.held is None else self.held.sequence + 1
         changes = None
         if self.held is not None and not complete:
             tolerance = UpdateTolerance.exact() if exact else self.tolerance
-            changes = map_changes(self.held.map, keyed, tolerance)
+            keys = keyed.pose_stamps[key_poses] if key_poses is not None else None
+            changes = map_changes(self.held.map, keyed, tolerance, keys)
         if changes is None:
             update = MapUpdate(self.session, sequence, 0, 0, keyed)
             self.complete_updates += 1

@@ -145,7 +145,11 @@ class Smoother(Node):
         # a new session at every start: a receiver takes up its updates from a whole map
         self.sender = UpdateSender(
             int.from_bytes(os.urandom(4)),
-            UpdateTolerance(local_map.update_tolerance_m, local_map.update_tolerance_rad),
+            UpdateTolerance(
+                local_map.update_tolerance_m,
+                local_map.update_tolerance_rad,
+                local_map.update_key_tolerance,
+            ),
         )
         self.resyncs = 0
         self._rendezvous_sent: tuple | None = None
@@ -323,7 +327,12 @@ class Smoother(Node):
         goes with it (and write the checkpoint, when on)."""
         robot_map = robot_map_from_local_map(self.map)
         stamp_ns = self.last_odometry_ns
-        update = self.sender.update(robot_map_arrays(robot_map), exact=exact)
+        rendezvous, content = self.rendezvous_poses(robot_map, stamp_ns)
+        update = self.sender.update(
+            robot_map_arrays(robot_map),
+            exact=exact,
+            key_poses=np.asarray(rendezvous.pose_indices, dtype=np.int64),
+        )
         self.update_pub.publish(local_map_update_message(update, self.robot, stamp_ns, iterations))
         if self.local_map_pub.get_subscription_count():
             self.local_map_pub.publish(
@@ -335,7 +344,6 @@ class Smoother(Node):
                     iterations,
                 )
             )
-        rendezvous, content = self.rendezvous_poses(robot_map, stamp_ns)
         if exact or content != self._rendezvous_sent:  # its poses are for a look only
             self.rendezvous_pub.publish(rendezvous)
             self._rendezvous_sent = content

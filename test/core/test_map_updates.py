@@ -59,7 +59,7 @@ def assert_same_map(held: LocalMapArrays, sent: LocalMapArrays, tolerance: Updat
     np.testing.assert_allclose(held.stamps, sent.stamps, rtol=0, atol=1e-9)
     assert np.abs(held.poses[:, :2] - sent.poses[:, :2]).max() <= tolerance.position
     assert np.abs(se2.wrap_angle(held.poses[:, 2] - sent.poses[:, 2])).max() <= tolerance.heading
-    assert np.abs(held.feature_xy - sent.feature_xy).max() <= tolerance.position
+    assert np.abs(held.feature_xy - sent.feature_xy).max() <= tolerance.key
     assert (held.robust_kernel, held.cost) == (sent.robust_kernel, sent.cost)
 
 
@@ -68,7 +68,7 @@ def maps() -> list[LocalMapArrays]:
     return growing_maps(late=(3.3337, 12.5))
 
 
-@pytest.mark.parametrize("tolerance", [UpdateTolerance.exact(), UpdateTolerance(1e-3, 1e-3)])
+@pytest.mark.parametrize("tolerance", [UpdateTolerance.exact(), UpdateTolerance()])
 def test_receiver_holds_the_senders_map_after_every_update(maps, tolerance) -> None:
     sender = UpdateSender(session=7, tolerance=tolerance)
     held: HeldMap | None = None
@@ -151,3 +151,18 @@ def test_keyed_map_round_trip(maps) -> None:
     broken = replace(KeyedMap.of(m), observation_stamps=KeyedMap.of(m).observation_stamps + 1)
     with pytest.raises(ValueError, match="observation factor at stamp .* has no pose"):
         broken.arrays()
+
+
+def test_key_poses_and_features_are_held_to_the_key_tolerance(maps) -> None:
+    sender = UpdateSender(session=8, tolerance=UpdateTolerance(position=0.5, heading=0.5, key=1e-4))
+    held: HeldMap | None = None
+    loose = 0.0
+    for current in maps:
+        keys = np.arange(0, len(current.stamps), 3)  # every third pose is a rendezvous pose
+        held = apply_update(held, sender.update(current, key_poses=keys))
+        got = held.map.arrays()
+        moved = np.abs(got.poses[:, :2] - current.poses[:, :2]).max(axis=1)
+        assert moved[keys].max() <= 1e-4 and moved.max() <= 0.5
+        assert np.abs(got.feature_xy - current.feature_xy).max() <= 1e-4
+        loose = max(loose, moved.max())
+    assert loose > 1e-4  # the other poses were held back within the loose bound
