@@ -10,10 +10,11 @@ the serialized ``LocalMapUpdate`` bytes per second of data, per robot by tenth o
 the robot sends the base station, without DDS and IP headers), and the poses per update.
 
 Every ``--every`` s of data (and at the end, before the final exact update) the maps as the
-merger holds them at each tolerance are joined (:func:`~csam_ros.core.csam.join_maps`) and
-compared with the join of the smoothers' own maps at that time: the largest difference of a
-joined feature and of a joined pose, and whether the same robots are aligned and the same
-features associated.
+merger holds them at each tolerance, refined as it refines them
+(:func:`~csam_ros.ros.map_messages.checked_robot_map`), are joined
+(:func:`~csam_ros.core.csam.join_maps`) and compared with the join of the smoothers' own maps
+at that time: the largest difference of a joined feature and of a joined pose, and whether the
+same robots are aligned and the same features associated.
 """
 
 from __future__ import annotations
@@ -32,12 +33,13 @@ import numpy as np  # noqa: E402
 from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map  # noqa: E402
 from csam_ros.core.local_map import LocalMap, LocalMapConfig  # noqa: E402
 from csam_ros.core.log import MultiRobotLog, RendezvousLog  # noqa: E402
-from csam_ros.core.map_arrays import robot_map_arrays, robot_map_from_arrays  # noqa: E402
+from csam_ros.core.map_arrays import robot_map_arrays  # noqa: E402
 from csam_ros.core.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
 from csam_ros.core.rendezvous import required_stamps  # noqa: E402
 from csam_ros.core.result import CsamResult  # noqa: E402
 from csam_ros.core.robust import select_rendezvous, thin_rendezvous  # noqa: E402
 from csam_ros.core.validation import LocalMapArrays  # noqa: E402
+from csam_ros.ros.map_messages import checked_robot_map  # noqa: E402
 
 PARTS = 10
 
@@ -200,7 +202,10 @@ def main() -> None:
         at = f"{times[k]:.0f}" if k < len(times) else "end"
 
         def join(tolerance: float | None, k: int = k) -> CsamResult:
-            maps = [robot_map_from_arrays(n, fed[n].snapshots[k][tolerance]) for n in names]
+            maps = [  # the held maps as the merger takes them (refined)
+                checked_robot_map(n, fed[n].snapshots[k][tolerance], refine=tolerance is not None)
+                for n in names
+            ]
             last = max(m.stamps[-1] for m in maps)
             logs: dict[str, RendezvousLog] = {
                 n: select_rendezvous(kept[n], kept[n].stamps <= last) for n in names

@@ -79,7 +79,7 @@ def snapshots(bag: Path, every: float):
                 held[robot] = apply_update(held.get(robot), update)
             except MissingBaseError:
                 continue  # recorded before the robot's first whole map
-            maps[robot] = checked_robot_map(robot, held[robot].map.arrays())
+            maps[robot] = checked_robot_map(robot, held[robot].map.arrays(), refine=True)
         else:
             rendezvous[robot] = message.message
         pending = True

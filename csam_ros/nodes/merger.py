@@ -366,7 +366,7 @@ class Merger(Node):
         if msg.base_sequence == 0:
             self._resync_next.pop(robot, None)  # a whole map came: a request no longer stands
         try:
-            new = checked_robot_map(robot, held.map.arrays())
+            new = checked_robot_map(robot, held.map.arrays(), refine=True)
         except ValueError as error:  # LocalMapError, or a factor at a stamp with no pose
             self._refuse(
                 robot,

@@ -191,3 +191,16 @@ def recorded_topics(robots: Iterable[str]) -> list[str]:
     """Every topic a live run of these robots records."""
     recorded = [t for t in TOPICS if t.recorded]
     return robot_topics(robots, recorded) + [t.name for t in recorded if not t.per_robot]
+
+
+def base_station_topics(robots: Iterable[str]) -> list[str]:
+    """What the base station records when every robot is on a host of its own: what reaches
+    it anyway (the merger's inputs) and the global topics. Each robot records the rest of its
+    own topics (:func:`robot_host_topics`), so its raw data never crosses its link."""
+    recorded = [t for t in TOPICS if t.recorded]
+    return robot_topics(robots, MERGER_INPUTS) + [t.name for t in recorded if not t.per_robot]
+
+
+def robot_host_topics(robot: str) -> list[str]:
+    """What a robot's own host records: its recorded topics that are not the merger's inputs."""
+    return robot_topics([robot], [t for t in TOPICS if t.recorded and t not in MERGER_INPUTS])

@@ -3,8 +3,10 @@
 Each robot and the base station get a network namespace of their own (a "host"), joined by a
 Linux bridge in a further namespace (the "switch"); nothing is added to the caller's network,
 and deleting the namespaces removes everything. Every robot host runs a simulator of the same
-scenario and seed that publishes only its robot's topics, and the robot's smoother; the base
-station runs the merger, the recorder and the run monitor. Nodes find each other by
+scenario and seed that publishes only its robot's topics, the robot's smoother and a recorder
+of its own topics (``bag_<robot>/``: its raw data never crosses the link); the base station
+runs the merger, the recorder of what reaches it (the merger's inputs and the global topics,
+``bag/``) and the run monitor. Nodes find each other by
 multicast discovery over the subnet on one ROS domain.
 
 Sim time has one source: the first robot's simulator publishes /clock (and the features'
@@ -281,7 +283,13 @@ def _run(
         (run.out_dir / stale).unlink(missing_ok=True)
     # the nodes of a single-host run, each on its host (checkpoints in the run folder here;
     # real hosts keep their own on their disks)
-    group.start("recorder", net.command(BASE, run.recorder_argv()))
+    from csam_ros.ros.topics import base_station_topics, robot_host_topics
+
+    base_topics = base_station_topics(run.robots) + run.extra_topics
+    group.start("recorder", net.command(BASE, run.recorder_argv("bag", base_topics)))
+    for robot in run.robots:  # a robot logs its own data: it never crosses the link
+        argv = run.recorder_argv(f"bag_{robot}", robot_host_topics(robot))
+        group.start(f"recorder_{robot}", net.command(robot, argv))
     group.start("merger", net.command(BASE, run.merger_argv()))
     monitor = [sys.executable, "-m", "csam_ros.run.hosts", "--out", str(run.out_dir)]
     group.start("monitor", net.command(BASE, [*monitor, "--robots", *run.robots]))
@@ -407,7 +415,7 @@ def stop_nodes(group: ProcessGroup, progress: Callable[[str], None]) -> None:
         if name not in group.processes:
             continue
         began = time.monotonic()
-        code = group.stop(name, timeout=20 if name == "recorder" else 10)
+        code = group.stop(name, timeout=20 if name.startswith("recorder") else 10)
         times[name] = (time.monotonic() - began, code)
     running = {n: t for n, (t, _) in times.items()}
     slowest = max(running, key=running.__getitem__)

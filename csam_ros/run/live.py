@@ -60,11 +60,14 @@ class LiveRun:
         parameters resumes from them."""
         return self.out_dir / "state"
 
-    def recorder_argv(self) -> list[str]:
+    def recorder_argv(self, bag: str = "bag", topics: list[str] | None = None) -> list[str]:
+        """A recorder of ``topics`` (default: every recorded topic) to ``bag`` in the run's
+        folder."""
         from csam_ros.ros.topics import recorded_topics
 
-        topics = recorded_topics(self.robots) + self.extra_topics
-        return [executable("recorder"), "-o", str(self.out_dir / "bag"), "--topics", *topics]
+        if topics is None:
+            topics = recorded_topics(self.robots) + self.extra_topics
+        return [executable("recorder"), "-o", str(self.out_dir / bag), "--topics", *topics]
 
     def merger_argv(self) -> list[str]:
         params = {
