@@ -30,14 +30,19 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map  # noqa: E402
+from csam_ros.core.csam import (  # noqa: E402
+    CsamConfig,
+    join_maps,
+    robot_map_from_local_map,
+    thinned_rendezvous,
+)
 from csam_ros.core.local_map import LocalMap, LocalMapConfig  # noqa: E402
 from csam_ros.core.log import MultiRobotLog, RendezvousLog  # noqa: E402
 from csam_ros.core.map_arrays import robot_map_arrays  # noqa: E402
 from csam_ros.core.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
 from csam_ros.core.rendezvous import required_stamps  # noqa: E402
 from csam_ros.core.result import CsamResult  # noqa: E402
-from csam_ros.core.robust import select_rendezvous, thin_rendezvous  # noqa: E402
+from csam_ros.core.robust import select_rendezvous  # noqa: E402
 from csam_ros.core.validation import LocalMapArrays  # noqa: E402
 from csam_ros.ros.map_messages import checked_robot_map  # noqa: E402
 
@@ -162,12 +167,7 @@ def main() -> None:
     t0 = time.perf_counter()
     log = read_log(args.bag)
     names = list(log.robots)
-    thinning = config.thinning()
-    kept, _ = thin_rendezvous(
-        {n: r.rendezvous for n, r in log.robots.items()},
-        thinning.min_interval,
-        thinning.max_per_pair,
-    )
+    kept, _ = thinned_rendezvous(log, config)
     stamps = required_stamps(kept)
     duration = max(float(r.odometry.stamps[-1] - r.odometry.stamps[0]) for r in log.robots.values())
     times = np.arange(args.every, duration, args.every)

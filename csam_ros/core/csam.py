@@ -608,6 +608,19 @@ class RobotMaps:
     seconds: float  # building time
 
 
+def thinned_rendezvous(
+    log: MultiRobotLog, config: CsamConfig
+) -> tuple[dict[str, RendezvousLog], FilterReport]:
+    """Every robot's rendezvous measurements as its smoother keeps them (``config``'s
+    thinning), and what the thinning left out."""
+    thinning = config.thinning()
+    return thin_rendezvous(
+        {n: r.rendezvous for n, r in log.robots.items()},
+        thinning.min_interval,
+        thinning.max_per_pair,
+    )
+
+
 def build_robot_maps(
     log: MultiRobotLog,
     config: CsamConfig | None = None,
@@ -621,12 +634,7 @@ def build_robot_maps(
     config = config or CsamConfig()
     local_map = local_map or LocalMapConfig()
     start = time.perf_counter()
-    thinning = config.thinning()
-    logs, thinned = thin_rendezvous(
-        {n: r.rendezvous for n, r in log.robots.items()},
-        thinning.min_interval,
-        thinning.max_per_pair,
-    )
+    logs, thinned = thinned_rendezvous(log, config)
     stamps = required_stamps(logs)
     maps: list[RobotMap] = []
     left_out: list[str] = []
