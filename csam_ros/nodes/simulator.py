@@ -106,6 +106,16 @@ class Simulator(Node):
             "publish /clock and the features' truth: one simulator per run does, the run's "
             "single source of sim time",
         )
+        self.clock_period = declare(
+            self,
+            "clock_period",
+            0.01,
+            "wall-clock s between /clock messages (longer on slow links: every node of every "
+            "host gets each one)",
+            0.001,
+            1.0,
+        )
+        self._clock_sent = float("-inf")
         scenario = load_scenario(scenario_name)
         names = [r.name for r in scenario.robots]
         unknown = sorted(set(emit) - set(names))
@@ -173,10 +183,14 @@ class Simulator(Node):
             self.next_index += 1
             published += 1
         now_ns = self.messages[self.next_index - 1].stamp_ns if self.next_index else horizon
-        if self.clock is not None:
+        done = self.next_index == len(self.messages)
+        if self.clock is not None and (
+            done or time.monotonic() - self._clock_sent >= self.clock_period
+        ):
             now = min(max(now_ns, horizon), self.end_stamp_ns)
             self.clock.publish(Clock(clock=ns_to_time(now)))
-        if self.next_index == len(self.messages):
+            self._clock_sent = time.monotonic()
+        if done:
             self.timer.cancel()
             self.get_logger().info("all messages published")
             if self.exit_when_done:
