@@ -1,7 +1,7 @@
 """What a run's topics carried: bytes per robot, per topic and per tenth of the run, from a bag.
 
 The bytes are the serialized (CDR) messages as recorded, without the DDS and UDP/IP headers
-around them. What a robot sends to the base station is its ``local_map`` and
+around them. What a robot sends to the base station is its ``local_map_updates`` and
 ``rendezvous_poses`` (the merger's inputs, :data:`~csam_ros.ros.topics.MERGER_INPUTS`); every
 subscriber at the base (merger, recorder) receives its own copy.
 """
