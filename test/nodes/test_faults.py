@@ -233,7 +233,9 @@ def test_a_killed_smoother_resumes_from_its_checkpoint(ros_context, spin, nodes,
         # a live run's summary takes each smoother's counts from its checkpoint
         dropped = smoother_drops(["robot1", "robot2"], tmp_path)
         assert list(dropped) == ["robot1"] and dropped["robot1"][LOST_WHILE_DOWN] == lost
-        nodes.stop(second)
+        # its checkpoint is what matters here (stopping on SIGINT is tested with the hosts);
+        # under the whole suite's load this SIGINT once took longer than the 20 s wait
+        nodes.stop(second, signal.SIGKILL)
         print(
             f"smoother killed after {LOST_FROM:g} s, restarted at {LOST_TO:g} s: "
             f"{len(killed.map.pose_stamps)} poses resumed, {lost} odometry samples lost"
