@@ -30,7 +30,7 @@ from csam_ros.core.joining import RobotMap  # noqa: E402
 from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update  # noqa: E402
 from csam_ros.core.result import CsamResult  # noqa: E402
 from csam_ros.ros.map_messages import (  # noqa: E402
-    checked_robot_map,
+    held_robot_map,
     map_update_from_message,
     rendezvous_log_from_message,
 )
@@ -79,7 +79,7 @@ def snapshots(bag: Path, every: float):
                 held[robot] = apply_update(held.get(robot), update)
             except MissingBaseError:
                 continue  # recorded before the robot's first whole map
-            maps[robot] = checked_robot_map(robot, held[robot].map.arrays(), refine=True)
+            maps[robot] = held_robot_map(robot, held[robot])
         else:
             rendezvous[robot] = message.message
         pending = True

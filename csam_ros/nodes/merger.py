@@ -83,7 +83,7 @@ from csam_ros.ros.conversions import tf_message, time_to_ns
 from csam_ros.ros.map_messages import (
     LocalMapError,
     RefusedMessageError,
-    checked_robot_map,
+    held_robot_map,
     joined_map_message,
     map_update_from_message,
     rendezvous_log_from_message,
@@ -366,13 +366,9 @@ class Merger(Node):
         if msg.base_sequence == 0:
             self._resync_next.pop(robot, None)  # a whole map came: a request no longer stands
         try:
-            new = checked_robot_map(robot, held.map.arrays(), refine=True)
-        except ValueError as error:  # LocalMapError, or a factor at a stamp with no pose
-            self._refuse(
-                robot,
-                "local map update",
-                error if isinstance(error, LocalMapError) else LocalMapError(f"{robot}: {error}"),
-            )
+            new = held_robot_map(robot, held)
+        except RefusedMessageError as error:
+            self._refuse(robot, "local map update", error)
             return
         with self._lock:
             old = self.local_maps.get(robot)

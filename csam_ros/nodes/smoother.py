@@ -8,8 +8,9 @@ through ``~/flush`` (std_srvs/Trigger; the reply's message is the published loca
 nanoseconds), it publishes:
 
 - ``local_map_updates``: what changed in the local map since the last update
-  (:mod:`csam_ros.core.map_updates`; estimates that moved beyond ``update_tolerance_m`` and
-  ``update_tolerance_rad``, every one exactly after ``~/flush``). The first update of a run is
+  (:mod:`csam_ros.core.map_updates`; poses that moved beyond ``update_tolerance_m`` or
+  ``update_tolerance_rad``, features and rendezvous poses beyond ``update_key_tolerance``,
+  every one exactly after ``~/flush``). The first update of a run is
   the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
   for a receiver that missed one;
 - ``rendezvous_poses`` when its measurements changed (latched);

@@ -38,7 +38,7 @@ from csam_ros.core.joining import RobotMap
 from csam_ros.core.local_map import LocalMapOptions
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.map_arrays import robot_map_from_arrays
-from csam_ros.core.map_updates import KeyedMap, MapUpdate
+from csam_ros.core.map_updates import HeldMap, KeyedMap, MapUpdate
 from csam_ros.core.result import CsamResult
 from csam_ros.core.solver import SingularProblemError
 from csam_ros.core.validation import (
@@ -244,14 +244,25 @@ def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -
             system = problem.normal_equations()
             system.linearize(problem.values)
             system.check_blocks()
-            system.factorize(0.0)
-            if refine:
+            if refine:  # its first step factors at the estimate
                 problem.solve(REFINE)
+            else:
+                system.factorize(0.0)
         except (FloatingPointError, SingularProblemError, np.linalg.LinAlgError) as error:
             raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
     if not np.isfinite(problem.values).all():
         raise LocalMapError(f"{name}: its estimate refined is not finite")
     return robot_map
+
+
+def held_robot_map(name: str, held: HeldMap) -> RobotMap:
+    """The local problem of a map built from updates, refined to its sender's optimum
+    (:func:`checked_robot_map`); :class:`LocalMapError` when it is not usable."""
+    try:
+        arrays = held.map.arrays()
+    except ValueError as error:  # a factor at a stamp with no pose
+        raise LocalMapError(f"{name}: {error}") from None
+    return checked_robot_map(name, arrays, refine=True)
 
 
 def _numbers(values: np.ndarray, typecode: str) -> array.array:
