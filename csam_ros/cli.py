@@ -199,11 +199,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from csam_ros.run.hosts import HostsError, Links, missing_requirements, run_hosts
     from csam_ros.run.live import run_live
 
-    if (args.loss or args.link_rate or args.cut) and not args.hosts:
-        raise CliError("--loss, --link-rate and --cut need --hosts (links between hosts)")
+    if (args.loss or args.link_rate or args.base_link_rate or args.cut) and not args.hosts:
+        raise CliError(
+            "--loss, --link-rate, --base-link-rate and --cut need --hosts (links between hosts)"
+        )
     if args.hosts:
         try:
-            links = Links(args.loss, args.link_rate, _link_cut(args.cut))
+            links = Links(args.loss, args.link_rate, _link_cut(args.cut), args.base_link_rate)
         except ValueError as err:
             raise CliError(f"--hosts: {err}") from None
         if (reason := missing_requirements(links)) is not None:
@@ -640,6 +642,14 @@ def parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="KBIT_S",
         help="with --hosts: each host's link carries at most this many kbit/s each way",
+    )
+    demo.add_argument(
+        "--base-link-rate",
+        type=float,
+        default=0.0,
+        metavar="KBIT_S",
+        help="with --hosts: the base station's link (the one every robot's data shares) "
+        "carries at most this many kbit/s each way, whatever --link-rate gives the others",
     )
     demo.add_argument(
         "--cut",

@@ -20,7 +20,8 @@ joined map of those final local maps, and writes what it saw to ``hosts.json``.
 Link faults (:class:`Links`): every IP packet a host receives over its link is dropped with
 probability ``loss`` (iptables' ``statistic`` match in the raw table, before reassembly, so a
 lost fragment is lost alone, as on a radio link); ``kbit_s`` caps each link's rate both ways
-(a token bucket, ``tc qdisc tbf``, with 400 ms of queue); ``cut`` takes one host's link
+(a token bucket, ``tc qdisc tbf``, with 400 ms of queue), ``base_kbit_s`` the base station's
+link alone (the one link every robot's data shares); ``cut`` takes one host's link
 down (its bridge port) over a window of the run and restores it: what it sends meanwhile is
 lost without an error, as out of radio range. In simulation the cut host also loses /clock,
 so its nodes pause until the link returns (real robots keep their own clocks). Needs root,
@@ -79,17 +80,27 @@ class Links:
     kbit_s: float = 0.0  # rate limit each way (0: none)
     # (host, start, end): that host's link cut from start to end s after the data starts
     cut: tuple[str, float, float] | None = None
+    # the base station's link alone (0: kbit_s): the link all the robots' data shares
+    base_kbit_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.loss < 1.0:
             raise ValueError(f"loss must be in [0, 1), got {self.loss}")
         if not self.kbit_s >= 0:
             raise ValueError(f"the link rate must be >= 0 kbit/s, got {self.kbit_s}")
+        if not self.base_kbit_s >= 0:
+            raise ValueError(f"the base link rate must be >= 0 kbit/s, got {self.base_kbit_s}")
         if self.cut is not None and not 0 <= self.cut[1] < self.cut[2]:
             raise ValueError(f"a link cut needs 0 <= start < end, got {self.cut[1:]}")
 
+    def rate_of(self, host: str) -> float:
+        """The rate limit of ``host``'s link in kbit/s each way (0: none)."""
+        return self.base_kbit_s if host == BASE and self.base_kbit_s else self.kbit_s
+
     def __str__(self) -> str:
         rate = f", {self.kbit_s:g} kbit/s each way" if self.kbit_s else ""
+        if self.base_kbit_s:
+            rate += f", the base station's link {self.base_kbit_s:g} kbit/s each way"
         cut = ""
         if self.cut is not None:
             host, start, end = self.cut
@@ -105,7 +116,7 @@ def missing_requirements(links: Links = Links()) -> str | None:
         return "no `ip` command (iproute2)"
     if links.loss > 0 and shutil.which("iptables") is None:
         return "no `iptables` command for the link loss (Debian: apt-get install iptables)"
-    if links.kbit_s > 0 and shutil.which("tc") is None:
+    if (links.kbit_s > 0 or links.base_kbit_s > 0) and shutil.which("tc") is None:
         return "no `tc` command for the link rate (iproute2)"
     return None
 
@@ -202,12 +213,12 @@ def _connect(net: Network) -> None:
                 *("-m", "statistic", "--mode", "random", "--probability", f"{net.links.loss:.4f}"),
                 *("-j", "DROP"),
             )
-        if net.links.kbit_s > 0:  # both ways: the host's sending side and the switch's port
+        if (rate := net.links.rate_of(host)) > 0:  # both ways: the host's side and its port
             for namespace, device in ((name, "eth0"), (net.switch, port)):
                 _in(
                     namespace,
                     *("tc", "qdisc", "add", "dev", device, "root", "tbf"),
-                    *("rate", f"{net.links.kbit_s:g}kbit", "burst", "4kb", "latency", "400ms"),
+                    *("rate", f"{rate:g}kbit", "burst", "4kb", "latency", "400ms"),
                 )
 
 

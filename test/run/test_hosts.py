@@ -22,11 +22,13 @@ from csam_ros.core.result import CsamResult, RunSummary
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.run.hosts import (
+    BASE,
     MONITOR_RESULT,
     PREFIX,
     Links,
     MonitorReport,
     missing_requirements,
+    network,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -174,11 +176,12 @@ def test_lossy_links_keep_the_joined_map_coming(
 @pytest.mark.parametrize(
     ("args", "error"),
     [
-        (["--loss", "0.1"], "--loss, --link-rate and --cut need --hosts"),
+        (["--loss", "0.1"], "--loss, --link-rate, --base-link-rate and --cut need --hosts"),
         (["--hosts", "--cut", "robot2:5"], "--hosts: --cut: expected ROBOT:START-END"),
         (["--hosts", "--cut", "robot2:9-3"], "--hosts: a link cut needs 0 <= start < end"),
         (["--hosts", "--loss", "1.5"], "--hosts: loss must be in [0, 1), got 1.5"),
         (["--hosts", "--link-rate", "-3"], "--hosts: the link rate must be >= 0 kbit/s"),
+        (["--hosts", "--base-link-rate", "-3"], "--hosts: the base link rate must be >= 0"),
     ],
 )
 def test_bad_link_options_give_one_line_errors(args: list[str], error: str, tmp_path: Path) -> None:
@@ -194,6 +197,36 @@ def test_bad_link_options_give_one_line_errors(args: list[str], error: str, tmp_
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"csam demo: {error}"), result.stderr
     assert not out.exists()  # refused before anything was made
+
+
+@pytest.mark.skipif(
+    missing_requirements(Links(base_kbit_s=256)) is not None,
+    reason=f"multi-host runs: {missing_requirements(Links(base_kbit_s=256))}",
+)
+def test_the_base_link_rate_caps_only_the_base_stations_link() -> None:
+    def rate(namespace: str, device: str) -> str:
+        shown = subprocess.run(
+            ["ip", "netns", "exec", namespace, "tc", "qdisc", "show", "dev", device],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        return shown.split(" rate ")[1].split()[0] if " tbf " in shown else "none"
+
+    with network(["robot1", "robot2", BASE], Links(kbit_s=1000, base_kbit_s=256)) as net:
+        caps = {
+            host: (rate(net.namespaces[host], "eth0"), rate(net.switch, net.ports[host]))
+            for host in net.hosts
+        }
+    assert caps == {
+        "robot1": ("1Mbit", "1Mbit"),
+        "robot2": ("1Mbit", "1Mbit"),
+        BASE: ("256Kbit", "256Kbit"),
+    }
+    with network(["robot1", BASE], Links(base_kbit_s=256)) as net:
+        assert rate(net.namespaces["robot1"], "eth0") == "none"
+        assert rate(net.switch, net.ports["robot1"]) == "none"
+        assert rate(net.namespaces[BASE], "eth0") == "256Kbit"
 
 
 @needs_hosts
