@@ -24,6 +24,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -263,32 +264,63 @@ def heading_sigmas(
 
 
 def _unit_lower_inverse(strict: Array, w: int, rows: IntArray, cols: IntArray) -> Array:
-    """Inverse of the unit lower triangular ``w x w`` matrix with strict part ``strict``
-    (entries at ``rows, cols``); closed form up to 3 x 3 (poses), LAPACK beyond."""
-    if w == 1:
-        return np.ones((1, 1))
+    """Inverses (k, w, w) of unit lower triangular ``w x w`` matrices with strict parts
+    ``strict`` (k, w (w - 1) / 2) at ``rows, cols``; closed form up to 3 x 3 (poses)."""
+    k = len(strict)
+    out = np.zeros((k, w, w))
+    diagonal = np.arange(w)
+    out[:, diagonal, diagonal] = 1.0
     if w == 2:
-        return np.array([[1.0, 0.0], [-strict[0], 1.0]])
-    if w == 3:
-        l10, l20, l21 = strict  # tril_indices order: (1,0), (2,0), (2,1)
-        return np.array([[1.0, 0.0, 0.0], [-l10, 1.0, 0.0], [l10 * l21 - l20, -l21, 1.0]])
-    lower = np.eye(w)
-    lower[rows, cols] = strict
-    return np.linalg.inv(lower)
+        out[:, 1, 0] = -strict[:, 0]
+    elif w == 3:
+        l10, l20, l21 = strict.T  # tril_indices order: (1,0), (2,0), (2,1)
+        out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = -l10, l10 * l21 - l20, -l21
+    elif w > 3:
+        out[:, rows, cols] = strict
+        out = np.linalg.inv(out)
+    return out
+
+
+@cache
+def _tril(w: int) -> tuple[IntArray, IntArray]:
+    """Rows and columns of the strict lower triangle of a ``w x w`` matrix."""
+    return np.tril_indices(w, -1)
+
+
+def _supernodes(indptr: IntArray, indices: IntArray, n: int) -> tuple[IntArray, IntArray, IntArray]:
+    """The fundamental supernodes of a sorted CSC strict lower factor: their first and last
+    columns, and each one's depth in the supernodal elimination tree (roots 0)."""
+    counts = np.diff(indptr)
+    first = np.full(n, -1, dtype=np.int64)
+    first[counts > 0] = indices[indptr[:-1][counts > 0]]
+    merges = np.zeros(n, dtype=bool)  # column j is in the supernode of column j + 1
+    merges[:-1] = (first[:-1] == np.arange(1, n)) & (counts[:-1] == counts[1:] + 1)
+    ends = np.flatnonzero(np.r_[~merges[:-1], True])
+    begins = np.r_[0, ends[:-1] + 1]
+    supernode_of = np.repeat(np.arange(len(ends)), ends - begins + 1)
+    # the parent holds the first row below the supernode; it comes later in the order
+    parent = np.where(counts[ends] > 0, supernode_of[np.maximum(first[ends], 0)], -1).tolist()
+    depth = [0] * len(ends)
+    for s in range(len(ends) - 1, -1, -1):
+        if parent[s] >= 0:
+            depth[s] = depth[parent[s]] + 1
+    return begins, ends, np.asarray(depth, dtype=np.int64)
 
 
 class SelectedInverse:
     """Entries of ``(A^T A)^-1`` on the sparsity pattern of its factor (Takahashi et al.).
 
     With ``P (A^T A) P^T = L D L^T`` (the solver's qdldl factorisation at the estimate) the
-    inverse ``Z`` is computed on the (filled) pattern of ``L`` from the last column to the
-    first, one supernode at a time (consecutive columns ``J`` sharing their rows ``S`` below,
-    e.g. the components of one pose): with ``U = L_SJ L_JJ^-1``,
+    inverse ``Z`` is computed on the (filled) pattern of ``L`` one supernode at a time
+    (consecutive columns ``J`` sharing their rows ``S`` below, e.g. the components of one
+    pose): with ``U = L_SJ L_JJ^-1``,
 
         Z_SJ = -Z_SS U,        Z_JJ = L_JJ^-T D_J^-1 L_JJ^-1 - U^T Z_SJ,
 
-    where ``Z_SS`` lies on the pattern already computed (``S`` is a clique of the filled
-    graph). This gives every marginal covariance block of single variables, and of variables
+    where ``Z_SS`` lies on the pattern already computed: ``S`` is a clique of the filled
+    graph, of ancestors in the elimination tree. So the supernodes of one depth in the tree
+    are independent, and are computed together, in stacks of equal shape, from the root
+    down. This gives every marginal covariance block of single variables, and of variables
     that share a factor, in time linear in the size of the factor, instead of one triangular
     solve per wanted column.
     """
@@ -312,47 +344,40 @@ class SelectedInverse:
         self._keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
         values = np.zeros(len(data))
         diag = np.zeros(n)
-        counts = np.diff(indptr)
-        first = np.full(n, -1, dtype=np.int64)
-        first[counts > 0] = indices[indptr[:-1][counts > 0]]
-        merges = np.zeros(n, dtype=bool)  # column j is in the supernode of column j + 1
-        merges[:-1] = (first[:-1] == np.arange(1, n)) & (counts[:-1] == counts[1:] + 1)
-        ends = np.flatnonzero(np.r_[~merges[:-1], True])  # last column of each supernode
-        begins = np.r_[0, ends[:-1] + 1]
-        upper: dict[int, tuple[IntArray, IntArray, IntArray]] = {}
-        lower_jj: dict[int, tuple[IntArray, IntArray, IntArray]] = {}
-        for c, e in zip(begins[::-1].tolist(), ends[::-1].tolist(), strict=True):
-            w = e - c + 1
-            below = indices[indptr[e] : indptr[e + 1]]
-            ms = len(below)
-            if w not in lower_jj:
-                jj_i, jj_j = np.tril_indices(w, -1)
-                lower_jj[w] = (jj_i, jj_j, jj_i - jj_j - 1)
-            jj_i, jj_j, jj_off = lower_jj[w]
-            # positions in ``data`` of L_SJ (ms, w) and of the strict lower part of L_JJ
-            col_start = indptr[c : e + 1]
-            pos_jj = col_start[jj_j] + jj_off
+        begins, ends, depth = _supernodes(indptr, indices, n)
+        widths = ends - begins + 1
+        below_counts = indptr[ends + 1] - indptr[ends]
+        order = np.lexsort((below_counts, widths, depth))
+        key = np.stack([depth, widths, below_counts])[:, order]
+        cuts = np.flatnonzero(np.any(np.diff(key, axis=1) != 0, axis=0)) + 1
+        for group in np.split(order, cuts):
+            w, ms = int(widths[group[0]]), int(below_counts[group[0]])
+            c, e = begins[group], ends[group]
+            jj_i, jj_j = _tril(w)
+            columns = c[:, None] + np.arange(w)  # (k, w)
+            col_start = indptr[columns]
+            pos_jj = col_start[:, jj_j] + (jj_i - jj_j - 1)
             inv_l = _unit_lower_inverse(data[pos_jj], w, jj_i, jj_j)
-            z_jj = inv_l.T @ (inv_l / d[c : e + 1, None])
+            z_jj = inv_l.transpose(0, 2, 1) @ (inv_l / d[columns][:, :, None])
             if ms:
-                if ms not in upper:
-                    ia, ib = np.triu_indices(ms, 1)
-                    upper[ms] = (ia, ib, np.arange(ms))
-                ia, ib, every = upper[ms]
-                z_ss = np.empty((ms, ms))
+                below = indices[indptr[e][:, None] + np.arange(ms)]  # (k, ms), ascending
+                z_ss = np.zeros((len(group), ms, ms))
+                ia, ib = _tril(ms)[::-1]  # upper: row below[ia] < column below[ib]
                 if len(ia):
-                    found = values[np.searchsorted(self._keys, below[ia] * n + below[ib])]
-                    z_ss[ia, ib] = found
-                    z_ss[ib, ia] = found
-                z_ss[every, every] = diag[below]
-                pos_s = (col_start + np.arange(e - c, -1, -1))[None, :] + every[:, None]
+                    found = values[np.searchsorted(self._keys, below[:, ia] * n + below[:, ib])]
+                    z_ss[:, ia, ib] = found
+                    z_ss[:, ib, ia] = found
+                every = np.arange(ms)
+                z_ss[:, every, every] = diag[below]
+                # L_SJ: column j's rows below the supernode start e - j entries into it
+                pos_s = (col_start + (e[:, None] - columns))[:, None, :] + every[:, None]
                 u = data[pos_s] @ inv_l
                 z_sj = -(z_ss @ u)
-                z_jj -= u.T @ z_sj
+                z_jj -= u.transpose(0, 2, 1) @ z_sj
                 values[pos_s] = z_sj
             if w > 1:
-                values[pos_jj] = z_jj[jj_i, jj_j]
-            diag[c : e + 1] = z_jj.diagonal()
+                values[pos_jj] = z_jj[:, jj_i, jj_j]
+            diag[columns] = np.diagonal(z_jj, axis1=1, axis2=2)
         self._values = values
         self._diag = diag
 
