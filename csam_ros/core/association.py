@@ -50,7 +50,6 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -292,6 +291,7 @@ def _candidates(
 
 def _assign(ia: IntArray, ic: IntArray, d: Array, gate: float) -> NDArray[np.bool_]:
     """Unique matches maximising ``sum(gate - D)``, per connected component of candidates."""
+    from scipy.optimize import linear_sum_assignment  # on use: scipy.optimize loads slowly
     keep = np.zeros(len(d), dtype=bool)
     if len(d) == 0:
         return keep

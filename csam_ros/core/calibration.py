@@ -43,10 +43,9 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.optimize import minimize
-from scipy.stats import chi2
 
 from csam_ros.core import se2
+from csam_ros.core.consistency import chi2_quantile
 from csam_ros.core.covariance import factorize_at_estimate
 from csam_ros.core.factors import POINT, POSE, Cauchy, PointObservation, PointPrior, RelativePose
 from csam_ros.core.log import GroundTruth, MultiRobotLog, OdometryLog, RobotLog
@@ -461,6 +460,7 @@ def _fit_densities(
     e: FloatArray, a_terms: FloatArray, c: FloatArray
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """ML densities ``q``, refitted twice without pairs beyond the chi-square(3) 99.9% gate."""
+    from scipy.optimize import minimize  # on use: scipy.optimize loads slowly
 
     def covariance(q: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
         return np.einsum("k,nkij->nij", q**2, a_terms[use]) + c[use]
@@ -485,7 +485,7 @@ def _fit_densities(
         everything = np.ones_like(use)
         sigma = covariance(q, everything)
         maha = np.einsum("ni,ni->n", e, np.linalg.solve(sigma, e[..., None])[..., 0])
-        use = maha < chi2.ppf(0.999, 3)
+        use = maha < chi2_quantile(0.999, 3)
     return np.maximum(q, DENSITY_FLOOR), use
 
 
@@ -714,6 +714,7 @@ def _fit_range_sigma(
 ) -> tuple[float, float]:
     """Maximum likelihood of ``sigma(r) = a + b r`` (``a > 0``, ``b >= 0``) from expected
     squared residuals."""
+    from scipy.optimize import minimize  # on use: scipy.optimize loads slowly
 
     floor = 1e-3  # m: keeps a > 0 when the data favour a purely proportional model
 
@@ -758,6 +759,7 @@ def em_noise(
     densities maximise the expected log-likelihood of the odometry factors. Stops when no
     value changes by more than ``tolerance`` (relative) in a round.
     """
+    from scipy.optimize import minimize  # on use: scipy.optimize loads slowly
     assert log.truth is not None
     history = []
     for _ in range(rounds):
