@@ -292,6 +292,7 @@ def _candidates(
 def _assign(ia: IntArray, ic: IntArray, d: Array, gate: float) -> NDArray[np.bool_]:
     """Unique matches maximising ``sum(gate - D)``, per connected component of candidates."""
     from scipy.optimize import linear_sum_assignment  # on use: scipy.optimize loads slowly
+
     keep = np.zeros(len(d), dtype=bool)
     if len(d) == 0:
         return keep

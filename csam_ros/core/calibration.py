@@ -760,6 +760,7 @@ def em_noise(
     value changes by more than ``tolerance`` (relative) in a round.
     """
     from scipy.optimize import minimize  # on use: scipy.optimize loads slowly
+
     assert log.truth is not None
     history = []
     for _ in range(rounds):

@@ -21,6 +21,7 @@ Conventions (SI units, radians, body frame x forward, y left):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -153,10 +154,15 @@ def correlations_valid(correlations: FloatArray) -> NDArray[np.bool_]:
     """Which rows of correlations ``(N, 3)`` give a positive definite input covariance (for
     any positive sigmas): finite, and every leading minor of the correlation matrix positive."""
     c = np.asarray(correlations, dtype=float).reshape(-1, 3)
-    a, b, d = c[:, 0], c[:, 1], c[:, 2]
     with np.errstate(invalid="ignore", over="ignore"):
-        det = 1.0 + 2.0 * a * b * d - a * a - b * b - d * d
-        return np.isfinite(c).all(axis=1) & (1.0 - a * a > 0) & (det > 0)
+        first, det = correlation_minors(c[:, 0], c[:, 1], c[:, 2])
+        return np.isfinite(c).all(axis=1) & (first > 0) & (det > 0)
+
+
+def correlation_minors(a: Any, b: Any, d: Any) -> tuple[Any, Any]:
+    """The second and third leading minors of the correlation matrix with correlations
+    ``a, b, d`` (CORRELATION_PAIRS order), floats or arrays alike."""
+    return 1.0 - a * a, 1.0 + 2.0 * a * b * d - a * a - b * b - d * d
 
 
 def empty_rendezvous() -> RendezvousLog:

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 from csam_ros.core.config_file import from_mapping, setting
 from csam_ros.core.factors import singular_sqrt_information
 from csam_ros.core.local_map import SMOOTHER
-from csam_ros.core.log import correlations_valid
+from csam_ros.core.log import correlation_minors
 
 # Reasons, as they appear in /csam/status and summary.json.
 NOT_FINITE = "not_finite"
@@ -284,10 +284,11 @@ def odometry_fault(inputs: ArrayLike, sigmas: ArrayLike, bounds: InputBounds) ->
 # stamp, input, sigmas, correlations of the input noise (log.CORRELATION_PAIRS; zeros: none)
 def correlation_fault(correlations: ArrayLike) -> str | None:
     """Why an odometry sample's input correlations (3,) are unusable, or None."""
-    rho = np.asarray(correlations, dtype=float).reshape(1, 3)
-    if not np.isfinite(rho).all():
+    a, b, d = np.asarray(correlations, dtype=float).reshape(3).tolist()
+    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(d)):
         return NOT_FINITE
-    return None if correlations_valid(rho)[0] else SIGMA_OUT_OF_BOUNDS
+    first, det = correlation_minors(a, b, d)
+    return None if first > 0 and det > 0 else SIGMA_OUT_OF_BOUNDS
 
 
 OdometrySample = tuple[float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
@@ -397,7 +398,8 @@ class MeasurementFilter:
         fault = (
             NOT_FINITE
             if not np.isfinite(stamp)
-            else odometry_fault(inputs, sigmas, self.bounds) or correlation_fault(rho)
+            else odometry_fault(inputs, sigmas, self.bounds)
+            or (None if correlations is None else correlation_fault(rho))
         )
         if fault is not None:
             drops.add(fault)

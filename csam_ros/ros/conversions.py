@@ -56,10 +56,11 @@ from csam_ros.ros.topics import (
 
 # Indices of vx, vy and wz in a row-major 6x6 twist covariance, and of the covariances of
 # their pairs (log.CORRELATION_PAIRS) above and below the diagonal.
-_TWIST_AXES = (0, 1, 5)
-_TWIST_VARIANCE = tuple(6 * a + a for a in _TWIST_AXES)
-_TWIST_UPPER = tuple(6 * _TWIST_AXES[i] + _TWIST_AXES[j] for i, j in CORRELATION_PAIRS)
-_TWIST_LOWER = tuple(6 * _TWIST_AXES[j] + _TWIST_AXES[i] for i, j in CORRELATION_PAIRS)
+_TWIST_AXES = np.array([0, 1, 5])
+_PAIR_I, _PAIR_J = np.array(CORRELATION_PAIRS).T
+_TWIST_VARIANCE = 7 * _TWIST_AXES
+_TWIST_UPPER = 6 * _TWIST_AXES[_PAIR_I] + _TWIST_AXES[_PAIR_J]
+_TWIST_LOWER = 6 * _TWIST_AXES[_PAIR_J] + _TWIST_AXES[_PAIR_I]
 
 
 def stamp_to_ns(seconds: float) -> int:
@@ -117,12 +118,11 @@ def odometry_message(
     msg.twist.twist.linear.y = float(inputs[1])
     msg.twist.twist.angular.z = float(inputs[2])
     cov = np.zeros(36)
-    cov[list(_TWIST_VARIANCE)] = np.square(sigmas)
+    sigmas = np.asarray(sigmas, dtype=float)
+    cov[_TWIST_VARIANCE] = np.square(sigmas)
     if correlations is not None:
-        pairs = [
-            correlations[k] * sigmas[i] * sigmas[j] for k, (i, j) in enumerate(CORRELATION_PAIRS)
-        ]
-        cov[list(_TWIST_UPPER)] = cov[list(_TWIST_LOWER)] = pairs
+        pairs = np.asarray(correlations, dtype=float) * sigmas[_PAIR_I] * sigmas[_PAIR_J]
+        cov[_TWIST_UPPER] = cov[_TWIST_LOWER] = pairs
     msg.twist.covariance = cov
     msg.pose.covariance[0] = -1.0  # REP-145 style: the pose part is not estimated here
     return msg
@@ -132,7 +132,7 @@ def odometry_from_message(msg: Odometry) -> tuple[float, np.ndarray, np.ndarray]
     """(stamp [s], inputs (3,), sigmas (3,)) of an odometry message."""
     t = msg.twist.twist
     inputs = np.array([t.linear.x, t.linear.y, t.angular.z])
-    variances = np.asarray(msg.twist.covariance, dtype=float)[list(_TWIST_VARIANCE)]
+    variances = np.asarray(msg.twist.covariance, dtype=float)[_TWIST_VARIANCE]
     with np.errstate(invalid="ignore"):
         sigmas = np.sqrt(variances)
     return time_to_seconds(msg.header.stamp), inputs, sigmas
@@ -143,14 +143,12 @@ def odometry_correlations(msg: Odometry) -> np.ndarray | None:
     twist covariance above its diagonal; None when they are all zero (independent inputs).
     Non-finite when the covariance is, or a sigma is zero."""
     cov = np.asarray(msg.twist.covariance, dtype=float)
-    upper = 0.5 * (cov[list(_TWIST_UPPER)] + cov[list(_TWIST_LOWER)])
+    upper = 0.5 * (cov[_TWIST_UPPER] + cov[_TWIST_LOWER])
     if not upper.any():
         return None
-    s = cov[list(_TWIST_VARIANCE)]
+    s = cov[_TWIST_VARIANCE]
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.array(
-            [upper[k] / np.sqrt(s[i] * s[j]) for k, (i, j) in enumerate(CORRELATION_PAIRS)]
-        )
+        return upper / np.sqrt(s[_PAIR_I] * s[_PAIR_J])
 
 
 def _observations_message(
