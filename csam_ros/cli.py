@@ -300,7 +300,7 @@ def offline_summary(
     if saved is not None:
         saved.filter.restore(builder.filter)
     topics = [*sensor_topics(robots), FEATURES_TRUTH.name]
-    for m in read_bag_messages(bag, topics, on_damage=_warn):
+    for m in read_bag_messages(bag, topics, on_damage=_warn, decoder="rosbags"):
         builder.add(m.topic, m.message)
     log = builder.build()
     if saved is not None:

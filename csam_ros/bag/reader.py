@@ -24,7 +24,7 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import yaml
 from mcap.records import Channel
@@ -37,6 +37,7 @@ from .writer import METADATA_FILE, BagError
 
 LOGGER = logging.getLogger("csam_ros.bag")
 DamageHandler = Callable[[str], None]
+Decoder = Literal["rclpy", "rosbags"]
 
 
 class BagMessage(NamedTuple):
@@ -360,21 +361,22 @@ def read_bag_messages(
     topics: Iterable[str] | None = None,
     *,
     on_damage: DamageHandler | None = None,
+    decoder: Decoder = "rclpy",
 ) -> Iterator[DecodedMessage]:
     """Like :func:`read_bag`, with each message deserialized into its rclpy message class
-    (needs the message packages installed; rclpy is imported on first use).
+    (needs the message packages installed; rclpy is imported on first use), or with
+    ``decoder="rosbags"`` into rosbags' message classes of the same installed definitions:
+    the same fields and values, decoded in less than half the time and without rclpy (the
+    conversions of :mod:`csam_ros.ros.conversions` read either).
 
     A topic recorded with another definition of its type than the installed one (its type
     hash differs) raises BagError when its first message is reached: its bytes would not
     decode, or decode wrongly. :func:`read_bag` still yields them raw, and readers that take
     the definition stored in the bag (rosbags, mcap) decode them."""
-    from rclpy.serialization import deserialize_message
-
     recorded = {name: topic.type_hash for name, topic in inspect_bag(path).topics.items()}
     installed = MessageTypes()
-    classes: dict[str, type] = {}
     checked: set[str] = set()
-    decode: Callable[[bytes, type], Any] = deserialize_message
+    decode = installed.typestore.deserialize_cdr if decoder == "rosbags" else _rclpy_decoder()
     for message in read_bag(path, topics, on_damage=on_damage):
         if message.topic not in checked:
             expected = installed.definition(message.msgtype).type_hash
@@ -385,9 +387,23 @@ def read_bag_messages(
                     "it cannot be decoded here"
                 )
             checked.add(message.topic)
-        cls = classes.get(message.msgtype)
-        if cls is None:
-            cls = classes[message.msgtype] = message_class(message.msgtype)
         yield DecodedMessage(
-            message.topic, message.msgtype, message.log_time_ns, decode(message.data, cls)
+            message.topic,
+            message.msgtype,
+            message.log_time_ns,
+            decode(message.data, message.msgtype),
         )
+
+
+def _rclpy_decoder() -> Callable[[bytes, str], Any]:
+    from rclpy.serialization import deserialize_message
+
+    classes: dict[str, type] = {}
+
+    def decode(data: bytes, msgtype: str) -> Any:
+        cls = classes.get(msgtype)
+        if cls is None:
+            cls = classes[msgtype] = message_class(msgtype)
+        return deserialize_message(data, cls)
+
+    return decode

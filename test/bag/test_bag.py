@@ -84,6 +84,18 @@ def test_read_bag_messages_deserializes_to_rclpy_classes(
         fields_equal(message, item.message, msgtype)
 
 
+def test_read_bag_messages_decodes_every_field_with_rosbags_too(
+    sample_bag: tuple, fields_equal: Any
+) -> None:
+    path, written = sample_bag
+    decoded = list(read_bag_messages(path, decoder="rosbags"))
+    assert len(decoded) == len(written)
+    for item, (stamp, topic, msgtype, message, _) in zip(decoded, written, strict=True):
+        assert (item.log_time_ns, item.topic, item.msgtype) == (stamp, topic, msgtype)
+        assert type(item.message) is not type(message)
+        fields_equal(message, item.message, msgtype)
+
+
 def test_rosbags_reader_reads_every_field(sample_bag: tuple, fields_equal: Any) -> None:
     from rosbags.rosbag2 import Reader
 
