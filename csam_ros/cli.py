@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from csam_ros.figure_workers import FigureWorkers, figure_workers
 from csam_ros.run.launch import executable
 from csam_ros.run.live import LiveRunError
 
@@ -112,13 +113,17 @@ def _smoother_params(document: dict) -> dict:
     }
 
 
-def _finish(out: Path, summary: RunSummary) -> None:
-    """Write ``summary.json`` and the figures into ``out`` and say what the run gave."""
-    from csam_ros.figures import draw_all
-
+def _finish(out: Path, summary: RunSummary, workers: FigureWorkers | None = None) -> None:
+    """Write ``summary.json`` and the figures into ``out`` (by ``workers`` if given) and say
+    what the run gave."""
     summary.write(out / "summary.json")
     result = summary.result
-    figures = draw_all(result, out, scenario=summary.scenario)
+    if workers is not None:
+        figures = workers.draw(out / "summary.json", out)
+    else:
+        from csam_ros.figures import draw_all
+
+        figures = draw_all(result, out, scenario=summary.scenario)
     print(f"result in {out}/")
     for name, r in result.robots.items():
         print(f"  {name}: {r.alignment}, {len(r.stamps)} poses")
@@ -341,6 +346,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
             raise CliError(f"--config: {err}") from None
     merger_params, smoother_params = _csam_params(document), _smoother_params(document)
     out = _fresh_dir(args.out, f"replay-{bag.name}")
+    # offline, the figures' workers import matplotlib on the other core meanwhile
+    workers = figure_workers() if args.offline else None
     try:
         if args.offline:
             summary, _ = offline_summary(bag, document, args.resume, args.save_state)
@@ -377,9 +384,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 isolated=args.isolated,
             )
             summary = run_live(run)
+        summary = replace(summary, source=str(bag), scenario=summary.scenario or bag.resolve().name)
+        _finish(out, summary, workers)
     except BagError as err:
         raise CliError(str(err)) from None
-    _finish(out, replace(summary, source=str(bag), scenario=summary.scenario or bag.resolve().name))
+    finally:
+        if workers is not None:
+            workers.close()
     if not args.offline:
         _print_latency(out / "bag", summary)
     return 0

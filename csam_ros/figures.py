@@ -40,6 +40,7 @@ from matplotlib.patches import Patch
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.result import CsamResult, RobotResult, RunSummary, SummaryError
+from csam_ros.figure_workers import FIGURES
 
 FloatArray = NDArray[np.float64]
 
@@ -743,19 +744,32 @@ def _draw_base_node(axes: Axes, robot: _Robot, length: float, magnification: flo
         )
 
 
+def draw_figure(
+    name: str,
+    result: CsamResult,
+    out_dir: str | Path,
+    truth: ArrayLike | None = None,
+    scenario: str | None = None,
+) -> Path:
+    """Write the figure ``name`` (one of ``FIGURES``) into ``out_dir``."""
+    path = Path(out_dir) / name
+    if name == "local_maps.png":
+        return draw_local_maps(result, path, scenario)
+    if name == "heading_sigma.png":
+        return draw_heading_sigma(result, path, scenario)
+    if name == "joined_map.png":
+        return draw_joined_map(result, path, truth=truth, scenario=scenario)
+    raise ValueError(f"no figure {name!r}; the figures are {FIGURES}")
+
+
 def draw_all(
     result: CsamResult,
     out_dir: str | Path,
     truth: ArrayLike | None = None,
     scenario: str | None = None,
 ) -> list[Path]:
-    """Write ``local_maps.png``, ``heading_sigma.png`` and ``joined_map.png`` into ``out_dir``."""
-    out = Path(out_dir)
-    return [
-        draw_local_maps(result, out / "local_maps.png", scenario),
-        draw_heading_sigma(result, out / "heading_sigma.png", scenario),
-        draw_joined_map(result, out / "joined_map.png", truth=truth, scenario=scenario),
-    ]
+    """Write every figure of ``FIGURES`` into ``out_dir``."""
+    return [draw_figure(name, result, out_dir, truth, scenario) for name in FIGURES]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

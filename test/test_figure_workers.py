@@ -1,0 +1,57 @@
+"""Figures drawn by forked workers equal those drawn in-process; a worker's failure is raised
+in the caller, naming the figure."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from csam_ros import figures
+from csam_ros.core.csam import run_csam
+from csam_ros.core.result import RunSummary
+from csam_ros.core.simulation import simulate
+from csam_ros.datasets.scenario import load_scenario
+from csam_ros.figure_workers import FIGURES
+
+# run in a fresh process: the test process may hold threads (in-process nodes), and workers
+# are forked only from a process without them
+DRAW = """
+import sys
+from pathlib import Path
+from csam_ros.figure_workers import FigureWorkers, figure_workers
+
+summary, out = Path(sys.argv[1]), Path(sys.argv[2])
+workers = figure_workers()
+assert workers is not None, "no workers"
+print(" ".join(str(p) for p in workers.draw(summary, out)))
+with FigureWorkers(["local_maps.png", "no_such_figure.png"]) as failing:
+    try:
+        failing.draw(summary, out / "failing")
+    except RuntimeError as err:
+        print(err)
+with FigureWorkers():  # closed unused: the workers end
+    pass
+"""
+
+
+def test_workers_draw_what_the_caller_would_and_report_a_failure(tmp_path: Path) -> None:
+    result = run_csam(simulate(load_scenario("map_joining"), 1))
+    summary_path = tmp_path / "summary.json"
+    RunSummary(result, scenario="map_joining").write(summary_path)
+    done = subprocess.run(
+        [sys.executable, "-c", DRAW, str(summary_path), str(tmp_path / "workers")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    drawn, failure = done.stdout.strip().splitlines()
+    here = figures.draw_all(
+        RunSummary.read(summary_path).result, tmp_path / "here", scenario="map_joining"
+    )
+    assert [Path(p).name for p in drawn.split()] == [p.name for p in here] == list(FIGURES)
+    for path in here:
+        assert (tmp_path / "workers" / path.name).read_bytes() == path.read_bytes()
+    assert failure.startswith("no_such_figure.png: drawing failed: ValueError: no figure")
+    assert (tmp_path / "workers" / "failing" / "local_maps.png").is_file()
