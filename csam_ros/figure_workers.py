@@ -11,6 +11,7 @@ and a lock another thread held would stay locked in the worker.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import threading
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
@@ -24,13 +25,18 @@ FIGURES = ("local_maps.png", "heading_sigma.png", "joined_map.png")
 Job = tuple[Path, Path]  # summary.json, the directory to draw into
 
 
-def _work(connection: Connection, name: str) -> None:
+def _work(connection: Connection, name: str, callers: list[Connection]) -> None:
+    # the caller's ends of the pipes, inherited by the fork: closed, so that this worker's
+    # recv ends when the caller closes its end or dies; Ctrl-C is the caller's to handle
+    for end in callers:
+        end.close()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     from csam_ros import figures  # matplotlib, imported while the caller computes
     from csam_ros.core.result import RunSummary
 
     try:
         job: Job = connection.recv()
-    except EOFError:  # closed by the caller: the run failed
+    except EOFError:  # the caller is gone
         return
     summary_path, out_dir = job
     try:
@@ -57,7 +63,8 @@ class FigureWorkers:
         self._workers: list[tuple[str, BaseProcess, Connection]] = []
         for name in names:
             ours, theirs = context.Pipe()
-            process = context.Process(target=_work, args=(theirs, name), daemon=True)
+            callers = [*(w[2] for w in self._workers), ours]
+            process = context.Process(target=_work, args=(theirs, name, callers), daemon=True)
             process.start()
             theirs.close()
             self._workers.append((name, process, ours))
@@ -82,10 +89,9 @@ class FigureWorkers:
     def close(self) -> None:
         """Stop the workers that have not drawn (the run failed)."""
         for _, process, connection in self._workers:
-            connection.close()  # the worker's recv ends with EOFError
-            process.join(timeout=5.0)
-            if process.is_alive():
-                process.terminate()
+            connection.close()
+            process.terminate()
+            process.join()
         self._workers = []
 
     def __enter__(self) -> FigureWorkers:
