@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from csam_ros.figure_workers import FigureWorkers, figure_workers
+from csam_ros.figure_worker import FigureWorker, figure_worker
 from csam_ros.run.launch import executable
 from csam_ros.run.live import LiveRunError
 
@@ -113,13 +113,13 @@ def _smoother_params(document: dict) -> dict:
     }
 
 
-def _finish(out: Path, summary: RunSummary, workers: FigureWorkers | None = None) -> None:
-    """Write ``summary.json`` and the figures into ``out`` (by ``workers`` if given) and say
+def _finish(out: Path, summary: RunSummary, worker: FigureWorker | None = None) -> None:
+    """Write ``summary.json`` and the figures into ``out`` (by ``worker`` if given) and say
     what the run gave."""
     summary.write(out / "summary.json")
     result = summary.result
-    if workers is not None:
-        figures = workers.draw(out / "summary.json", out)
+    if worker is not None:
+        figures = worker.draw(out / "summary.json", out)
     else:
         from csam_ros.figures import draw_all
 
@@ -346,8 +346,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
             raise CliError(f"--config: {err}") from None
     merger_params, smoother_params = _csam_params(document), _smoother_params(document)
     out = _fresh_dir(args.out, f"replay-{bag.name}")
-    # offline, the figures' workers import matplotlib on the other core meanwhile
-    workers = figure_workers() if args.offline else None
+    # offline, the figures' worker imports matplotlib on the other core meanwhile
+    worker = figure_worker() if args.offline else None
     try:
         if args.offline:
             summary, _ = offline_summary(bag, document, args.resume, args.save_state)
@@ -385,12 +385,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
             )
             summary = run_live(run)
         summary = replace(summary, source=str(bag), scenario=summary.scenario or bag.resolve().name)
-        _finish(out, summary, workers)
+        _finish(out, summary, worker)
     except BagError as err:
         raise CliError(str(err)) from None
     finally:
-        if workers is not None:
-            workers.close()
+        if worker is not None:
+            worker.close()
     if not args.offline:
         _print_latency(out / "bag", summary)
     return 0

@@ -40,7 +40,7 @@ from matplotlib.patches import Patch
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.result import CsamResult, RobotResult, RunSummary, SummaryError
-from csam_ros.figure_workers import FIGURES
+from csam_ros.figure_worker import FIGURES
 
 FloatArray = NDArray[np.float64]
 

@@ -1,5 +1,5 @@
-"""Figures drawn by forked workers equal those drawn in-process; a worker's failure is raised
-in the caller, naming the figure."""
+"""Figures drawn by the forked worker equal those drawn in-process; a figure's failure is
+raised in the caller, naming it."""
 
 from __future__ import annotations
 
@@ -12,30 +12,30 @@ from csam_ros.core.csam import run_csam
 from csam_ros.core.result import RunSummary
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
-from csam_ros.figure_workers import FIGURES
+from csam_ros.figure_worker import FIGURES
 
-# run in a fresh process: the test process may hold threads (in-process nodes), and workers
-# are forked only from a process without them
+# run in a fresh process: the test process may hold threads (in-process nodes), and the
+# worker is forked only from a process without them
 DRAW = """
 import sys
 from pathlib import Path
-from csam_ros.figure_workers import FigureWorkers, figure_workers
+from csam_ros.figure_worker import FigureWorker, figure_worker
 
 summary, out = Path(sys.argv[1]), Path(sys.argv[2])
-workers = figure_workers()
-assert workers is not None, "no workers"
-print(" ".join(str(p) for p in workers.draw(summary, out)))
-with FigureWorkers(["local_maps.png", "no_such_figure.png"]) as failing:
+worker = figure_worker()
+assert worker is not None, "no worker"
+print(" ".join(str(p) for p in worker.draw(summary, out)))
+with FigureWorker(["local_maps.png", "no_such_figure.png"]) as failing:
     try:
         failing.draw(summary, out / "failing")
     except RuntimeError as err:
         print(err)
-with FigureWorkers():  # closed unused: the workers end
+with FigureWorker():  # closed unused: the worker ends
     pass
 """
 
 
-def test_workers_draw_what_the_caller_would_and_report_a_failure(tmp_path: Path) -> None:
+def test_the_worker_draws_what_the_caller_would_and_reports_a_failure(tmp_path: Path) -> None:
     result = run_csam(simulate(load_scenario("map_joining"), 1))
     summary_path = tmp_path / "summary.json"
     RunSummary(result, scenario="map_joining").write(summary_path)
@@ -53,5 +53,5 @@ def test_workers_draw_what_the_caller_would_and_report_a_failure(tmp_path: Path)
     assert [Path(p).name for p in drawn.split()] == [p.name for p in here] == list(FIGURES)
     for path in here:
         assert (tmp_path / "workers" / path.name).read_bytes() == path.read_bytes()
-    assert failure.startswith("no_such_figure.png: drawing failed: ValueError: no figure")
+    assert failure.startswith("drawing failed: no_such_figure.png: ValueError: no figure")
     assert (tmp_path / "workers" / "failing" / "local_maps.png").is_file()
