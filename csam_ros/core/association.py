@@ -51,7 +51,6 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from csam_ros.core import se2
 from csam_ros.core.alignment import Alignment
@@ -272,6 +271,8 @@ def _candidates(
     root_gate: float,
 ) -> tuple[IntArray, IntArray]:
     """Pairs of free features whose distance can pass the gate (k-d tree, exact bound)."""
+    from scipy.spatial import cKDTree  # on use: scipy.spatial loads slowly
+
     if len(free_a) == 0 or len(free_c) == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty
