@@ -1,0 +1,188 @@
+"""Camera range scales of MR.CLAM from mutual rendezvous, against the truth-fitted ones.
+
+``python -m csam_ros.bench.range_scale DATASET_DIR... [--max-gap 0.5] [--tolerance 0.05]
+[--truth 1:0.9927,2:0.9997,...]`` imports each data set with raw ranges (no range scale),
+pairs every robot's range to another robot with that robot's range back at the same stamp
+(:func:`csam_ros.core.range_scale.mutual_pairs`), solves the relative scales
+(:func:`csam_ros.core.range_scale.mutual_range_scales`, geometric mean 1) and prints them
+beside the truth-fitted scales, also re-scaled to the truth-fitted geometric mean (the
+relative part alone), with the pairs used per robot pair. ``--json FILE`` writes the same.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from csam_ros.core.log import MultiRobotLog
+from csam_ros.core.range_scale import (
+    MutualPairs,
+    RangeScaleEstimate,
+    mutual_pairs,
+    mutual_range_scales,
+)
+
+# Truth-fitted scales (`csam calibrate mrclam DIR`, measured / true range) of the three data
+# sets, as listed in the README (Dataset 1: config/mrclam.yaml).
+TRUTH_FITTED: dict[str, dict[int, float]] = {
+    "MRCLAM_Dataset1": {1: 0.9927, 2: 0.9997, 3: 0.9860, 4: 1.0041, 5: 0.9914},
+}
+
+
+def rendezvous_pairs(
+    log: MultiRobotLog, max_gap: float, tolerance: float
+) -> dict[tuple[str, str], MutualPairs]:
+    """The mutual pairs of every two robots of ``log`` (both directions, with bearings)."""
+    names = sorted(log.robots)
+    out: dict[tuple[str, str], MutualPairs] = {}
+    for k, a in enumerate(names):
+        for b in names[k + 1 :]:
+            ra, rb = log.robots[a].rendezvous, log.robots[b].rendezvous
+            ma = np.array([o == b for o in ra.observed], dtype=bool)
+            mb = np.array([o == a for o in rb.observed], dtype=bool)
+            out[(a, b)] = mutual_pairs(
+                ra.stamps[ma],
+                ra.ranges[ma],
+                rb.stamps[mb],
+                rb.ranges[mb],
+                ra.bearings[ma],
+                rb.bearings[mb],
+                max_gap=max_gap,
+                tolerance=tolerance,
+            )
+    return out
+
+
+def landmark_log_cos(log: MultiRobotLog) -> dict[str, float]:
+    """Per robot, the mean ``log cos(bearing)`` of its landmark observations: with depth
+    exponent ``c``, a fit of its landmark ranges on true distances that ignores the depth
+    effect sees about ``s exp(c * this)`` (truth-free: bearings only)."""
+    return {
+        name: float(np.mean(np.log(np.cos(robot.features.bearings))))
+        for name, robot in sorted(log.robots.items())
+        if robot.features.bearings.size
+    }
+
+
+def estimate(
+    log: MultiRobotLog, max_gap: float, tolerance: float, exponent: float | None
+) -> RangeScaleEstimate:
+    """The relative scales of ``log``'s cameras (raw ranges) from its mutual pairs."""
+    pairs = rendezvous_pairs(log, max_gap, tolerance)
+    # Both directions of mutual_pairs share measurements: half weight each.
+    return mutual_range_scales(sorted(log.robots), pairs, weight=0.5, exponent=exponent)
+
+
+def table(
+    result: RangeScaleEstimate, truth: dict[int, float] | None, log_cos: dict[str, float]
+) -> tuple[str, dict[str, float]]:
+    """Scales per robot (estimated; times the landmark depth factor ``exp(c * mean log cos
+    beta)``; that re-scaled to the truth's geometric mean; truth) and the pairs per robot
+    pair. Returns the text and the re-scaled, depth-factored scales."""
+    reference = {f"robot{k}": v for k, v in (truth or {}).items()}
+    c = result.exponent
+    factored = RangeScaleEstimate(
+        **{
+            **result.__dict__,
+            "scales": {
+                r: v * float(np.exp(c * log_cos.get(r, 0.0))) for r, v in result.scales.items()
+            },
+        }
+    )
+    rescaled = factored.rescaled(reference) if reference else {}
+    lines = [
+        f"depth exponent c = {c:.3f} +- {result.exponent_sigma:.3f}"
+        + (" (fitted)" if result.exponent_sigma else " (given)"),
+        "robot    s(gm=1)  +-1se   x depth  gm=truth   truth    diff[%]",
+    ]
+    diffs = []
+    for name in result.robots:
+        if name not in result.scales:
+            lines.append(f"{name:<8} no mutual pair")
+            continue
+        est, se = result.scales[name], result.log_sigma[name]
+        row = f"{name:<8} {est:7.4f}  {100 * se:5.2f}%  {factored.scales[name]:7.4f}"
+        if name in rescaled and name in reference:
+            diff = 100 * (rescaled[name] / reference[name] - 1)
+            diffs.append(diff)
+            row += f"  {rescaled[name]:7.4f}  {reference[name]:7.4f}  {diff:+6.2f}"
+        lines.append(row)
+    if diffs:
+        lines.append(f"rms diff {np.sqrt(np.mean(np.square(diffs))):.2f}%")
+    lines.append(
+        f"residual spread {100 * result.sigma:.2f}% (log), beyond 3 sigma {result.outliers}, "
+        f"components {[len(g) for g in result.components]}, unpaired {result.unpaired}"
+    )
+    lines.append("pair   n(both dirs)  median(y-cz)  fitted   truth")
+    for (a, b), n in result.pairs.items():
+        t = (
+            f"{np.log(reference[a] / reference[b]):+.4f}"
+            if a in reference and b in reference
+            else ""
+        )
+        lines.append(
+            f"{a[5:]}-{b[5:]}    {n:5d}        {result.pair_median[(a, b)]:+.4f}     "
+            f"{result.pair_log_ratio[(a, b)]:+.4f}  {t}"
+        )
+    return "\n".join(lines), rescaled
+
+
+def _parse_truth(text: str) -> dict[int, float]:
+    """``1:0.99,2:1.0,...`` -> {1: 0.99, 2: 1.0, ...}."""
+    out = {}
+    for part in text.split(","):
+        k, v = part.split(":")
+        out[int(k)] = float(v)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("datasets", nargs="+", type=Path)
+    parser.add_argument("--max-gap", type=float, default=0.5, help="s between bracketing ranges")
+    parser.add_argument("--tolerance", type=float, default=0.05, help="s to a nearest range")
+    parser.add_argument(
+        "--exponents", default="0,1,fit", help="depth exponents c to try: numbers or fit"
+    )
+    parser.add_argument(
+        "--truth", action="append", default=[], help="1:0.99,2:1.0,... per data set, in order"
+    )
+    parser.add_argument("--json", type=Path, help="write the estimates here")
+    args = parser.parse_args(argv)
+    from csam_ros.datasets.mrclam import import_mrclam
+
+    exponents = [None if e == "fit" else float(e) for e in args.exponents.split(",")]
+    out: dict[str, dict] = {}
+    for k, directory in enumerate(args.datasets):
+        truth = _parse_truth(args.truth[k]) if k < len(args.truth) else None
+        truth = truth or TRUTH_FITTED.get(directory.name)
+        log, _ = import_mrclam(directory)
+        log_cos = landmark_log_cos(log)
+        for exponent in exponents:
+            result = estimate(log, args.max_gap, args.tolerance, exponent)
+            print(f"== {directory}")
+            text, rescaled = table(result, truth, log_cos)
+            print(text)
+            out.setdefault(str(directory), {})["fit" if exponent is None else f"{exponent:g}"] = {
+                "exponent": result.exponent,
+                "exponent_sigma": result.exponent_sigma,
+                "scales": result.scales,
+                "log_sigma": result.log_sigma,
+                "landmark_log_cos": log_cos,
+                "rescaled_to_truth": rescaled,
+                "pairs": {f"{a}-{b}": n for (a, b), n in result.pairs.items()},
+                "sigma": result.sigma,
+                "outliers": result.outliers,
+                "unpaired": result.unpaired,
+            }
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
