@@ -27,9 +27,11 @@ from csam_ros.core.range_scale import (
 )
 
 # Truth-fitted scales (`csam calibrate mrclam DIR`, measured / true range) of the three data
-# sets, as listed in the README (Dataset 1: config/mrclam.yaml).
+# sets (Dataset 1: config/mrclam.yaml; 2 and 4: `csam calibrate mrclam DIR --out FILE`).
 TRUTH_FITTED: dict[str, dict[int, float]] = {
     "MRCLAM_Dataset1": {1: 0.9927, 2: 0.9997, 3: 0.9860, 4: 1.0041, 5: 0.9914},
+    "MRCLAM_Dataset2": {1: 0.9935, 2: 0.9980, 3: 0.9896, 4: 1.0050, 5: 0.9893},
+    "MRCLAM_Dataset4": {1: 1.0003, 2: 0.9953, 3: 0.9873, 4: 1.0057, 5: 0.9880},
 }
 
 
