@@ -20,8 +20,10 @@ import numpy as np
 
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.range_scale import (
+    MeetingJackknife,
     MutualPairs,
     RangeScaleEstimate,
+    meeting_jackknife,
     mutual_pairs,
     mutual_range_scales,
 )
@@ -72,19 +74,26 @@ def landmark_log_cos(log: MultiRobotLog) -> dict[str, float]:
 
 def estimate(
     log: MultiRobotLog, max_gap: float, tolerance: float, exponent: float | None
-) -> RangeScaleEstimate:
-    """The relative scales of ``log``'s cameras (raw ranges) from its mutual pairs."""
+) -> tuple[RangeScaleEstimate, MeetingJackknife]:
+    """The relative scales of ``log``'s cameras (raw ranges) from its mutual pairs, and
+    their delete-one-meeting jackknife (meetings: pauses <= 5 s)."""
     pairs = rendezvous_pairs(log, max_gap, tolerance)
+    names = sorted(log.robots)
     # Both directions of mutual_pairs share measurements: half weight each.
-    return mutual_range_scales(sorted(log.robots), pairs, weight=0.5, exponent=exponent)
+    result = mutual_range_scales(names, pairs, weight=0.5, exponent=exponent)
+    return result, meeting_jackknife(names, pairs, weight=0.5, exponent=exponent)
 
 
 def table(
-    result: RangeScaleEstimate, truth: dict[int, float] | None, log_cos: dict[str, float]
+    result: RangeScaleEstimate,
+    jackknife: MeetingJackknife,
+    truth: dict[int, float] | None,
+    log_cos: dict[str, float],
 ) -> tuple[str, dict[str, float]]:
     """Scales per robot (estimated; times the landmark depth factor ``exp(c * mean log cos
     beta)``; that re-scaled to the truth's geometric mean; truth) and the pairs per robot
-    pair. Returns the text and the re-scaled, depth-factored scales."""
+    pair. Standard errors: pairs taken as independent, and the jackknife over meetings.
+    Returns the text and the re-scaled, depth-factored scales."""
     reference = {f"robot{k}": v for k, v in (truth or {}).items()}
     c = result.exponent
     factored = RangeScaleEstimate(
@@ -98,8 +107,12 @@ def table(
     rescaled = factored.rescaled(reference) if reference else {}
     lines = [
         f"depth exponent c = {c:.3f} +- {result.exponent_sigma:.3f}"
-        + (" (fitted)" if result.exponent_sigma else " (given)"),
-        "robot    s(gm=1)  +-1se   x depth  gm=truth   truth    diff[%]",
+        + (
+            f" (fitted; jackknife +- {jackknife.exponent_sigma:.3f})"
+            if result.exponent_sigma
+            else " (given)"
+        ),
+        "robot    s(gm=1)  +-1se  jk-1se   x depth  gm=truth   truth    diff[%]",
     ]
     diffs = []
     for name in result.robots:
@@ -107,7 +120,11 @@ def table(
             lines.append(f"{name:<8} no mutual pair")
             continue
         est, se = result.scales[name], result.log_sigma[name]
-        row = f"{name:<8} {est:7.4f}  {100 * se:5.2f}%  {factored.scales[name]:7.4f}"
+        jk = jackknife.log_sigma.get(name, float("nan"))
+        row = (
+            f"{name:<8} {est:7.4f}  {100 * se:5.2f}%  {100 * jk:5.2f}%  "
+            f"{factored.scales[name]:7.4f}"
+        )
         if name in rescaled and name in reference:
             diff = 100 * (rescaled[name] / reference[name] - 1)
             diffs.append(diff)
@@ -119,15 +136,16 @@ def table(
         f"residual spread {100 * result.sigma:.2f}% (log), beyond 3 sigma {result.outliers}, "
         f"components {[len(g) for g in result.components]}, unpaired {result.unpaired}"
     )
-    lines.append("pair   n(both dirs)  median(y-cz)  fitted   truth")
+    lines.append("pair   n(both dirs)  meetings  median(y-cz)  fitted   truth")
     for (a, b), n in result.pairs.items():
+        m = jackknife.meetings.get((a, b), 0)
         t = (
             f"{np.log(reference[a] / reference[b]):+.4f}"
             if a in reference and b in reference
             else ""
         )
         lines.append(
-            f"{a[5:]}-{b[5:]}    {n:5d}        {result.pair_median[(a, b)]:+.4f}     "
+            f"{a[5:]}-{b[5:]}    {n:5d}        {m:4d}      {result.pair_median[(a, b)]:+.4f}     "
             f"{result.pair_log_ratio[(a, b)]:+.4f}  {t}"
         )
     return "\n".join(lines), rescaled
@@ -165,15 +183,18 @@ def main(argv: list[str] | None = None) -> int:
         log, _ = import_mrclam(directory)
         log_cos = landmark_log_cos(log)
         for exponent in exponents:
-            result = estimate(log, args.max_gap, args.tolerance, exponent)
+            result, jackknife = estimate(log, args.max_gap, args.tolerance, exponent)
             print(f"== {directory}")
-            text, rescaled = table(result, truth, log_cos)
+            text, rescaled = table(result, jackknife, truth, log_cos)
             print(text)
             out.setdefault(str(directory), {})["fit" if exponent is None else f"{exponent:g}"] = {
                 "exponent": result.exponent,
                 "exponent_sigma": result.exponent_sigma,
                 "scales": result.scales,
                 "log_sigma": result.log_sigma,
+                "jackknife_log_sigma": jackknife.log_sigma,
+                "jackknife_exponent_sigma": jackknife.exponent_sigma,
+                "meetings": {f"{a}-{b}": n for (a, b), n in jackknife.meetings.items()},
                 "landmark_log_cos": log_cos,
                 "rescaled_to_truth": rescaled,
                 "pairs": {f"{a}-{b}": n for (a, b), n in result.pairs.items()},

@@ -31,7 +31,8 @@ relative scales are observable: ``sum_i x_i = 0`` in each connected component of
 of robots that met, i.e. the geometric mean of the scales is 1 there. The covariance is
 ``sigma^2`` times the pseudo-inverse of the normal matrix (pairs taken as independent). A
 robot without any mutual pair gets no scale (it is listed in ``RangeScaleEstimate.unpaired``),
-never an invented 1.0.
+never an invented 1.0. Pairs of one meeting are not independent: :func:`meeting_jackknife`
+gives standard errors from leaving out whole meetings.
 """
 
 from __future__ import annotations
@@ -351,3 +352,74 @@ def _components(n: int, i: IntArray, j: IntArray) -> list[IntArray]:
     for k in range(n):
         groups.setdefault(root(k), []).append(k)
     return [np.array(g, dtype=np.int64) for g in groups.values()]
+
+
+@dataclass
+class MeetingJackknife:
+    """Uncertainty of the scales from whole meetings (:func:`meeting_jackknife`)."""
+
+    meetings: dict[tuple[str, str], int]  # robot pair -> number of meetings
+    log_sigma: dict[str, float]  # robot -> jackknife standard error of log s
+    exponent_sigma: float  # jackknife standard error of the fitted c (0 when c is given)
+    skipped: int = 0  # meetings whose removal left a robot unpaired (not in the sums)
+
+
+def meetings(stamps: FloatArray, gap: float) -> IntArray:
+    """Meeting number of each pair: pairs sorted by stamp start a new meeting after a pause
+    longer than ``gap`` seconds."""
+    t = np.asarray(stamps, dtype=float)
+    if t.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(t, kind="stable")
+    starts = np.concatenate([[0], (np.diff(t[order]) > gap).astype(np.int64)])
+    out = np.empty(t.size, dtype=np.int64)
+    out[order] = np.cumsum(starts)
+    return out
+
+
+def meeting_jackknife(
+    robots: Sequence[str],
+    pairs: Mapping[tuple[str, str], MutualPairs],
+    gap: float = 5.0,
+    weight: float = 1.0,
+    exponent: float | None = 0.0,
+) -> MeetingJackknife:
+    """Delete-one-meeting jackknife of :func:`mutual_range_scales` (``weight`` and
+    ``exponent`` as there).
+
+    The pairs of one meeting (robot pair, pauses at most ``gap`` s) share geometry, bearings
+    and occlusions, so their errors are correlated and the standard errors that treat pairs
+    as independent are too small. Leaving each meeting out in turn gives estimates
+    ``theta_g``; ``se^2 = (G - 1) / G * sum_g (theta_g - mean theta)^2`` over the ``G``
+    meetings. A meeting whose removal leaves a robot unpaired changes the gauge and is left
+    out of the sums (counted in ``MeetingJackknife.skipped``)."""
+    full = set(mutual_range_scales(robots, pairs, weight=weight, exponent=exponent).scales)
+    skipped = 0
+    groups = {key: meetings(p.stamps, gap) for key, p in pairs.items()}
+    counts = {key: int(g.max() + 1) if g.size else 0 for key, g in groups.items()}
+    thetas: list[dict[str, float]] = []
+    exponents: list[float] = []
+    for key, g in groups.items():
+        for m in range(counts[key]):
+            keep = g != m
+            reduced = dict(pairs)
+            p = pairs[key]
+            reduced[key] = MutualPairs(p.stamps[keep], p.log_ratio[keep], p.log_cos_ratio[keep])
+            result = mutual_range_scales(robots, reduced, weight=weight, exponent=exponent)
+            if set(result.scales) != full:
+                skipped += 1
+                continue
+            thetas.append({r: float(np.log(s)) for r, s in result.scales.items()})
+            exponents.append(result.exponent)
+    sigma: dict[str, float] = {}
+    for robot in robots:
+        values = np.array([t[robot] for t in thetas if robot in t])
+        if values.size > 1:
+            sigma[robot] = float(
+                np.sqrt((values.size - 1) / values.size * np.sum((values - values.mean()) ** 2))
+            )
+    c = np.array(exponents)
+    c_sigma = (
+        float(np.sqrt((c.size - 1) / c.size * np.sum((c - c.mean()) ** 2))) if c.size > 1 else 0.0
+    )
+    return MeetingJackknife({k: v for k, v in counts.items() if v}, sigma, c_sigma, skipped)
