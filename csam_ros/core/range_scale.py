@@ -33,15 +33,30 @@ of robots that met, i.e. the geometric mean of the scales is 1 there. The covari
 robot without any mutual pair gets no scale (it is listed in ``RangeScaleEstimate.unpaired``),
 never an invented 1.0. Pairs of one meeting are not independent: :func:`meeting_jackknife`
 gives standard errors from leaving out whole meetings.
+
+Mutual pairs see ``s_i / t_i`` if the robots' barcodes differ (``t_i``: the scale error of
+ranges *to* robot ``i``); nothing in the pairs separates the two. :func:`map_range_scales`
+is the other truth-free route: every robot's landmark ranges against one common map, for
+example C-SAM's joined map (:func:`reference_from_joined_map`), whose own scale cancels in
+the relative scales.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
+
+from csam_ros.core.calibration import (
+    NoiseModel,
+    localise,
+    range_scale,
+    robust_sigma,
+    snapshot_localisation,
+)
+from csam_ros.core.log import FeatureLog, GroundTruth, MultiRobotLog
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -423,3 +438,92 @@ def meeting_jackknife(
         float(np.sqrt((c.size - 1) / c.size * np.sum((c - c.mean()) ** 2))) if c.size > 1 else 0.0
     )
     return MeetingJackknife({k: v for k, v in counts.items() if v}, sigma, c_sigma, skipped)
+
+
+@dataclass
+class MapScale:
+    """One robot's ranges against a reference map (:func:`map_range_scales`)."""
+
+    scale: float  # measured / map range, whole run (geometric mean 1 over the robots)
+    first_half: float  # same gauge, first half of the run
+    second_half: float
+    observations: int  # landmark observations of labels the map names
+    log_spread: float  # robust spread of log(measured / predicted range)
+
+
+def reference_from_joined_map(
+    robots: Sequence[str],
+    features: Sequence[tuple[Sequence[str], Sequence[float]]],
+    min_members: int = 2,
+) -> GroundTruth:
+    """A joined map as the landmark reference of :func:`map_range_scales`: ``features`` are
+    ``(members, xy)`` with members ``"robot/label"`` (the robots' own labels that C-SAM
+    associated into one landmark). Only landmarks seen by at least ``min_members`` robots
+    are kept (only they compare robots)."""
+    names = set(robots)
+    kept = [(m, xy) for m, xy in features if len(m) >= min_members]
+    labels: dict[str, dict[int, int]] = {name: {} for name in robots}
+    for k, (members, _) in enumerate(kept):
+        for member in members:
+            robot, _, label = str(member).rpartition("/")
+            if robot in names:
+                labels[robot][int(label)] = k
+    return GroundTruth(
+        feature_ids=np.arange(len(kept), dtype=np.int64),
+        feature_positions=np.array([xy for _, xy in kept], dtype=float).reshape(-1, 2),
+        label_to_feature=labels,
+    )
+
+
+def map_range_scales(
+    log: MultiRobotLog,
+    reference: GroundTruth,
+    noise: NoiseModel,
+    exponent: float = 0.0,
+) -> dict[str, MapScale]:
+    """Each camera's range scale against a common landmark map, relative to the others.
+
+    Every robot is localised against ``reference`` (landmarks held fixed, odometry between
+    its feature stamps; :func:`csam_ros.core.calibration.localise`) using its landmark
+    observations whose labels the map names, ranges divided by ``cos(bearing)^exponent``;
+    its scale is the weighted fit of measured on predicted range
+    (:func:`csam_ros.core.calibration.range_scale`). A map that no truth fixed has its own
+    scale ``m`` (for C-SAM's joined map: a blend of the cameras' scales), so each fit is
+    ``s_i / m``: the scales are returned with geometric mean 1, like
+    :func:`mutual_range_scales`. A robot that sees no map landmark in frames of >= 3
+    landmarks is left out.
+    """
+    raw: dict[str, tuple[tuple[float, float, float], int, float]] = {}
+    for name, robot in sorted(log.robots.items()):
+        labels = reference.label_to_feature.get(name, {})
+        f = robot.features
+        keep = np.array([int(k) in labels for k in f.labels], dtype=bool)
+        if not keep.any():
+            continue
+        ranges = f.ranges / np.cos(f.bearings) ** exponent
+        features = FeatureLog(
+            f.stamps[keep],
+            f.labels[keep],
+            ranges[keep],
+            f.bearings[keep],
+            f.sigma_range[keep],
+            f.sigma_bearing[keep],
+        )
+        own = replace(robot, features=features)
+        snapshots = snapshot_localisation(own, reference, noise)
+        if snapshots.stamps.size == 0:
+            continue
+        loc = localise(own, reference, noise, snapshots)
+        predicted = loc.ranges - loc.range_residuals
+        raw[name] = (
+            range_scale(loc),
+            int(keep.sum()),
+            robust_sigma(np.log(loc.ranges / predicted)),
+        )
+    if not raw:
+        return {}
+    mean = float(np.exp(np.mean([np.log(v[0][0]) for v in raw.values()])))
+    return {
+        name: MapScale(s / mean, a / mean, b / mean, n, spread)
+        for name, ((s, a, b), n, spread) in raw.items()
+    }

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from csam_ros.core.range_scale import (
     MutualPairs,
+    map_range_scales,
     meeting_jackknife,
     meetings,
     mutual_pairs,
     mutual_range_scales,
+    reference_from_joined_map,
 )
 
 
@@ -213,3 +217,54 @@ def test_jackknife_over_meetings_sees_errors_shared_within_a_meeting() -> None:
     for name in names:
         assert jackknife.log_sigma[name] > 2 * result.log_sigma[name]
         assert jackknife.log_sigma[name] < 0.01
+
+
+def test_scales_against_a_map_of_its_own_scale_and_frame_are_the_relative_scales() -> None:
+    from csam_ros.core.calibration import NoiseModel
+    from csam_ros.core.simulation import simulate
+    from csam_ros.datasets.scenario import load_scenario
+
+    log = simulate(load_scenario("five_robots"), 1)
+    assert log.truth is not None
+    names = sorted(log.robots)
+    truth = dict(zip(names, [0.985, 1.01, 0.995, 1.02, 0.99], strict=True))
+    robots = {
+        n: replace(r, features=replace(r.features, ranges=r.features.ranges * truth[n]))
+        for n, r in log.robots.items()
+    }
+    # the map: the true landmarks scaled by 1.01, rotated and shifted (a joined map's own
+    # scale and frame)
+    c, s = np.cos(0.3), np.sin(0.3)
+    moved = 1.01 * log.truth.feature_positions @ np.array([[c, -s], [s, c]]).T + [3.0, -2.0]
+    reference = replace(log.truth, feature_positions=moved)
+    noise = NoiseModel(
+        sigma_range=0.01,
+        sigma_range_per_m=0.03,
+        sigma_bearing=0.012,
+        q_v=0.1,
+        q_vlat=0.1,
+        q_omega=0.1,
+    )
+    result = map_range_scales(replace(log, robots=robots), reference, noise)
+    expected = _relative(truth)
+    assert sorted(result) == names
+    for name in names:
+        assert result[name].scale == pytest.approx(expected[name], abs=3e-3)
+        assert result[name].observations == log.robots[name].features.ranges.size
+    assert np.prod([m.scale for m in result.values()]) == pytest.approx(1.0)
+
+
+def test_reference_from_joined_map_keeps_shared_landmarks_and_their_members() -> None:
+    features = [
+        (["robot1/4", "robot2/7"], [1.0, 2.0]),
+        (["robot1/5"], [3.0, 4.0]),  # one robot only: compares nothing
+        (["robot2/1", "robot3/9", "robot1/2"], [5.0, 6.0]),
+    ]
+    reference = reference_from_joined_map(["robot1", "robot2", "robot3"], features)
+    np.testing.assert_array_equal(reference.feature_ids, [0, 1])
+    np.testing.assert_allclose(reference.feature_positions, [[1.0, 2.0], [5.0, 6.0]])
+    assert reference.label_to_feature == {
+        "robot1": {4: 0, 2: 1},
+        "robot2": {7: 0, 1: 1},
+        "robot3": {9: 1},
+    }
