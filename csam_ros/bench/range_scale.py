@@ -13,6 +13,11 @@ the scale times ``exp(c * mean log cos(bearing))`` of the robot's landmark obser
 the truth-fitted geometric mean (the relative part alone), the truth-fitted scale
 (``csam calibrate mrclam``) and the difference; then per robot pair the pairs and meetings
 used. About 10 s per data set.
+
+``--joined RUNDIR/summary.json`` (per data set, in order) adds the other truth-free route:
+each camera's landmark ranges against the joined map of a ``csam replay --offline`` run of
+that data set (:func:`csam_ros.core.range_scale.map_range_scales`), for each given
+exponent; best from a run imported without range scales (``range_scale: {}``).
 """
 
 from __future__ import annotations
@@ -20,18 +25,22 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.range_scale import (
+    MapScale,
     MeetingJackknife,
     MutualPairs,
     RangeScaleEstimate,
+    map_range_scales,
     meeting_jackknife,
     mutual_pairs,
     mutual_range_scales,
+    reference_from_joined_map,
 )
 
 # Truth-fitted scales (`csam calibrate mrclam DIR`, measured / true range) of the three data
@@ -157,6 +166,47 @@ def table(
     return "\n".join(lines), rescaled
 
 
+def joined_table(
+    scales: dict[str, MapScale], truth: dict[int, float] | None
+) -> tuple[str, dict[str, float]]:
+    """Scales against C-SAM's joined map (geometric mean 1; first / second half), re-scaled
+    to the truth's geometric mean, truth and difference. Returns the text and the
+    re-scaled scales."""
+    reference = {f"robot{k}": v for k, v in (truth or {}).items()}
+    common = [r for r in scales if r in reference]
+    shift = (
+        float(np.mean([np.log(reference[r] / scales[r].scale) for r in common])) if common else 0.0
+    )
+    rescaled = {r: m.scale * float(np.exp(shift)) for r, m in scales.items()} if common else {}
+    lines = ["robot    s(gm=1)  halves           obs   spread  gm=truth   truth    diff[%]"]
+    diffs = []
+    for name, m in scales.items():
+        row = (
+            f"{name:<8} {m.scale:7.4f}  {m.first_half:.4f}/{m.second_half:.4f}  {m.observations:5d}"
+            f"  {100 * m.log_spread:5.2f}%"
+        )
+        if name in reference:
+            diff = 100 * (rescaled[name] / reference[name] - 1)
+            diffs.append(diff)
+            row += f"  {rescaled[name]:7.4f}  {reference[name]:7.4f}  {diff:+6.2f}"
+        lines.append(row)
+    if diffs:
+        lines.append(f"rms diff {np.sqrt(np.mean(np.square(diffs))):.2f}%")
+    return "\n".join(lines), rescaled
+
+
+def joined_scales(log: MultiRobotLog, summary: Path, exponent: float) -> dict[str, MapScale]:
+    """Scales of ``log``'s cameras (raw ranges) against the joined map of a ``csam replay``
+    run (its ``summary.json``: features with their member labels, which must be those of
+    ``log``, i.e. the same data set and label seed)."""
+    from csam_ros.datasets.mrclam import MRCLAM_NOISE
+
+    data = json.loads(summary.read_text())
+    features = [(f["members"], f["xy"]) for f in data["features"]]
+    reference = reference_from_joined_map(sorted(log.robots), features)
+    return map_range_scales(log, reference, MRCLAM_NOISE, exponent)
+
+
 def _parse_truth(text: str) -> dict[int, float]:
     """``1:0.99,2:1.0,...`` -> {1: 0.99, 2: 1.0, ...}."""
     out = {}
@@ -176,6 +226,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--truth", action="append", default=[], help="1:0.99,2:1.0,... per data set, in order"
+    )
+    parser.add_argument(
+        "--joined",
+        action="append",
+        default=[],
+        help="RUNDIR/summary.json of a csam replay of the data set, per data set in order "
+        "('-': none): also the scales against that joined map",
     )
     parser.add_argument("--json", type=Path, help="write the estimates here")
     args = parser.parse_args(argv)
@@ -208,6 +265,18 @@ def main(argv: list[str] | None = None) -> int:
                 "outliers": result.outliers,
                 "unpaired": result.unpaired,
             }
+        joined = args.joined[k] if k < len(args.joined) else "-"
+        if joined != "-":
+            for exponent in [e for e in exponents if e is not None]:
+                scales = joined_scales(log, Path(joined), exponent)
+                print(f"== {directory}: against the joined map of {joined}, c = {exponent:g}")
+                text, rescaled = joined_table(scales, truth)
+                print(text)
+                out.setdefault(str(directory), {})[f"joined c={exponent:g}"] = {
+                    "summary": joined,
+                    "scales": {r: asdict(m) for r, m in scales.items()},
+                    "rescaled_to_truth": rescaled,
+                }
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
     return 0
