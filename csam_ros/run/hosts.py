@@ -26,6 +26,12 @@ down (its bridge port) over a window of the run and restores it: what it sends m
 lost without an error, as out of radio range. In simulation the cut host also loses /clock,
 so its nodes pause until the link returns (real robots keep their own clocks). Needs root,
 ``ip``, for loss ``iptables`` and for a rate ``tc``.
+
+Discovery crosses the links too: every process tells every other of each of its endpoints.
+So the nodes run without /rosout and the type description service, a robot's recorder
+discovers only its own host, and where the base station's link has a rate limit the run's
+Fast DDS profile (:func:`link_profile`, in the run folder) sends endpoint announcements and
+/clock by multicast and repeats announcements less often.
 """
 
 from __future__ import annotations
@@ -55,6 +61,7 @@ from csam_ros.run.live import (
     smoother_drops,
 )
 from csam_ros.run.ros_env import (
+    DDS_PROFILE_VARIABLES,
     reserve_domain_id,
     subnet_environment,
     with_dds_profile,
@@ -273,7 +280,12 @@ def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], N
     if links.cut is not None and links.cut[0] not in run.robots:
         raise HostsError(f"--cut names {links.cut[0]!r}, not one of the robots {run.robots}")
     env = with_dds_profile(subnet_environment(domain))
-    profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
+    shipped = env.get(DDS_PROFILE_VARIABLES[0])
+    if links.rate_of(BASE) > 0 and shipped:
+        path = run.out_dir / "fastdds_profile.xml"
+        path.write_text(link_profile(Path(shipped).read_text(), links, domain))
+        env.update({v: str(path) for v in DDS_PROFILE_VARIABLES})
+    profile = env.get(DDS_PROFILE_VARIABLES[0], "Fast DDS defaults")
     with network(hosts, links) as net:
         where = ", ".join(f"{h} {net.addresses[h]}" for h in hosts)
         progress(f"  hosts: {where}; ROS_DOMAIN_ID {domain}, discovery over the subnet")
@@ -286,7 +298,52 @@ def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], N
                 stop_nodes(group, progress)
 
 
+def link_profile(shipped: str, links: Links, domain: int) -> str:
+    """The Fast DDS profile ``shipped`` (XML text) for a run whose base station's link has a
+    rate limit: what every process tells every other about itself crosses that link less
+    often. Endpoint announcements go by multicast (one datagram for all hosts, not a unicast
+    copy per process), a process announces itself every 10 s (not 3 s) and is held alive
+    for 60 s, the graph announcements (ros_discovery_info) and /clock are heartbeated at
+    Fast DDS's 3 s (not the 0.2 s of the map topics), and every reader of /clock listens on
+    the domain's multicast address, where one datagram reaches all of them."""
+    if links.rate_of(BASE) <= 0:
+        return shipped
+    port = 7400 + 250 * domain + 1  # the RTPS user multicast port of the domain
+    endpoints = (
+        '<data_reader profile_name="/clock"><multicastLocatorList><locator><udpv4>'
+        f"<address>239.255.0.1</address><port>{port}</port>"
+        "</udpv4></locator></multicastLocatorList></data_reader>"
+    )
+    slow = "<times><heartbeatPeriod><sec>3</sec><nanosec>0</nanosec></heartbeatPeriod></times>"
+    for topic in ("ros_discovery_info", "/clock"):
+        endpoints += f'<data_writer profile_name="{topic}">{slow}</data_writer>'
+    builtin = (
+        "<builtin><discovery_config>"
+        "<leaseDuration><sec>60</sec><nanosec>0</nanosec></leaseDuration>"
+        "<leaseAnnouncement><sec>10</sec><nanosec>0</nanosec></leaseAnnouncement>"
+        "</discovery_config><avoid_builtin_multicast>false</avoid_builtin_multicast></builtin>"
+    )
+    start = shipped.index("<rtps>", shipped.index('<participant profile_name="csam_participant"'))
+    start += len("<rtps>")
+    text = shipped[:start] + builtin + shipped[start:]
+    end = text.index("</profiles>")
+    return text[:end] + endpoints + text[end:]
+
+
 HOSTS_CLOCK_PERIOD_S = 0.05  # wall-clock s between /clock messages across hosts
+# every node on a host runs without a /rosout publisher (its log is its host's file) and
+# without the ~/get_type_description service: three endpoints fewer per node, each of which
+# every other process across the links would be told of
+LEAN_NODE_ARGS = [
+    "--ros-args",
+    "--disable-rosout-logs",
+    *("-p", "start_type_description_service:=false"),
+]
+
+
+def _node(argv: list[str]) -> list[str]:
+    """``argv`` of a ROS node with :data:`LEAN_NODE_ARGS`."""
+    return [*argv, *LEAN_NODE_ARGS]
 
 
 def _run(
@@ -300,15 +357,18 @@ def _run(
     from csam_ros.ros.topics import base_station_topics, robot_host_topics
 
     base_topics = base_station_topics(run.robots) + run.extra_topics
-    group.start("recorder", net.command(BASE, run.recorder_argv("bag", base_topics)))
-    for robot in run.robots:  # a robot logs its own data: it never crosses the link
+    group.start("recorder", net.command(BASE, _node(run.recorder_argv("bag", base_topics))))
+    # a robot logs its own data: it never crosses the link, nor does its recorder's discovery
+    # (it finds only the nodes of its own host, as every other host is spared its endpoints)
+    local = {**group.env, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    for robot in run.robots:
         argv = run.recorder_argv(f"bag_{robot}", robot_host_topics(robot))
-        group.start(f"recorder_{robot}", net.command(robot, argv))
-    group.start("merger", net.command(BASE, run.merger_argv()))
+        group.start(f"recorder_{robot}", net.command(robot, _node(argv)), local)
+    group.start("merger", net.command(BASE, _node(run.merger_argv())))
     monitor = [sys.executable, "-m", "csam_ros.run.hosts", "--out", str(run.out_dir)]
     group.start("monitor", net.command(BASE, [*monitor, "--robots", *run.robots]))
     for robot in run.robots:
-        group.start(f"smoother_{robot}", net.command(robot, run.smoother_argv(robot)))
+        group.start(f"smoother_{robot}", net.command(robot, _node(run.smoother_argv(robot))))
     start = time.monotonic()
     shown = 0
 
@@ -341,6 +401,7 @@ def _run(
                 robot,
                 [
                     *run.source_argv,
+                    *LEAN_NODE_ARGS,
                     "--ros-args",
                     *run.source_ros_args,
                     *ros_params(
@@ -488,13 +549,20 @@ def monitor(
     still) and wait for the joined map of those final local maps."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.topics import FLUSH, JOINED_MAP, LOCAL_MAP_UPDATES, smoother_service
 
     rclpy.init()
-    node = rclpy.create_node("csam_run_monitor")
+    # a client of the smoothers and a reader of the joined map, nothing more to discover
+    node = rclpy.create_node(
+        "csam_run_monitor",
+        enable_rosout=False,
+        start_parameter_services=False,
+        parameter_overrides=[Parameter("start_type_description_service", value=False)],
+    )
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     joined: list = []  # every joined map received
