@@ -12,7 +12,10 @@ nanoseconds), it publishes:
   ``update_tolerance_rad``, features and rendezvous poses beyond ``update_key_tolerance``,
   every one exactly after ``~/flush``). The first update of a run is
   the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
-  for a receiver that missed one;
+  for a receiver that missed one. While a reliable subscriber has not acknowledged the last
+  update (a slow link), the next is deferred (``deferred_updates``): the one sent once all is
+  acknowledged holds every change since, so a slow link carries fewer, larger updates instead
+  of a queue it cannot drain. An update after ``~/flush`` is never deferred;
 - ``rendezvous_poses`` when its measurements changed (latched);
 - ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest pose;
 - ``local_map`` (the whole map with covariances) and ``path``, only while something
@@ -50,6 +53,7 @@ from csam_msgs.msg import (
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
@@ -113,6 +117,7 @@ from csam_ros.ros.topics import (
 
 # a drop reason: a rendezvous stamp before this robot's first pose (e.g. clocks that differ)
 OUTSIDE_TRAJECTORY = "outside_trajectory"
+NO_WAIT = Duration(seconds=0)  # asking whether every reliable subscriber acknowledged
 
 
 class Smoother(Node):
@@ -153,6 +158,7 @@ class Smoother(Node):
             ),
         )
         self.resyncs = 0
+        self.deferred_updates = 0
         self._rendezvous_sent: tuple | None = None
         self.thinning = declare_settings(self, CsamConfig).thinning()
         self.robots = list(dict.fromkeys([self.robot, *peers]))
@@ -329,12 +335,16 @@ class Smoother(Node):
         robot_map = robot_map_from_local_map(self.map)
         stamp_ns = self.last_odometry_ns
         rendezvous, content = self.rendezvous_poses(robot_map, stamp_ns)
-        update = self.sender.update(
-            robot_map_arrays(robot_map),
-            exact=exact,
-            key_poses=np.asarray(rendezvous.pose_indices, dtype=np.int64),
-        )
-        self.update_pub.publish(local_map_update_message(update, self.robot, stamp_ns, iterations))
+        if exact or self.update_pub.wait_for_all_acked(NO_WAIT):
+            update = self.sender.update(
+                robot_map_arrays(robot_map),
+                exact=exact,
+                key_poses=np.asarray(rendezvous.pose_indices, dtype=np.int64),
+            )
+            message = local_map_update_message(update, self.robot, stamp_ns, iterations)
+            self.update_pub.publish(message)
+        else:
+            self.deferred_updates += 1
         if self.local_map_pub.get_subscription_count():
             self.local_map_pub.publish(
                 robot_map_to_message(
@@ -516,6 +526,7 @@ class Smoother(Node):
             "restarts": self.restarts,
             "complete_updates": self.sender.complete_updates,
             "resyncs": self.resyncs,
+            "deferred_updates": self.deferred_updates,
             "lost_seconds": round(self.lost_seconds, 3),
             **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
         }

@@ -385,3 +385,65 @@ def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
         receiver.destroy_node()
         node.destroy_node()
         executor.shutdown()
+
+
+def test_smoother_defers_updates_until_the_last_is_acknowledged(ros_context, spin) -> None:
+    """While the last update is unacknowledged no update goes out; the next one holds every
+    change since, so a receiver still builds the smoother's map; a flush is never deferred."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from csam_ros.core.csam import robot_map_from_local_map
+    from csam_ros.core.map_arrays import robot_map_arrays
+    from csam_ros.core.map_updates import apply_update
+    from csam_ros.ros.map_messages import map_update_from_message
+    from csam_ros.ros.topics import LOCAL_MAP_UPDATES
+
+    messages = _good_messages()
+    node = new_smoother(ros_context)
+    receiver = rclpy.create_node("receiver", context=ros_context)
+    received: list = []
+    receiver.create_subscription(
+        LOCAL_MAP_UPDATES.msgtype,
+        LOCAL_MAP_UPDATES.of("robot1"),
+        received.append,
+        LOCAL_MAP_UPDATES.qos,
+    )
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(receiver)
+    publisher = node.update_pub
+    try:
+        assert spin(executor, lambda: publisher.get_subscription_count() == 1)
+        chunks = np.array_split(np.arange(len(messages)), 4)
+        acknowledged = [True, False, False, True]
+        for chunk, acked in zip(chunks, acknowledged, strict=True):
+            for i in chunk:
+                deliver(node, messages[i].topic, messages[i].message)
+            publisher.wait_for_all_acked = lambda timeout, acked=acked: acked
+            node.solve_and_publish()
+        assert node.deferred_updates == 2
+        assert spin(executor, lambda: len(received) == 2)
+        assert [m.base_sequence for m in received] == [0, 1]
+
+        def held():
+            h = None
+            for msg in received:
+                h = apply_update(h, map_update_from_message(msg, "robot1"))
+            return h.map.arrays()
+
+        current = robot_map_arrays(robot_map_from_local_map(node.map))
+        within = held()
+        np.testing.assert_array_equal(within.odometry_delta, current.odometry_delta)
+        np.testing.assert_array_equal(within.observation_xy, current.observation_xy)
+        tolerance = node.sender.tolerance.position
+        assert np.abs(within.poses[:, :2] - current.poses[:, :2]).max() <= tolerance
+        publisher.wait_for_all_acked = lambda timeout: False
+        flushed_map(node)
+        assert spin(executor, lambda: len(received) == 3)
+        final = robot_map_arrays(robot_map_from_local_map(node.map))
+        np.testing.assert_array_equal(held().poses, final.poses)
+        assert node.deferred_updates == 2
+    finally:
+        receiver.destroy_node()
+        node.destroy_node()
+        executor.shutdown()
