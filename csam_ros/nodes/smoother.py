@@ -297,7 +297,13 @@ class Smoother(Node):
 
     def on_resync(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Publish the whole local map as it was last sent, as one update (a receiver missed
-        one); the reply's message is that update's sequence number (0: nothing sent yet)."""
+        one); the reply's message is that update's sequence number (0: nothing sent yet).
+        While the last update is unacknowledged it is on its way: no other is added to the
+        link, and the reply names it."""
+        if self.sender.held is not None and not self.update_pub.wait_for_all_acked(NO_WAIT):
+            response.success = True
+            response.message = str(self.sender.held.sequence)
+            return response
         update = self.sender.resend()
         if update is not None:
             self.resyncs += 1

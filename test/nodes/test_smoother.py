@@ -387,11 +387,15 @@ def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
         executor.shutdown()
 
 
-def test_smoother_defers_updates_until_the_last_is_acknowledged(ros_context, spin) -> None:
-    """While the last update is unacknowledged no update goes out; the next one holds every
-    change since, so a receiver still builds the smoother's map; a flush is never deferred."""
+def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
+    ros_context, spin
+) -> None:
+    """While the last update is unacknowledged no update goes out, nor a resync; the next
+    update holds every change since, so a receiver still builds the smoother's map; a flush
+    is never deferred."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
 
     from csam_ros.core.csam import robot_map_from_local_map
     from csam_ros.core.map_arrays import robot_map_arrays
@@ -438,8 +442,13 @@ def test_smoother_defers_updates_until_the_last_is_acknowledged(ros_context, spi
         tolerance = node.sender.tolerance.position
         assert np.abs(within.poses[:, :2] - current.poses[:, :2]).max() <= tolerance
         publisher.wait_for_all_acked = lambda timeout: False
+        # a resync while the last update is unacknowledged adds nothing: that one is on its way
+        response = node.on_resync(Trigger.Request(), Trigger.Response())
+        assert response.success and response.message == str(node.sender.held.sequence)
+        assert node.resyncs == 0
         flushed_map(node)
         assert spin(executor, lambda: len(received) == 3)
+        assert received[-1].base_sequence == received[-2].sequence
         final = robot_map_arrays(robot_map_from_local_map(node.map))
         np.testing.assert_array_equal(held().poses, final.poses)
         assert node.deferred_updates == 2
