@@ -283,8 +283,10 @@ def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], N
     shipped = env.get(DDS_PROFILE_VARIABLES[0])
     if links.rate_of(BASE) > 0 and shipped:
         path = run.out_dir / "fastdds_profile.xml"
-        path.write_text(link_profile(Path(shipped).read_text(), links, domain))
+        path.write_text(link_profile(Path(shipped).read_text(), links, domain, run.robots))
         env.update({v: str(path) for v in DDS_PROFILE_VARIABLES})
+        # the profile's publication mode holds (asynchronous, paced, where it says so)
+        env["RMW_FASTRTPS_PUBLICATION_MODE"] = "AUTO"
     profile = env.get(DDS_PROFILE_VARIABLES[0], "Fast DDS defaults")
     with network(hosts, links) as net:
         where = ", ".join(f"{h} {net.addresses[h]}" for h in hosts)
@@ -298,16 +300,25 @@ def _run_on(run: LiveRun, links: Links, domain: int, progress: Callable[[str], N
                 stop_nodes(group, progress)
 
 
-def link_profile(shipped: str, links: Links, domain: int) -> str:
+LINK_SHARE = 0.8  # of a capped base link, paced among the robots' writers
+
+
+def link_profile(shipped: str, links: Links, domain: int, robots: list[str]) -> str:
     """The Fast DDS profile ``shipped`` (XML text) for a run whose base station's link has a
     rate limit: what every process tells every other about itself crosses that link less
     often. Endpoint announcements go by multicast (one datagram for all hosts, not a unicast
     copy per process), a process announces itself every 10 s (not 3 s) and is held alive
     for 60 s, the graph announcements (ros_discovery_info) and /clock are heartbeated at
     Fast DDS's 3 s (not the 0.2 s of the map topics), and every reader of /clock listens on
-    the domain's multicast address, where one datagram reaches all of them."""
+    the domain's multicast address, where one datagram reaches all of them. What the robots
+    send the base (their map updates, rendezvous poses, /tf and status) is paced: each
+    process sends at most its share of :data:`LINK_SHARE` of the link (a Fast DDS flow
+    controller), so the link's queue does not overflow into a storm of repairs."""
+    from csam_ros.ros.topics import LOCAL_MAP_UPDATES, RENDEZVOUS_POSES, STATUS, TF, robot_topics
+
     if links.rate_of(BASE) <= 0:
         return shipped
+    pace = int(LINK_SHARE * links.rate_of(BASE) * 1000 / 8 / len(robots))  # bytes per s
     port = 7400 + 250 * domain + 1  # the RTPS user multicast port of the domain
     endpoints = (
         '<data_reader profile_name="/clock"><multicastLocatorList><locator><udpv4>'
@@ -317,11 +328,27 @@ def link_profile(shipped: str, links: Links, domain: int) -> str:
     slow = "<times><heartbeatPeriod><sec>3</sec><nanosec>0</nanosec></heartbeatPeriod></times>"
     for topic in ("ros_discovery_info", "/clock"):
         endpoints += f'<data_writer profile_name="{topic}">{slow}</data_writer>'
+    paced = (
+        "<qos><publishMode><kind>ASYNCHRONOUS</kind>"
+        "<flow_controller_name>csam_link_share</flow_controller_name></publishMode></qos>"
+    )
+    for topic in [*robot_topics(robots, [LOCAL_MAP_UPDATES, RENDEZVOUS_POSES]), TF.name]:
+        endpoints += f'<data_writer profile_name="{topic}">{paced}</data_writer>'
+    endpoints += f'<data_writer profile_name="{STATUS.name}">{paced}{slow}</data_writer>'
     builtin = (
         "<builtin><discovery_config>"
         "<leaseDuration><sec>60</sec><nanosec>0</nanosec></leaseDuration>"
         "<leaseAnnouncement><sec>10</sec><nanosec>0</nanosec></leaseAnnouncement>"
         "</discovery_config><avoid_builtin_multicast>false</avoid_builtin_multicast></builtin>"
+        "<flow_controller_descriptor_list><flow_controller_descriptor>"
+        f"<name>csam_link_share</name><max_bytes_per_period>{pace}</max_bytes_per_period>"
+        "<period_ms>1000</period_ms></flow_controller_descriptor></flow_controller_descriptor_list>"
+    )
+    # a reliable writer announces unacknowledged data every 2 s, not 0.2 s: more than the
+    # link's queue holds (0.4 s), so it does not ask for repairs of what is still queued
+    shipped = shipped.replace(
+        "<sec>0</sec>\n          <nanosec>200000000</nanosec>",
+        "<sec>2</sec>\n          <nanosec>0</nanosec>",
     )
     start = shipped.index("<rtps>", shipped.index('<participant profile_name="csam_participant"'))
     start += len("<rtps>")
