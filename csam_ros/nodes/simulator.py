@@ -169,6 +169,7 @@ class Simulator(Node):
             if time.monotonic() - self.ready_since < self.start_delay:
                 return
             self.wall_start = time.monotonic()
+            self.get_logger().info("publishing")
         if self.rate > 0:
             elapsed_ns = int((time.monotonic() - self.wall_start) * self.rate * 1e9)
             horizon = self.start_stamp_ns + elapsed_ns

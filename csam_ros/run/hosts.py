@@ -357,6 +357,7 @@ def link_profile(shipped: str, links: Links, domain: int, robots: list[str]) -> 
     return text[:end] + endpoints + text[end:]
 
 
+SIMULATOR_PUBLISHING = "publishing"  # the simulator's log line at the start of its data
 HOSTS_CLOCK_PERIOD_S = 0.05  # wall-clock s between /clock messages across hosts
 # every node on a host runs without a /rosout publisher (its log is its host's file) and
 # without the ~/get_type_description service: three endpoints fewer per node, each of which
@@ -445,7 +446,8 @@ def _run(
             ),
         )
     sources = [f"{run.source_name}_{r}" for r in run.robots]
-    cut = LinkCut(net, progress)
+    cut_host = net.links.cut[0] if net.links.cut is not None else run.robots[0]
+    cut = LinkCut(net, progress, run.out_dir / "logs" / f"{run.source_name}_{cut_host}.log")
     while any(group.processes[s].poll() is None for s in sources):
         check(set(sources))
         relay()
@@ -484,19 +486,25 @@ def _run(
 
 class LinkCut:
     """Cuts and restores the link of :attr:`Links.cut` as the run's wall clock passes its
-    window (counted from this object's creation: the start of the data)."""
+    window, counted from the start of the data: when the cut host's simulator starts
+    publishing (its log says so; it first waits for its subscribers, which can take seconds
+    on a loaded machine)."""
 
-    def __init__(self, net: Network, progress: Callable[[str], None]) -> None:
-        self.net, self.progress = net, progress
-        self.start = time.monotonic()
+    def __init__(self, net: Network, progress: Callable[[str], None], source_log: Path) -> None:
+        self.net, self.progress, self.source_log = net, progress, source_log
+        self.start: float | None = None
         self.state = "before"
 
     def follow(self) -> None:
         cut = self.net.links.cut
         if cut is None or self.state == "after":
             return
+        if self.start is None:
+            self.start = _logged_at(self.source_log, SIMULATOR_PUBLISHING)
+            if self.start is None:
+                return
         host, begin, end = cut
-        elapsed = time.monotonic() - self.start
+        elapsed = time.time() - self.start
         if self.state == "before" and elapsed >= begin:
             self.net.set_link(host, up=False)
             self.state = "cut"
@@ -508,7 +516,8 @@ class LinkCut:
         if self.state == "cut":
             host = self.net.links.cut[0]  # type: ignore[index]
             self.net.set_link(host, up=True)
-            self.progress(f"  {host}'s link restored at {time.monotonic() - self.start:.1f} s")
+            elapsed = time.time() - (self.start or time.time())
+            self.progress(f"  {host}'s link restored at {elapsed:.1f} s")
         self.state = "after"
 
 
@@ -533,8 +542,15 @@ def stop_nodes(group: ProcessGroup, progress: Callable[[str], None]) -> None:
 
 def _all_published_at(log: Path) -> float | None:
     """The wall-clock time of a simulator's "all messages published" log line."""
+    return _logged_at(log, "all messages published")
+
+
+def _logged_at(log: Path, text: str) -> float | None:
+    """The wall-clock time of the first line of ``log`` that ends with ``text``."""
+    if not log.exists():
+        return None
     for line in log.read_text(errors="replace").splitlines():
-        if line.endswith("all messages published"):
+        if line.endswith(text):
             try:
                 return float(line.split("[")[2].split("]")[0])
             except (IndexError, ValueError):
