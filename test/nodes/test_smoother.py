@@ -317,23 +317,15 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
     assert np.abs(independent.poses[:, :2] - offline.poses[:, :2]).max() > 1e-4
 
 
-def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
-    ros_context, spin
-) -> None:
-    """A receiver over DDS that applies every ``local_map_updates`` message holds the
-    smoother's map: factors exactly, estimates within the tolerance, exactly after a flush.
-    A resync is one complete update, and the updates after it apply on top of it."""
+@contextmanager
+def update_receiver(ros_context, spin) -> Iterator[tuple[Any, Any, list]]:
+    """A smoother, and an executor spinning a node that keeps every ``local_map_updates``
+    message it receives over DDS: (smoother, executor, received)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from std_srvs.srv import Trigger
 
-    from csam_ros.core.csam import robot_map_from_local_map
-    from csam_ros.core.map_arrays import robot_map_arrays
-    from csam_ros.core.map_updates import apply_update
-    from csam_ros.ros.map_messages import map_update_from_message
     from csam_ros.ros.topics import LOCAL_MAP_UPDATES
 
-    messages = _good_messages()
     node = new_smoother(ros_context)
     receiver = rclpy.create_node("receiver", context=ros_context)
     received: list = []
@@ -347,22 +339,51 @@ def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
     executor.add_node(receiver)
     try:
         assert spin(executor, lambda: node.update_pub.get_subscription_count() == 1)
+        yield node, executor, received
+    finally:
+        receiver.destroy_node()
+        node.destroy_node()
+        executor.shutdown()
+
+
+def held_arrays(received: list) -> Any:
+    """The map a receiver holds after applying every update in ``received``, as arrays."""
+    from csam_ros.core.map_updates import apply_update
+    from csam_ros.ros.map_messages import map_update_from_message
+
+    held = None
+    for msg in received:
+        held = apply_update(held, map_update_from_message(msg, "robot1"))
+    return held.map.arrays()
+
+
+def current_arrays(node) -> Any:
+    """The smoother's own local map, as arrays."""
+    from csam_ros.core.csam import robot_map_from_local_map
+    from csam_ros.core.map_arrays import robot_map_arrays
+
+    return robot_map_arrays(robot_map_from_local_map(node.map))
+
+
+def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
+    ros_context, spin
+) -> None:
+    """A receiver over DDS that applies every ``local_map_updates`` message holds the
+    smoother's map: factors exactly, estimates within the tolerance, exactly after a flush.
+    A resync is one complete update, and the updates after it apply on top of it."""
+    from std_srvs.srv import Trigger
+
+    messages = _good_messages()
+    with update_receiver(ros_context, spin) as (node, executor, received):
         chunks = np.array_split(np.arange(len(messages)), 6)
         for chunk in chunks:
             for i in chunk:
                 deliver(node, messages[i].topic, messages[i].message)
             node.solve_and_publish()
             assert spin(executor, lambda: len(received) == node.sender.held.sequence)
-
-        def held():
-            h = None
-            for msg in received:
-                h = apply_update(h, map_update_from_message(msg, "robot1"))
-            return h
-
         tolerance = node.sender.tolerance
-        current = robot_map_arrays(robot_map_from_local_map(node.map))
-        within = held().map.arrays()
+        current = current_arrays(node)
+        within = held_arrays(received)
         np.testing.assert_array_equal(within.odometry_delta, current.odometry_delta)
         np.testing.assert_array_equal(within.observation_xy, current.observation_xy)
         assert np.abs(within.poses[:, :2] - current.poses[:, :2]).max() <= tolerance.position
@@ -377,14 +398,9 @@ def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
         flushed_map(node)  # converged: every estimate exactly
         assert spin(executor, lambda: len(received) == len(chunks) + 2)
         assert received[-1].base_sequence == received[-2].sequence
-        exact = held().map.arrays()
-        final = robot_map_arrays(robot_map_from_local_map(node.map))
+        exact, final = held_arrays(received), current_arrays(node)
         np.testing.assert_array_equal(exact.poses, final.poses)
         np.testing.assert_array_equal(exact.feature_xy, final.feature_xy)
-    finally:
-        receiver.destroy_node()
-        node.destroy_node()
-        executor.shutdown()
 
 
 def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
@@ -393,31 +409,11 @@ def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
     """While the last update is unacknowledged no update goes out, nor a resync; the next
     update holds every change since, so a receiver still builds the smoother's map; a flush
     is never deferred."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
-    from csam_ros.core.csam import robot_map_from_local_map
-    from csam_ros.core.map_arrays import robot_map_arrays
-    from csam_ros.core.map_updates import apply_update
-    from csam_ros.ros.map_messages import map_update_from_message
-    from csam_ros.ros.topics import LOCAL_MAP_UPDATES
-
     messages = _good_messages()
-    node = new_smoother(ros_context)
-    receiver = rclpy.create_node("receiver", context=ros_context)
-    received: list = []
-    receiver.create_subscription(
-        LOCAL_MAP_UPDATES.msgtype,
-        LOCAL_MAP_UPDATES.of("robot1"),
-        received.append,
-        LOCAL_MAP_UPDATES.qos,
-    )
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(receiver)
-    publisher = node.update_pub
-    try:
-        assert spin(executor, lambda: publisher.get_subscription_count() == 1)
+    with update_receiver(ros_context, spin) as (node, executor, received):
+        publisher = node.update_pub
         chunks = np.array_split(np.arange(len(messages)), 4)
         acknowledged = [True, False, False, True]
         for chunk, acked in zip(chunks, acknowledged, strict=True):
@@ -428,15 +424,7 @@ def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
         assert node.deferred_updates == 2
         assert spin(executor, lambda: len(received) == 2)
         assert [m.base_sequence for m in received] == [0, 1]
-
-        def held():
-            h = None
-            for msg in received:
-                h = apply_update(h, map_update_from_message(msg, "robot1"))
-            return h.map.arrays()
-
-        current = robot_map_arrays(robot_map_from_local_map(node.map))
-        within = held()
+        current, within = current_arrays(node), held_arrays(received)
         np.testing.assert_array_equal(within.odometry_delta, current.odometry_delta)
         np.testing.assert_array_equal(within.observation_xy, current.observation_xy)
         tolerance = node.sender.tolerance.position
@@ -449,10 +437,5 @@ def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
         flushed_map(node)
         assert spin(executor, lambda: len(received) == 3)
         assert received[-1].base_sequence == received[-2].sequence
-        final = robot_map_arrays(robot_map_from_local_map(node.map))
-        np.testing.assert_array_equal(held().poses, final.poses)
+        np.testing.assert_array_equal(held_arrays(received).poses, current_arrays(node).poses)
         assert node.deferred_updates == 2
-    finally:
-        receiver.destroy_node()
-        node.destroy_node()
-        executor.shutdown()
