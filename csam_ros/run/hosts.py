@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -310,10 +311,11 @@ def link_profile(shipped: str, links: Links, domain: int, robots: list[str]) -> 
     copy per process), a process announces itself every 10 s (not 3 s) and is held alive
     for 60 s, the graph announcements (ros_discovery_info) and /clock are heartbeated at
     Fast DDS's 3 s (not the 0.2 s of the map topics), and every reader of /clock listens on
-    the domain's multicast address, where one datagram reaches all of them. What the robots
-    send the base (their map updates, rendezvous poses, /tf and status) is paced: each
-    process sends at most its share of :data:`LINK_SHARE` of the link (a Fast DDS flow
-    controller), so the link's queue does not overflow into a storm of repairs."""
+    the domain's multicast address, where one datagram reaches all of them. Reliable writers
+    announce unacknowledged data every 2 s, not 0.2 s. What the robots send the base (their
+    map updates, rendezvous poses, /tf and status) is paced: each process sends at most its
+    share of :data:`LINK_SHARE` of the link (a Fast DDS flow controller), so the link's queue
+    does not overflow into a storm of repairs."""
     from csam_ros.ros.topics import LOCAL_MAP_UPDATES, RENDEZVOUS_POSES, STATUS, TF, robot_topics
 
     if links.rate_of(BASE) <= 0:
@@ -346,10 +348,13 @@ def link_profile(shipped: str, links: Links, domain: int, robots: list[str]) -> 
     )
     # a reliable writer announces unacknowledged data every 2 s, not 0.2 s: more than the
     # link's queue holds (0.4 s), so it does not ask for repairs of what is still queued
-    shipped = shipped.replace(
-        "<sec>0</sec>\n          <nanosec>200000000</nanosec>",
-        "<sec>2</sec>\n          <nanosec>0</nanosec>",
+    shipped, replaced = re.subn(
+        r"<heartbeatPeriod>\s*<sec>0</sec>\s*<nanosec>200000000</nanosec>\s*</heartbeatPeriod>",
+        "<heartbeatPeriod><sec>2</sec><nanosec>0</nanosec></heartbeatPeriod>",
+        shipped,
     )
+    if replaced != 1:
+        raise HostsError("the shipped Fast DDS profile has no 0.2 s writer heartbeat to slow")
     start = shipped.index("<rtps>", shipped.index('<participant profile_name="csam_participant"'))
     start += len("<rtps>")
     text = shipped[:start] + builtin + shipped[start:]

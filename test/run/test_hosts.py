@@ -23,10 +23,12 @@ from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.run.hosts import (
     BASE,
+    LINK_SHARE,
     MONITOR_RESULT,
     PREFIX,
     Links,
     MonitorReport,
+    link_profile,
     missing_requirements,
     network,
 )
@@ -230,6 +232,28 @@ def test_the_base_link_rate_caps_only_the_base_stations_link() -> None:
 
 
 @needs_hosts
+def test_a_capped_base_link_paces_the_robots_and_slows_the_heartbeats() -> None:
+    from xml.etree import ElementTree
+
+    from csam_ros.run.ros_env import DDS_PROFILE
+
+    shipped = Path(DDS_PROFILE).read_text()
+    assert link_profile(shipped, Links(loss=0.1), 7, ["robot1", "robot2"]) == shipped
+    text = link_profile(shipped, Links(base_kbit_s=256), 7, ["robot1", "robot2"])
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ElementTree.fromstring(text)
+    (pace,) = root.iterfind(".//f:flow_controller_descriptor/f:max_bytes_per_period", ns)
+    assert int(pace.text) == int(LINK_SHARE * 256_000 / 8 / 2)
+    paced = {
+        w.get("profile_name")
+        for w in root.iterfind(".//f:data_writer", ns)
+        if w.find(".//f:flow_controller_name", ns) is not None
+    }
+    assert {"/robot1/local_map_updates", "/robot2/local_map_updates", "/tf"} <= paced
+    default = root.find(".//f:data_writer[@profile_name='csam_writer']", ns)
+    assert default.find(".//f:heartbeatPeriod/f:sec", ns).text == "2"
+
+
 def test_ctrl_c_stops_every_node_and_deletes_the_namespaces(tmp_path: Path) -> None:
     before = _namespaces()
     out = tmp_path / "run"
