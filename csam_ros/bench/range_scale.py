@@ -140,13 +140,8 @@ def table(
             f"{name:<8} {est:7.4f}  {100 * se:5.2f}%  {100 * jk:5.2f}%  "
             f"{factored.scales[name]:7.4f}"
         )
-        if name in rescaled and name in reference:
-            diff = 100 * (rescaled[name] / reference[name] - 1)
-            diffs.append(diff)
-            row += f"  {rescaled[name]:7.4f}  {reference[name]:7.4f}  {diff:+6.2f}"
-        lines.append(row)
-    if diffs:
-        lines.append(f"rms diff {np.sqrt(np.mean(np.square(diffs))):.2f}%")
+        lines.append(row + _against_truth(name, rescaled, reference, diffs))
+    lines += _rms(diffs)
     lines.append(
         f"residual spread {100 * result.sigma:.2f}% (log), beyond 3 sigma {result.outliers}, "
         f"components {[len(g) for g in result.components]}, unpaired {result.unpaired}"
@@ -185,14 +180,25 @@ def joined_table(
             f"{name:<8} {m.scale:7.4f}  {m.first_half:.4f}/{m.second_half:.4f}  {m.observations:5d}"
             f"  {100 * m.log_spread:5.2f}%"
         )
-        if name in reference:
-            diff = 100 * (rescaled[name] / reference[name] - 1)
-            diffs.append(diff)
-            row += f"  {rescaled[name]:7.4f}  {reference[name]:7.4f}  {diff:+6.2f}"
-        lines.append(row)
-    if diffs:
-        lines.append(f"rms diff {np.sqrt(np.mean(np.square(diffs))):.2f}%")
+        lines.append(row + _against_truth(name, rescaled, reference, diffs))
+    lines += _rms(diffs)
     return "\n".join(lines), rescaled
+
+
+def _against_truth(
+    name: str, rescaled: dict[str, float], reference: dict[str, float], diffs: list[float]
+) -> str:
+    """The columns re-scaled, truth and difference [%] of ``name`` (the difference is added
+    to ``diffs``), or nothing without both."""
+    if name not in rescaled or name not in reference:
+        return ""
+    diff = 100 * (rescaled[name] / reference[name] - 1)
+    diffs.append(diff)
+    return f"  {rescaled[name]:7.4f}  {reference[name]:7.4f}  {diff:+6.2f}"
+
+
+def _rms(diffs: list[float]) -> list[str]:
+    return [f"rms diff {np.sqrt(np.mean(np.square(diffs))):.2f}%"] if diffs else []
 
 
 def joined_scales(log: MultiRobotLog, summary: Path, exponent: float) -> dict[str, MapScale]:

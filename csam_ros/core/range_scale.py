@@ -47,7 +47,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.sparse.csgraph import connected_components
 
 from csam_ros.core.calibration import (
     NoiseModel,
@@ -60,8 +62,6 @@ from csam_ros.core.log import FeatureLog, GroundTruth, MultiRobotLog
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-_MAD_TO_SIGMA = 1.4826
 
 
 @dataclass(frozen=True)
@@ -323,7 +323,7 @@ def _robust_sigma(residuals: FloatArray) -> float:
     """Normalised median absolute deviation about the median."""
     if residuals.size == 0:
         return float("nan")
-    return float(_MAD_TO_SIGMA * np.median(np.abs(residuals - np.median(residuals))))
+    return robust_sigma(residuals - np.median(residuals))
 
 
 def _laplacian(n: int, i: IntArray, j: IntArray, w: FloatArray) -> FloatArray:
@@ -351,22 +351,9 @@ def _min_norm(lap: FloatArray, g: FloatArray) -> FloatArray:
 
 def _components(n: int, i: IntArray, j: IntArray) -> list[IntArray]:
     """Connected components of the graph with edges ``(i_k, j_k)``, in index order."""
-    parent = list(range(n))
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for a, b in zip(i.tolist(), j.tolist(), strict=True):
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    groups: dict[int, list[int]] = {}
-    for k in range(n):
-        groups.setdefault(root(k), []).append(k)
-    return [np.array(g, dtype=np.int64) for g in groups.values()]
+    graph = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    count, labels = connected_components(graph, directed=False)
+    return [np.flatnonzero(labels == c) for c in range(count)]
 
 
 @dataclass
