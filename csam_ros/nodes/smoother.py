@@ -10,7 +10,8 @@ nanoseconds), it publishes:
 - ``local_map_updates``: what changed in the local map since the last update
   (:mod:`csam_ros.core.map_updates`; poses that moved beyond ``update_tolerance_m`` or
   ``update_tolerance_rad``, features and rendezvous poses beyond ``update_key_tolerance``,
-  every one exactly after ``~/flush``). The first update of a run is
+  every one exactly after ``~/flush``; a flush with no new data since the last sends nothing
+  again). The first update of a run is
   the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
   for a receiver that missed one. While a reliable subscriber has not acknowledged the last
   update (a slow link), the next is deferred (``deferred_updates``): the one sent once all is
@@ -175,7 +176,8 @@ class Smoother(Node):
         self.rendezvous_stamps: set[float] = set()
         self.last_odometry_ns = -1
         self.published_ns = -1
-        self.dirty = False
+        self.dirty = False  # data accepted since the last solve
+        self.flushed = False  # the last publication was a flush, and nothing came since
         self.solve_seconds = 0.0
         self.errors = 0
         self.outside_stamps: set[float] = set()  # rendezvous stamps before the first pose
@@ -224,7 +226,7 @@ class Smoother(Node):
             stamps, inputs, sigmas, rho = (np.stack(a) for a in zip(*samples, strict=True))
             self.map.add_odometry(stamps, inputs, sigmas, rho if rho.any() else None)
             self.last_odometry_ns = time_to_ns(msg.header.stamp)
-            self.dirty = True
+            self.accepted()
 
     def on_features(self, msg: FeatureObservations) -> None:
         stamp, a = features_from_message(msg)
@@ -240,7 +242,7 @@ class Smoother(Node):
                 a["sigma_range"][keep],
                 a["sigma_bearing"][keep],
             )
-            self.dirty = True
+            self.accepted()
 
     def on_feature_points(self, msg: FeaturePoints) -> None:
         stamp, a = feature_points_from_message(msg)
@@ -252,7 +254,7 @@ class Smoother(Node):
                 a["points"][keep],
                 a["covariances"][keep],
             )
-            self.dirty = True
+            self.accepted()
 
     def on_own_rendezvous(self, msg: RendezvousObservations) -> None:
         stamp, a = rendezvous_from_message(msg)
@@ -280,7 +282,12 @@ class Smoother(Node):
         if stamp not in self.rendezvous_stamps:
             self.rendezvous_stamps.add(stamp)
             self.map.request_poses([stamp])
-            self.dirty = True
+            self.accepted()
+
+    def accepted(self) -> None:
+        """New data went into the local map: the next timer tick (or flush) solves."""
+        self.dirty = True
+        self.flushed = False
 
     # -- output ---------------------------------------------------------------------------------
 
@@ -289,8 +296,10 @@ class Smoother(Node):
             self.solve_and_publish()
 
     def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """Solve to convergence and publish; always answers (the update itself is guarded)."""
-        guarded(self, self.drops, self.solve_and_publish)(True)
+        """Solve to convergence and publish; always answers (the update itself is guarded).
+        A flush with no data since the last one publishes nothing again: its map is the same."""
+        if not self.flushed:
+            guarded(self, self.drops, self.solve_and_publish)(True)
         response.success = self.published_ns >= 0
         response.message = str(self.published_ns)
         return response
@@ -334,6 +343,7 @@ class Smoother(Node):
         if len(self.map.stamps) < 2:  # only the start pose: nothing to publish yet
             return
         self.publish(report.solve.iterations if report.solve is not None else 0, exact=converge)
+        self.flushed = converge
 
     def publish(self, iterations: int, exact: bool = False) -> None:
         """Publish the local map's update (every estimate exactly when ``exact``) and what

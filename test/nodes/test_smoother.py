@@ -439,3 +439,27 @@ def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
         assert received[-1].base_sequence == received[-2].sequence
         np.testing.assert_array_equal(held_arrays(received).poses, current_arrays(node).poses)
         assert node.deferred_updates == 2
+
+
+def test_smoother_flush_again_without_new_data_publishes_nothing(ros_context, spin) -> None:
+    """A run's end flushes until the smoothers settle: a flush with nothing new since the last
+    one answers the same stamp and sends no second (whole-map sized) update; new data makes
+    the next flush publish again."""
+    messages = _good_messages()
+    half = len(messages) // 2
+    with update_receiver(ros_context, spin) as (node, executor, received):
+        for m in messages[:half]:
+            deliver(node, m.topic, m.message)
+        flushed_map(node)
+        assert spin(executor, lambda: len(received) == 1)
+        stamp = node.published_ns
+        flushed_map(node)
+        flushed_map(node)
+        assert not spin(executor, lambda: len(received) > 1, 1.0)
+        assert node.published_ns == stamp
+        for m in messages[half:]:
+            deliver(node, m.topic, m.message)
+        flushed_map(node)
+        assert spin(executor, lambda: len(received) == 2)
+        assert node.published_ns > stamp
+        np.testing.assert_array_equal(held_arrays(received).poses, current_arrays(node).poses)
