@@ -58,6 +58,7 @@ from csam_ros.core.covariance import (
     upper_sqrt_information,
 )
 from csam_ros.core.joining import (
+    JointSolution,
     RobotMap,
     SelectedInverse,
     find_gauge_factor,
@@ -487,12 +488,19 @@ def join_maps(
     lap("joint_solve")
 
     joint = solution.problem
-    system = factorize_at_estimate(joint)
-    first = joint.scalar_indices([int(solution.pose_ids[r][0]) for r in aligned])
-    base_cov = covariance_block(system, first).reshape(len(aligned), 3, -1, 3)
-    base_cov = base_cov[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
+    if aligned == [0] and _at_local_estimate(solution, maps[0]):
+        # the joint problem is the reference's local problem (no rendezvous rows, nothing to
+        # associate) at the local estimate: the local view's marginals are the joint ones
+        marginals = (maps[0].problem, views[0].system, views[0].inverse, {0: maps[0].pose_ids})
+        base_cov = np.zeros((1, 3, 3))
+    else:
+        system = factorize_at_estimate(joint)
+        first = joint.scalar_indices([int(solution.pose_ids[r][0]) for r in aligned])
+        base_cov = covariance_block(system, first).reshape(len(aligned), 3, -1, 3)
+        base_cov = base_cov[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
+        marginals = (joint, system, SelectedInverse(system), solution.pose_ids)
     lap("joint_base_node_covariance")
-    inverse = SelectedInverse(system)
+    marginal_problem, system, inverse, marginal_pose_ids = marginals
     robots: dict[str, RobotResult] = {}
     for r, m in enumerate(maps):
         result = RobotResult(
@@ -510,7 +518,9 @@ def join_maps(
         )
         if r in aligned:
             poses = joint.values_of(solution.pose_ids[r])
-            in_reference, own = heading_sigmas(joint, system, solution.pose_ids[r], inverse)
+            in_reference, own = heading_sigmas(
+                marginal_problem, system, marginal_pose_ids[r], inverse
+            )
             result.poses_joined = poses
             result.sigma_phi_joined = own
             result.sigma_phi_joined_reference = in_reference
@@ -524,7 +534,11 @@ def join_maps(
                 result.alignment_base_node = alignment.base_nodes[r].copy()
                 result.alignment_base_node_cov = alignment.base_covariance(r).copy()
         robots[m.name] = result
-    feature_covs = inverse.blocks(joint, solution.feature_var_ids)
+    feature_covs = (
+        views[0].feature_covariances
+        if aligned == [0]
+        else inverse.blocks(joint, solution.feature_var_ids)
+    )
     xy = joint.values_of(solution.feature_var_ids) if len(solution.feature_var_ids) else []
     features = [
         FeatureResult([f"{names[r]}/{lab}" for r, lab in members], xy[i], feature_covs[i])
@@ -571,6 +585,17 @@ def join_maps(
         statistics=statistics,
         rendezvous_filter=rendezvous_filter,
     )
+
+
+def _at_local_estimate(solution: JointSolution, m: RobotMap, tolerance: float = 1e-6) -> bool:
+    """Whether the joint solve left robot ``m``'s (the reference's) poses and features within
+    ``tolerance`` (m, rad) of its local estimate (marginals there differ by as little)."""
+    joint = solution.problem
+    moved = np.abs(joint.values_of(solution.pose_ids[0]) - m.poses).max(initial=0.0)
+    if len(m.feature_ids):
+        features = joint.values_of(solution.feature_ids[0]) - m.feature_positions
+        moved = max(moved, np.abs(features).max())
+    return moved <= tolerance
 
 
 def robot_map_from_local_map(local: LocalMap, with_covariances: bool = False) -> RobotMap:

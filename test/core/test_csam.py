@@ -295,3 +295,39 @@ def test_an_unconverged_solve_is_reported_never_silent(map_joining) -> None:
     assert "maximum iterations reached after 1 iterations" in note
     again = CsamResult.from_dict(json.loads(json.dumps(result.to_dict())))
     assert not again.converged and note in again.notes
+
+
+def test_one_robot_alone_has_the_marginals_of_its_dense_information(map_joining) -> None:
+    """A robot joined alone: its joint problem is its local problem, and the reported
+    marginals (heading sigmas, feature covariances) are those of the dense inverse of its
+    information matrix at the joined estimate."""
+    from csam_ros.core.covariance import factorize_at_estimate
+    from csam_ros.core.csam import build_robot_maps, join_maps
+
+    log, _ = map_joining
+    alone = copy.copy(log)
+    alone.robots = {"robot1": log.robots["robot1"]}
+    built = build_robot_maps(alone)
+    (m,) = built.maps
+    joined = join_maps(built.maps, built.rendezvous_logs)
+    robot = joined.robots["robot1"]
+    by_label = {int(f.members[0].split("/")[1]): f for f in joined.features}
+    features = [by_label[int(label)] for label in m.feature_labels]
+    m.problem.values[:] = np.nan  # the joined estimate goes in, nothing of the local one
+    m.problem.set_values(m.pose_ids, robot.poses_joined)
+    m.problem.set_values(m.feature_ids, np.array([f.xy for f in features]))
+    upper = factorize_at_estimate(m.problem).matrix().toarray()
+    covariance = np.linalg.inv(upper + np.triu(upper, 1).T)
+    headings = m.problem.scalar_indices(m.pose_ids)[2::3]
+    first = headings[0]
+    np.testing.assert_allclose(
+        robot.sigma_phi_joined_reference, np.sqrt(covariance[headings, headings]), rtol=1e-6
+    )
+    relative = covariance[headings, headings] + covariance[first, first]
+    relative -= 2 * covariance[headings, first]
+    np.testing.assert_allclose(
+        robot.sigma_phi_joined, np.sqrt(np.maximum(relative, 0.0)), rtol=1e-6, atol=1e-9
+    )
+    xy = m.problem.scalar_indices(m.feature_ids).reshape(-1, 2)
+    expected = covariance[xy[:, :, None], xy[:, None, :]]
+    np.testing.assert_allclose(np.array([f.cov for f in features]), expected, rtol=1e-6)
