@@ -244,3 +244,20 @@ def no_default_leaf() -> Callable[[Any], None]:
 def make_sample() -> Callable[[str], Any]:
     """make_sample(msgtype): a fresh message of any type with every field non-default."""
     return lambda msgtype: fill_message(message_class_of(msgtype))
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One ``csam demo`` of the map-joining experiment for every test that reads a demo's run
+    folder (summary, figures, bag): at rate 8, so its maps arrive spread over seconds."""
+    out = tmp_path_factory.mktemp("demo") / "run"
+    done = subprocess.run(
+        [sys.executable, "-m", "csam_ros.cli", "demo", "--scenario", "map_joining"]
+        + ["--rate", "8", "--isolated", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=REPO,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    return out

@@ -37,14 +37,6 @@ def _last_joined_map(bag: Path):
     return last
 
 
-@pytest.fixture(scope="module")
-def demo_run(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("demo") / "run"
-    result = csam("demo", "--scenario", "map_joining", "--rate", "0", "--out", out)
-    assert result.returncode == 0, result.stdout + result.stderr
-    return out
-
-
 def test_demo_writes_bag_summary_and_figures(demo_run: Path) -> None:
     summary = RunSummary.read(demo_run / "summary.json")
     assert summary.scenario == "map_joining"
@@ -211,10 +203,16 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
         executor.shutdown()
 
 
-def test_live_replay_matches_offline_replay(tmp_path: Path) -> None:
+def test_live_replay_matches_offline_replay_and_prints_the_lag(tmp_path: Path) -> None:
+    from csam_ros.run.lag import read_timeline
+
     bag = REPO / "bags" / "map_joining"
     live = csam("replay", bag, "--rate", "4", "--isolated", "--out", tmp_path / "live")
     assert live.returncode == 0, live.stdout + live.stderr
+    stats = read_timeline(tmp_path / "live" / "bag").lag_stats()
+    assert f"  {stats}\n" in live.stdout
+    assert "lag from a local map to the joined map that uses it: mean " in live.stdout
+    assert "  merger: " in live.stdout and " solves" in live.stdout
     offline = csam("replay", bag, "--offline", "--out", tmp_path / "offline")
     assert offline.returncode == 0, offline.stderr
     a = RunSummary.read(tmp_path / "live" / "summary.json").result

@@ -22,11 +22,9 @@ def _run(*args: str | Path) -> str:
     return done.stdout
 
 
-def test_merger_replay_joins_a_live_run_cold_and_warm_alike(tmp_path: Path) -> None:
-    # at a fixed rate the maps arrive spread over about 5 s (as fast as possible, a loaded
-    # machine delivered them in two bursts 0.1 s apart)
-    _run("csam_ros.cli", "demo", "--rate", "8", "--isolated", "--out", tmp_path / "demo")
-    printed = _run("csam_ros.bench.merger_replay", tmp_path / "demo" / "bag", "--every", "0.5")
+def test_merger_replay_joins_a_live_run_cold_and_warm_alike(demo_run: Path) -> None:
+    # the demo ran at rate 8: its maps arrive over about 5 s of log time
+    printed = _run("csam_ros.bench.merger_replay", demo_run / "bag", "--every", "0.5")
     lines = printed.splitlines()
     assert lines[0].split() == [
         "t", "poses", "cold", "it1", "itJ", "warm", "it1", "itJ", "reused", "warm-cold",
