@@ -488,9 +488,10 @@ def join_maps(
     lap("joint_solve")
 
     joint = solution.problem
-    if aligned == [0] and _at_local_estimate(solution, maps[0]):
-        # the joint problem is the reference's local problem (no rendezvous rows, nothing to
-        # associate) at the local estimate: the local view's marginals are the joint ones
+    # the joint problem is the reference's local problem (no rendezvous rows, nothing to
+    # associate): at the local estimate, the local view's marginals are the joint ones
+    alone = aligned == [0] and _at_local_estimate(solution, maps[0])
+    if alone:
         marginals = (maps[0].problem, views[0].system, views[0].inverse, {0: maps[0].pose_ids})
         base_cov = np.zeros((1, 3, 3))
     else:
@@ -535,9 +536,7 @@ def join_maps(
                 result.alignment_base_node_cov = alignment.base_covariance(r).copy()
         robots[m.name] = result
     feature_covs = (
-        views[0].feature_covariances
-        if aligned == [0]
-        else inverse.blocks(joint, solution.feature_var_ids)
+        views[0].feature_covariances if alone else inverse.blocks(joint, solution.feature_var_ids)
     )
     xy = joint.values_of(solution.feature_var_ids) if len(solution.feature_var_ids) else []
     features = [
