@@ -427,7 +427,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         f"({assoc['true_positives']} of {assoc['true_pairs']} true pairs)"
     )
     for name, robot in metrics["robots"].items():
-        print(f"  {name}: {robot['alignment']}")
+        own = robot.get("local_map_error") or {}
+        alone = (
+            f"; its local map alone: RMSE {own['rmse_m']:.3f} m, max {own['max_m']:.3f} m"
+            if own.get("rmse_m") is not None
+            else ""
+        )
+        print(f"  {name}: {robot['alignment']}{alone}")
     if error.get("transform") is not None:
         from csam_ros.core import se2
         from csam_ros.figures import draw_joined_map

@@ -210,6 +210,19 @@ def _trajectory_error(
     return result
 
 
+def _local_map_error(
+    name: str, robot: RobotResult, truth: GroundTruth, positions: dict[int, FloatArray]
+) -> dict:
+    """RMSE, maximum and count of a robot's own local map (its features in its frame ``G_r``,
+    before any joining) after a rigid alignment to the truth."""
+    own = [
+        FeatureResult([f"{name}/{int(label)}"], xy, np.zeros((2, 2)))
+        for label, xy in zip(robot.feature_labels_local, robot.features_local, strict=True)
+    ]
+    error = _landmark_error(own, truth, positions)
+    return {key: error[key] for key in ("rmse_m", "max_m", "n_features")}
+
+
 def evaluate(result: CsamResult, truth: GroundTruth) -> dict:
     """Metrics of a C-SAM ``result`` against ``truth`` (JSON-ready)."""
     features = result.features
@@ -235,13 +248,17 @@ def evaluate(result: CsamResult, truth: GroundTruth) -> dict:
         if own:
             pending[name] = _landmark_error(own, truth, positions)
             pending[name]["frame"] = f"{name}/map"
+    robots = {}
+    for name in sorted(status):
+        robots[name] = {"alignment": status[name], "joined": name in joined}
+        own_map = result.robots[name]
+        if len(own_map.features_local):
+            robots[name]["local_map_error"] = _local_map_error(name, own_map, truth, positions)
     return {
         "landmark_error": landmark,
         "pending_frames": pending,
         "association": _association(features, truth, joined),
-        "robots": {
-            name: {"alignment": status[name], "joined": name in joined} for name in sorted(status)
-        },
+        "robots": robots,
         "n_joined": len(joined),
         "trajectory_error": _trajectory_error(
             result.robots, truth, joined, landmark.get("transform")

@@ -210,3 +210,27 @@ def test_bad_results_give_clear_errors() -> None:
         evaluate(summary([feature([], [0, 0])]), truth())
     with pytest.raises(ValueError, match="not finite"):
         evaluate(summary([feature(["robot1/1"], [np.nan, 0])]), truth())
+
+
+def test_each_robot_local_map_is_scored_alone_in_its_own_frame() -> None:
+    """A robot's local map (its features in its frame, before joining) gets its own rigid
+    alignment: a rotated, shifted copy of the truth scores zero; with one feature 0.3 m off,
+    the errors of the best rigid fit."""
+    result = summary(joined_features(POSITIONS))
+    r2 = result.robots["robot2"]
+    r2.feature_labels_local = np.array([15 - int(s) for s in IDS])
+    r2.features_local = rigid(POSITIONS, 1.1, (-7.0, 2.0))
+    exact = evaluate(result, truth())["robots"]["robot2"]["local_map_error"]
+    assert exact["n_features"] == 5
+    assert exact["rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert exact["max_m"] == pytest.approx(0.0, abs=1e-12)
+
+    r2.features_local[2] += rotation(1.1) @ np.array([0.3, 0.0])
+    metrics = evaluate(result, truth())
+    off = metrics["robots"]["robot2"]["local_map_error"]
+    rot, shift = kabsch_2d(r2.features_local, POSITIONS)
+    errors = np.linalg.norm(r2.features_local @ rot.T + shift - POSITIONS, axis=1)
+    assert off["rmse_m"] == pytest.approx(np.sqrt(np.mean(errors**2)), abs=1e-12)
+    assert off["max_m"] == pytest.approx(errors.max(), abs=1e-12)
+    assert 0.1 < off["max_m"] < 0.3
+    assert "local_map_error" not in metrics["robots"]["robot1"]  # no local features given
