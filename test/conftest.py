@@ -1,4 +1,5 @@
-"""Shared fixtures: isolated DDS discovery, rclpy contexts, node subprocesses, sample messages.
+"""Shared fixtures: isolated DDS discovery, rclpy contexts, node subprocesses, sample messages,
+one demo run.
 
 The session fixture ``ros_domain`` reserves a ROS_DOMAIN_ID and limits discovery to this host
 in os.environ before any test initialises rclpy; every subprocess inherits it, so parallel
