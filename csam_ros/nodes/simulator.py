@@ -33,6 +33,9 @@ from csam_ros.ros.topics import (
     sensor_topics,
 )
 
+# log lines others time the run by (run.hosts reads them from the node's log file)
+LOG_PUBLISHING = "publishing"  # the first message goes out
+LOG_ALL_PUBLISHED = "all messages published"
 DRAIN_TIMEOUT_S = 30.0  # the longest wait for acknowledgements before exiting when done
 
 
@@ -169,7 +172,7 @@ class Simulator(Node):
             if time.monotonic() - self.ready_since < self.start_delay:
                 return
             self.wall_start = time.monotonic()
-            self.get_logger().info("publishing")
+            self.get_logger().info(LOG_PUBLISHING)
         if self.rate > 0:
             elapsed_ns = int((time.monotonic() - self.wall_start) * self.rate * 1e9)
             horizon = self.start_stamp_ns + elapsed_ns
@@ -193,7 +196,7 @@ class Simulator(Node):
             self._clock_sent = time.monotonic()
         if done:
             self.timer.cancel()
-            self.get_logger().info("all messages published")
+            self.get_logger().info(LOG_ALL_PUBLISHED)
             if self.exit_when_done:
                 # let reliable messages drain before the process goes away
                 self.create_timer(0.2, self._finish, clock=steady_clock())

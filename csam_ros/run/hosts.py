@@ -362,7 +362,6 @@ def link_profile(shipped: str, links: Links, domain: int, robots: list[str]) -> 
     return text[:end] + endpoints + text[end:]
 
 
-SIMULATOR_PUBLISHING = "publishing"  # the simulator's log line at the start of its data
 HOSTS_CLOCK_PERIOD_S = 0.05  # wall-clock s between /clock messages across hosts
 # every node on a host runs without a /rosout publisher (its log is its host's file) and
 # without the ~/get_type_description service: three endpoints fewer per node, each of which
@@ -505,7 +504,9 @@ class LinkCut:
         if cut is None or self.state == "after":
             return
         if self.start is None:
-            self.start = _logged_at(self.source_log, SIMULATOR_PUBLISHING)
+            from csam_ros.nodes.simulator import LOG_PUBLISHING
+
+            self.start = _logged_at(self.source_log, LOG_PUBLISHING)
             if self.start is None:
                 return
         host, begin, end = cut
@@ -547,7 +548,9 @@ def stop_nodes(group: ProcessGroup, progress: Callable[[str], None]) -> None:
 
 def _all_published_at(log: Path) -> float | None:
     """The wall-clock time of a simulator's "all messages published" log line."""
-    return _logged_at(log, "all messages published")
+    from csam_ros.nodes.simulator import LOG_ALL_PUBLISHED
+
+    return _logged_at(log, LOG_ALL_PUBLISHED)
 
 
 def _logged_at(log: Path, text: str) -> float | None:
