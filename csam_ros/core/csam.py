@@ -492,16 +492,20 @@ def join_maps(
     # associate): at the local estimate, the local view's marginals are the joint ones
     alone = aligned == [0] and _at_local_estimate(solution, maps[0])
     if alone:
-        marginals = (maps[0].problem, views[0].system, views[0].inverse, {0: maps[0].pose_ids})
+        marginal_problem, system, marginal_pose_ids = (
+            maps[0].problem,
+            views[0].system,
+            {0: maps[0].pose_ids},
+        )
         base_cov = np.zeros((1, 3, 3))
     else:
+        marginal_problem, marginal_pose_ids = joint, solution.pose_ids
         system = factorize_at_estimate(joint)
         first = joint.scalar_indices([int(solution.pose_ids[r][0]) for r in aligned])
         base_cov = covariance_block(system, first).reshape(len(aligned), 3, -1, 3)
         base_cov = base_cov[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
-        marginals = (joint, system, SelectedInverse(system), solution.pose_ids)
     lap("joint_base_node_covariance")
-    marginal_problem, system, inverse, marginal_pose_ids = marginals
+    inverse = views[0].inverse if alone else SelectedInverse(system)
     robots: dict[str, RobotResult] = {}
     for r, m in enumerate(maps):
         result = RobotResult(
