@@ -13,12 +13,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from csam_ros.figure_worker import FigureWorker, figure_worker
+from csam_ros.forked import Forked
 from csam_ros.run.launch import executable
 from csam_ros.run.live import LiveRunError
 
 if TYPE_CHECKING:
-    from csam_ros.core.log import GroundTruth
+    from csam_ros.core.log import GroundTruth, MultiRobotLog
     from csam_ros.core.result import RunSummary
+    from csam_ros.core.validation import MeasurementFilter
     from csam_ros.run.live import LiveRun
 
 RUNS_DIR = Path("runs")
@@ -265,32 +267,23 @@ def _bag_contents(bag: Path) -> tuple[list[str], float, list[str]]:
     return robots, max(info.end_ns - info.start_ns, 0) * 1e-9, list(info.topics)
 
 
-def offline_summary(
-    bag: Path,
-    config_document: dict | None = None,
-    resume: Path | None = None,
-    save_state: Path | None = None,
-) -> tuple[RunSummary, GroundTruth | None]:
-    """The summary of a bag run through the core in stamp order (no DDS), and its truth.
+def read_offline_log(
+    bag: Path, config_document: dict | None = None, resume: Path | None = None
+) -> tuple[MultiRobotLog, MeasurementFilter]:
+    """A bag's sensor data and truth as the core's log, through the smoothers' input filter
+    (its ``input:`` bounds), and that filter with its drop counts.
 
-    ``resume``: continue from the state an earlier replay saved (its accepted logs and its
-    measurement filter), the bag's data after them; ``save_state``: write the state of this
-    replay there (a replay continued from it equals one over all the data)."""
+    ``resume``: the data after the state an earlier replay saved, joined to its accepted logs
+    and through its measurement filter."""
     from csam_ros.bag import read_bag_messages
-    from csam_ros.core.checkpoint import CheckpointError, FilterState, OfflineState, joined_logs
-    from csam_ros.core.csam import CsamConfig, run_csam
-    from csam_ros.core.local_map import LocalMapConfig
+    from csam_ros.core.checkpoint import CheckpointError, OfflineState, joined_logs
     from csam_ros.core.log import MultiRobotLog
-    from csam_ros.core.result import RunSummary
     from csam_ros.core.validation import InputBounds
     from csam_ros.ros.conversions import LogBuilder
     from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
 
-    document = config_document or {}
     try:
-        config = CsamConfig.from_dict(document.get("csam"), "csam")
-        local_map = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
-        bounds = InputBounds.from_dict(document.get("input"), "input")
+        bounds = InputBounds.from_dict((config_document or {}).get("input"), "input")
     except ValueError as err:
         raise CliError(str(err)) from None
     robots = _bag_robots(bag)
@@ -313,14 +306,46 @@ def offline_summary(
             log = MultiRobotLog(joined_logs(saved.logs, log.robots), log.truth)
         except ValueError as err:
             raise CliError(f"--resume {resume}: {err}") from None
-    dropped = {r: c.as_dict() for r, c in builder.filter.drops.items()}
+    return log, builder.filter
+
+
+def offline_summary(
+    bag: Path,
+    config_document: dict | None = None,
+    resume: Path | None = None,
+    save_state: Path | None = None,
+    reading: Forked[tuple[MultiRobotLog, MeasurementFilter]] | None = None,
+) -> tuple[RunSummary, GroundTruth | None]:
+    """The summary of a bag run through the core in stamp order (no DDS), and its truth.
+
+    ``resume``: continue from the state an earlier replay saved (its accepted logs and its
+    measurement filter), the bag's data after them; ``save_state``: write the state of this
+    replay there (a replay continued from it equals one over all the data). ``reading``: the
+    :func:`read_offline_log` of the same arguments, already under way in another process."""
+    from csam_ros.core.checkpoint import FilterState, OfflineState
+    from csam_ros.core.csam import CsamConfig, run_csam
+    from csam_ros.core.local_map import LocalMapConfig
+    from csam_ros.core.result import RunSummary
+
+    document = config_document or {}
+    try:
+        config = CsamConfig.from_dict(document.get("csam"), "csam")
+        local_map = LocalMapConfig.from_dict(document.get("local_map"), "local_map")
+    except ValueError as err:
+        raise CliError(str(err)) from None
+    if reading is None:
+        log, measurement_filter = read_offline_log(bag, document, resume)
+    else:
+        log, measurement_filter = reading.result()
+    dropped = {r: c.as_dict() for r, c in measurement_filter.drops.items()}
     try:
         result = run_csam(log, config, local_map)
     except ValueError as err:  # no robot with a local map: named with the reason of each
         drops = "; ".join(f"{r} dropped {d}" for r, d in dropped.items() if d)
         raise CliError(f"{bag}: {err}" + (f" ({drops})" if drops else "")) from None
     if save_state is not None:
-        size = OfflineState(log.robots, FilterState.of(builder.filter), result).write(save_state)
+        state = OfflineState(log.robots, FilterState.of(measurement_filter), result)
+        size = state.write(save_state)
         print(f"  state saved to {save_state} ({size / 1e6:.2f} MB)")
     return RunSummary(result, dropped=dropped), log.truth
 
@@ -344,13 +369,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
             document = load_document(args.config)
         except (ConfigFileError, OSError) as err:
             raise CliError(f"--config: {err}") from None
-    merger_params, smoother_params = _csam_params(document), _smoother_params(document)
-    out = _fresh_dir(args.out, f"replay-{bag.name}")
-    # offline, the figures' worker imports matplotlib on the other core meanwhile
-    worker = figure_worker() if args.offline else None
+    # offline, the bag is read on the other core while the core's modules are imported here,
+    # and then the figures' worker imports matplotlib there while the core computes here
+    reading = Forked(read_offline_log, bag, document, args.resume) if args.offline else None
+    worker = None
     try:
+        merger_params, smoother_params = _csam_params(document), _smoother_params(document)
+        out = _fresh_dir(args.out, f"replay-{bag.name}")
+        worker = figure_worker() if args.offline else None
         if args.offline:
-            summary, _ = offline_summary(bag, document, args.resume, args.save_state)
+            summary, _ = offline_summary(
+                bag, document, args.resume, args.save_state, reading=reading
+            )
         else:
             from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
             from csam_ros.run.live import LiveRun, run_live
@@ -389,6 +419,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     except BagError as err:
         raise CliError(str(err)) from None
     finally:
+        if reading is not None:
+            reading.close()
         if worker is not None:
             worker.close()
     if not args.offline:

@@ -12,15 +12,14 @@ thread held would stay locked in the worker.
 from __future__ import annotations
 
 import multiprocessing
-import os
-import pickle
 import signal
-import threading
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
+
+from csam_ros.forked import Forked, can_fork
 
 if TYPE_CHECKING:
     from csam_ros.core.result import RunSummary
@@ -44,25 +43,13 @@ def _draw(name: str, summary: RunSummary, out_dir: Path) -> Outcome:
 
 def _draw_at_once(names: Sequence[str], summary: RunSummary, out_dir: Path) -> list[Outcome]:
     """Each figure in a process forked from this one (it has no threads)."""
-    children = []
-    for name in names:
-        read_end, write_end = os.pipe()
-        pid = os.fork()
-        if pid == 0:
-            os.close(read_end)
-            with os.fdopen(write_end, "wb") as stream:
-                pickle.dump(_draw(name, summary, out_dir), stream)
-            os._exit(0)
-        os.close(write_end)
-        children.append((pid, read_end))
-    outcomes = []
-    for pid, read_end in children:
-        with os.fdopen(read_end, "rb") as stream:
-            try:
-                outcomes.append(pickle.load(stream))
-            except EOFError:
-                outcomes.append((False, "its process ended without a word"))
-        os.waitpid(pid, 0)
+    children = [Forked(_draw, name, summary, out_dir) for name in names]
+    outcomes: list[Outcome] = []
+    for child in children:
+        try:
+            outcomes.append(child.result())
+        except RuntimeError as err:  # the child died before it could send its outcome
+            outcomes.append((False, str(err)))
     return outcomes
 
 
@@ -89,7 +76,7 @@ def _work(connection: Connection, names: Sequence[str], caller: Connection) -> N
 def figure_worker() -> FigureWorker | None:
     """A worker for every figure, or None (draw in-process) where this process has other
     threads or cannot fork."""
-    if threading.active_count() > 1 or "fork" not in multiprocessing.get_all_start_methods():
+    if not can_fork() or "fork" not in multiprocessing.get_all_start_methods():
         return None
     return FigureWorker()
 
