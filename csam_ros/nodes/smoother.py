@@ -88,7 +88,6 @@ from csam_ros.ros.conversions import (
     feature_points_from_message,
     features_from_message,
     ns_to_time,
-    odometry_correlations,
     odometry_from_message,
     rendezvous_from_message,
     rendezvous_log_from_chunks,
@@ -217,9 +216,7 @@ class Smoother(Node):
     # -- input ----------------------------------------------------------------------------------
 
     def on_odometry(self, msg: Odometry) -> None:
-        samples = self.filter.odometry(
-            self.robot, *odometry_from_message(msg), odometry_correlations(msg)
-        )
+        samples = self.filter.odometry(self.robot, *odometry_from_message(msg))
         if samples:
             if self._resumed_after is not None:
                 self._count_lost(samples[0][0])

@@ -13,6 +13,7 @@ correlated inputs off it), ``/<robot>/features``, ``/<robot>/feature_points`` (C
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -61,6 +62,7 @@ _PAIR_I, _PAIR_J = np.array(CORRELATION_PAIRS).T
 _TWIST_VARIANCE = 7 * _TWIST_AXES
 _TWIST_UPPER = 6 * _TWIST_AXES[_PAIR_I] + _TWIST_AXES[_PAIR_J]
 _TWIST_LOWER = 6 * _TWIST_AXES[_PAIR_J] + _TWIST_AXES[_PAIR_I]
+_TWIST_PICKED = np.concatenate([_TWIST_VARIANCE, _TWIST_UPPER, _TWIST_LOWER])
 
 
 def stamp_to_ns(seconds: float) -> int:
@@ -128,27 +130,32 @@ def odometry_message(
     return msg
 
 
-def odometry_from_message(msg: Odometry) -> tuple[float, np.ndarray, np.ndarray]:
-    """(stamp [s], inputs (3,), sigmas (3,)) of an odometry message."""
+def odometry_from_message(
+    msg: Odometry,
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
+    """(stamp [s], inputs (3,), sigmas (3,), correlations (3,) or None) of an odometry message.
+
+    The correlations of the inputs' pairs (log.CORRELATION_PAIRS) come from the twist covariance
+    off its diagonal (the mean of both sides); None when they are all zero (independent
+    inputs); non-finite when the covariance is, or a sigma is zero. A negative variance gives a
+    NaN sigma."""
     t = msg.twist.twist
-    inputs = np.array([t.linear.x, t.linear.y, t.angular.z])
-    variances = np.asarray(msg.twist.covariance, dtype=float)[_TWIST_VARIANCE]
-    with np.errstate(invalid="ignore"):
-        sigmas = np.sqrt(variances)
-    return time_to_seconds(msg.header.stamp), inputs, sigmas
-
-
-def odometry_correlations(msg: Odometry) -> np.ndarray | None:
-    """The correlations (3,) of an odometry message's inputs (log.CORRELATION_PAIRS), from the
-    twist covariance above its diagonal; None when they are all zero (independent inputs).
-    Non-finite when the covariance is, or a sigma is zero."""
-    cov = np.asarray(msg.twist.covariance, dtype=float)
-    upper = 0.5 * (cov[_TWIST_UPPER] + cov[_TWIST_LOWER])
-    if not upper.any():
-        return None
-    s = cov[_TWIST_VARIANCE]
+    # one indexing of the 36 entries, then plain floats: once per odometry message
+    v0, v1, v2, *pairs = np.asarray(msg.twist.covariance, dtype=float)[_TWIST_PICKED].tolist()
+    sigmas = np.array([math.sqrt(v) if v >= 0 else math.nan for v in (v0, v1, v2)])
+    inputs = np.array([t.linear.x, t.linear.y, t.angular.z], dtype=float)
+    stamp = time_to_seconds(msg.header.stamp)
+    upper = [0.5 * (a + b) for a, b in zip(pairs[:3], pairs[3:], strict=True)]
+    if not any(upper):
+        return stamp, inputs, sigmas, None
+    variances = np.array([v0, v1, v2])
     with np.errstate(invalid="ignore", divide="ignore"):
-        return upper / np.sqrt(s[_PAIR_I] * s[_PAIR_J])
+        return (
+            stamp,
+            inputs,
+            sigmas,
+            np.array(upper) / np.sqrt(variances[_PAIR_I] * variances[_PAIR_J]),
+        )
 
 
 def _observations_message(
@@ -416,12 +423,7 @@ class LogBuilder:
         if topic is FEATURES_TRUTH:
             self.truth = truth_from_message(msg)  # type: ignore[arg-type]
         elif topic is ODOM:
-            correlations = odometry_correlations(msg)  # type: ignore[arg-type]
-            samples = self.filter.odometry(
-                robot,
-                *odometry_from_message(msg),  # type: ignore[arg-type]
-                correlations,
-            )
+            samples = self.filter.odometry(robot, *odometry_from_message(msg))  # type: ignore[arg-type]
             if samples:
                 self._robot(robot)
                 self._odometry.setdefault(robot, []).extend(samples)
