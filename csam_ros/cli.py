@@ -225,14 +225,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"rate {args.rate}, output {out}/"
     )
     run = demo_live_run(args.scenario, out, seed, args.rate, args.isolated)
-    if args.hosts:
-        try:
-            summary = run_hosts(run, links)
-        except HostsError as err:
-            raise CliError(f"--hosts: {err}") from None
-    else:
-        summary = run_live(run)
-    _finish(out, replace(summary, scenario=scenario.name))
+    # forked before the nodes start (this process has no thread yet): it imports matplotlib
+    # while the run goes on, and draws the figures once it has ended
+    worker = figure_worker()
+    try:
+        if args.hosts:
+            try:
+                summary = run_hosts(run, links)
+            except HostsError as err:
+                raise CliError(f"--hosts: {err}") from None
+        else:
+            summary = run_live(run)
+        _finish(out, replace(summary, scenario=scenario.name), worker)
+    finally:
+        if worker is not None:
+            worker.close()
     _print_latency(out / "bag", summary)
     return 0
 
@@ -370,13 +377,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         except (ConfigFileError, OSError) as err:
             raise CliError(f"--config: {err}") from None
     # offline, the bag is read on the other core while the core's modules are imported here,
-    # and then the figures' worker imports matplotlib there while the core computes here
+    # and then the figures' worker imports matplotlib there while the core computes here (live,
+    # while the nodes run)
     reading = Forked(read_offline_log, bag, document, args.resume) if args.offline else None
     worker = None
     try:
         merger_params, smoother_params = _csam_params(document), _smoother_params(document)
         out = _fresh_dir(args.out, f"replay-{bag.name}")
-        worker = figure_worker() if args.offline else None
+        worker = figure_worker()
         if args.offline:
             summary, _ = offline_summary(
                 bag, document, args.resume, args.save_state, reading=reading

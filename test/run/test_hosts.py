@@ -38,7 +38,7 @@ SCENARIO = "map_joining"  # two robots, 40 s
 SEED = 5
 RATE = "4"  # 10 s of data: joined maps arrive during it (the merger solves at most every 0.5 s;
 # at rate 8 a loaded machine once saw one joined map before the end at 30 % loss)
-LOSSES = (0.0, 0.1, 0.3)
+LOSSES = (0.0, 0.3)  # clean, and lossy enough that DDS repairs on every link
 # robot2's link cut for 8 s at rate 2 (20 s of data; robot2 pauses while cut off, as it
 # loses /clock), with the merger's stale_after at 2 s (the scenario file's merger section):
 # late enough that its first local maps reached the base even on a loaded machine
@@ -66,8 +66,8 @@ class HostsRun:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[float | str, HostsRun]:
-    """``csam demo --hosts`` on clean links, at 10% and at 30% loss, and with robot2's link
-    cut for a while (key "cut"): four runs at once, each on its own namespaces (they must not
+    """``csam demo --hosts`` on clean links, at 30% loss, and with robot2's link cut for a
+    while (key "cut"): three runs at once, each on its own namespaces (they must not
     clash); no namespace is left behind."""
     before = _namespaces()
     started = {}
@@ -152,21 +152,15 @@ def test_a_robot_cut_off_is_stale_then_fresh_and_the_final_map_is_the_clean_one(
 
 
 @needs_hosts
-@pytest.mark.parametrize("loss", [0.1, 0.3])
-def test_lossy_links_keep_the_joined_map_coming(
-    runs: dict[float | str, HostsRun], loss: float
-) -> None:
+def test_lossy_links_keep_the_joined_map_coming(runs: dict[float | str, HostsRun]) -> None:
+    loss = LOSSES[-1]
     run = runs[loss]
     assert run.returncode == 0, run.stdout + run.stderr
     assert f"links: {loss:.0%} packet loss" in run.stdout
     report = MonitorReport.read(run.out / MONITOR_RESULT)
     assert report.joined_before_end > 1, report  # joined maps during the run, not only at its end
     assert report.final_stamps == {"robot1": 40_000_000_000, "robot2": 40_000_000_000}
-    summary = RunSummary.read(run.out / "summary.json")
-    assert {n: r.alignment for n, r in summary.result.robots.items()} == {
-        "robot1": "reference",
-        "robot2": "aligned",
-    }
+    assert_single_host_map(RunSummary.read(run.out / "summary.json").result)
     lag = [line for line in run.stdout.splitlines() if "lag from a local map" in line]
     assert lag, run.stdout
     print(
