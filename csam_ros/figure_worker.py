@@ -1,7 +1,7 @@
 """A run's figures drawn by a worker process started before the run's result exists.
 
-``csam replay --offline`` computes on one core. The worker, forked at the start, imports
-matplotlib meanwhile; once ``summary.json`` is written it reads it and draws every figure at
+``csam replay --offline`` computes on one core, and a live run (``csam demo``, ``csam
+replay``) waits for its nodes. The worker, forked at the start, imports matplotlib meanwhile; once ``summary.json`` is written it reads it and draws every figure at
 the same time, each in a process forked from it
 (:func:`csam_ros.figures.draw_figure`, as ``python -m csam_ros.figures`` would). A figure's
 error is raised in the caller, naming the figure. The worker is forked only from a process
