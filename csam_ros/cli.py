@@ -63,7 +63,7 @@ def _robot_numbers(text: str | None) -> list[int] | None:
     return numbers
 
 
-MERGER_KEYS = {"solve_period", "stale_after"}  # merger node parameters, seconds
+MERGER_KEYS = {"solve_period", "stale_after", "provisional_period"}  # merger parameters, s
 
 
 def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
@@ -85,7 +85,7 @@ def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
 
 def _csam_params(document: dict) -> dict:
     """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
-    section's ``solve_period`` and ``stale_after``."""
+    section's ``solve_period``, ``stale_after`` and ``provisional_period``."""
     from csam_ros.core.csam import MERGER, CsamConfig
 
     csam = _node_params(document, "csam", CsamConfig, MERGER)
@@ -148,6 +148,9 @@ def _print_latency(bag: Path, summary: RunSummary) -> None:
         _warn(f"no lag figures: {err}")
         return
     print(f"  {timeline.lag_stats()}")
+    provisional = timeline.provisional_lag_stats()
+    if provisional is not None:
+        print(f"  {provisional}")
     print(f"  {timeline.solve_stats(summary.merger.solves if summary.merger else None)}")
 
 

@@ -1,9 +1,10 @@
 """A run's figures drawn by a worker process started before the run's result exists.
 
 ``csam replay --offline`` computes on one core, and a live run (``csam demo``, ``csam
-replay``) waits for its nodes. The worker, forked at the start, imports matplotlib meanwhile; once ``summary.json`` is written it reads it and draws every figure at
-the same time, each in a process forked from it
-(:func:`csam_ros.figures.draw_figure`, as ``python -m csam_ros.figures`` would). A figure's
+replay``) waits for its nodes. The worker, forked at the start, imports matplotlib meanwhile;
+once ``summary.json`` is written it reads it and draws every figure at the same time, each in
+a process forked from it (:func:`csam_ros.figures.draw_figure`, as ``python -m
+csam_ros.figures`` would). A figure's
 error is raised in the caller, naming the figure. The worker is forked only from a process
 without other threads (:func:`figure_worker`): a fork copies no thread, and a lock another
 thread held would stay locked in the worker.

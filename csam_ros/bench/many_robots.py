@@ -252,6 +252,7 @@ class Row:
     associations: int
     solves: SolveStats
     lag: LagStats
+    provisional_lag: LagStats | None  # to the first joined or provisional map (None: none)
     wall_s: float  # the live run, from starting the nodes to the last one stopped
     offline_s: float
     difference: Difference
@@ -290,6 +291,7 @@ def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int)
         associations=len(a.associations),
         solves=timeline.solve_stats(live.merger.solves if live.merger else None),
         lag=timeline.lag_stats(),
+        provisional_lag=timeline.provisional_lag_stats(),
         wall_s=wall,
         offline_s=offline_s,
         difference=joined_difference(a, b),
@@ -299,7 +301,8 @@ def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int)
 HEADER = (
     f"{'robots':>6} {'pairs met':>9} {'aligned':>8} {'features':>8} {'assoc':>5} "
     f"{'solves':>6} {'solve mean':>10} {'solve max':>9} {'lag mean':>8} {'lag p95':>7} "
-    f"{'lag max':>7} {'maps':>5} {'wall':>6} {'offline':>7}  live - offline (largest)"
+    f"{'lag max':>7} {'prov p95':>8} {'maps':>5} {'wall':>6} {'offline':>7}  "
+    "live - offline (largest)"
 )
 
 
@@ -307,12 +310,13 @@ def format_row(row: Row) -> str:
     """One line of the table."""
     s, lag = row.solves, row.lag
     never = f"+{lag.never_included}" if lag.never_included else ""
+    provisional = f"{row.provisional_lag.p95:7.2f}s" if row.provisional_lag else f"{'-':>8}"
     return (
         f"{row.robots:6d} {f'{row.pairs_meeting}/{row.pairs}':>9} "
         f"{f'{row.aligned}/{row.robots}':>8} {row.features:8d} {row.associations:5d} "
         f"{s.solves:6d} {s.mean:9.2f}s {s.max:8.2f}s {lag.mean:7.2f}s {lag.p95:6.2f}s "
-        f"{lag.max:6.2f}s {f'{lag.count}{never}':>5} {row.wall_s:5.0f}s {row.offline_s:6.1f}s  "
-        f"{row.difference}"
+        f"{lag.max:6.2f}s {provisional} {f'{lag.count}{never}':>5} {row.wall_s:5.0f}s "
+        f"{row.offline_s:6.1f}s  {row.difference}"
     )
 
 
@@ -348,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "pairs met: neighbour pairs observing each other in the simulation; solve: the "
         "merger's solve times in /csam/status; lag: from a local map's arrival to the first "
-        "joined map using it or a newer one, over 'maps' local maps (+ never included); wall: "
+        "joined map using it or a newer one, over 'maps' local maps (+ never included); prov "
+        "p95: the same to the first joined or provisional map ('-': none published); wall: "
         "the live run; offline: csam replay --offline of its bag; live - offline: largest "
         "position and heading difference of joined poses and features"
     )

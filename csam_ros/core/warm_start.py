@@ -17,10 +17,15 @@ Initial values (docs/METHOD.md section 6.4):
 - each feature starts at its previous joined position plus its local change since, rotated
   into the reference frame, when it was in the joined map, else at its local position moved
   by the base node.
+
+:func:`carried_forward` publishes these starting values as they are: the newest local maps
+placed by the last join, a provisional joined map for the time a join takes
+(docs/METHOD.md section 6.4).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -28,7 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from csam_ros.core import se2
-from csam_ros.core.result import CsamResult
+from csam_ros.core.joining import RobotMap
+from csam_ros.core.result import CsamResult, FeatureResult, RobotResult
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -103,6 +109,70 @@ class WarmStart:
                 dx, dy = local_xy[i] - local
                 start[i] = joined + [c * dx - s * dy, s * dx + c * dy]
         return start
+
+
+def carried_forward(previous: CsamResult, maps: Sequence[RobotMap], tolerance: float) -> CsamResult:
+    """The joined map of ``maps`` as the join ``previous`` placed their robots, unsolved.
+
+    A robot joined in ``previous`` keeps its base node, alignment and base node covariance;
+    its poses and features are the next join's starting values (:class:`WarmStart`: its
+    local poses moved by the corrections at their stamps, its features by their local change
+    since), an associated feature at the mean of its members, as
+    :func:`~csam_ros.core.joining.joint_solve` starts it. Features first seen since
+    ``previous`` enter alone; they and every pose have no marginals yet (NaN covariances, no
+    heading sigmas). A robot not joined in ``previous`` stays pending. Given ``previous``'s
+    own maps, the result is ``previous``'s estimate; ``tolerance`` [s] matches stamps.
+    """
+    start = time.perf_counter()
+    warm = WarmStart.from_result(previous)
+    robots: dict[str, RobotResult] = {}
+    carried: dict[str, Array] = {}  # "robot/label" -> position in the reference frame
+    for m in maps:
+        before = previous.robots.get(m.name)
+        stamps = np.asarray(m.stamps, dtype=float)
+        labels = np.asarray(m.feature_labels, dtype=np.int64)
+        robot = RobotResult(
+            name=m.name,
+            alignment="pending: not in the last join",
+            stamps=stamps,
+            poses_local=m.poses,
+            sigma_phi_local=np.full(len(stamps), np.nan),
+            feature_labels_local=labels,
+            features_local=m.feature_positions,
+            feature_covariances_local=np.full((len(labels), 2, 2), np.nan),
+        )
+        robots[m.name] = robot
+        if before is None:
+            continue
+        robot.alignment = before.alignment
+        if not before.joined or before.base_node is None:
+            continue
+        base = np.asarray(before.base_node, dtype=float)
+        robot.base_node, robot.base_node_cov = base, before.base_node_cov
+        robot.alignment_method = before.alignment_method
+        robot.poses_joined = warm.pose_start(m.name, stamps, robot.poses_local, base, tolerance)
+        xy = warm.feature_start(m.name, labels, robot.features_local, base)
+        carried.update((f"{m.name}/{int(k)}", p) for k, p in zip(labels, xy, strict=True))
+    features: list[FeatureResult] = []
+    for f in previous.features:
+        members = [k for k in f.members if k in carried]
+        if members:
+            xy = np.mean([carried[k] for k in members], axis=0)
+            features.append(FeatureResult(members, xy, np.asarray(f.cov, dtype=float)))
+    placed = {k for f in features for k in f.members}
+    features.extend(
+        FeatureResult([k], xy, np.full((2, 2), np.nan))
+        for k, xy in carried.items()
+        if k not in placed
+    )
+    return CsamResult(
+        reference_frame=previous.reference_frame,
+        robots=robots,
+        features=features,
+        associations=[a for a in previous.associations if a.a in carried and a.b in carried],
+        timing_s={"carried_forward": time.perf_counter() - start},
+        notes=["provisional: the local maps placed by the last join, not solved"],
+    )
 
 
 def _matching(before: Array, now: Array, tolerance: float) -> IntArray:

@@ -28,6 +28,14 @@ solve marks the inputs dirty again; the next solve starts after the current one 
 the newest inputs: at most one solve runs and one is pending. ``/csam/status`` says whether a
 solve is running (``solving``) and how long the last one took (``solve_seconds``).
 
+A join takes seconds to minutes on large maps. While one runs, at most every
+``provisional_period`` wall-clock seconds and only when some local map is newer than those the
+last joined map used, the executor publishes ``/csam/joined_map/provisional``: the newest local
+maps placed by the last join, unsolved (:func:`~csam_ros.core.warm_start.carried_forward`; what
+the next join starts from). Its base nodes name the local maps it holds; it has no heading
+sigmas, and the features first seen since the last join have NaN covariances.
+``/csam/joined_map`` stays the solved joined map.
+
 The topic says which robot a message belongs to. Every message is checked whole when it
 arrives (``ros/map_messages.py``); a malformed one, or one naming another robot than its
 topic's, is dropped and counted once under its reason, and the robot's last valid local map
@@ -50,7 +58,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +78,7 @@ from csam_ros.core.log import RendezvousLog
 from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
 from csam_ros.core.validation import CALLBACK_ERROR, FAILED_SOLVE, DropCounter
+from csam_ros.core.warm_start import carried_forward
 from csam_ros.nodes.common import (
     declare,
     declare_settings,
@@ -93,6 +102,7 @@ from csam_ros.ros.topics import (
     JOINED_MAP,
     LOCAL_MAP_UPDATES,
     MARKERS,
+    PROVISIONAL_MAP,
     RENDEZVOUS_POSES,
     RESYNC,
     STATUS,
@@ -140,7 +150,8 @@ class SharedDropCounter(DropCounter):
 class SolveInputs:
     """What one solve works on, taken under the merger's lock: never changed afterwards."""
 
-    maps: tuple[RobotMap, ...]
+    maps: tuple[RobotMap, ...]  # as checked on arrival, not yet refined
+    sources: Mapping[str, HeldMap]  # the held map each was built from (none: resumed)
     logs: Mapping[str, RendezvousLog]
     stamps: Mapping[str, int]
     robots: tuple[str, ...]  # every known robot, in the solve's order
@@ -198,6 +209,15 @@ class Merger(Node):
         period = declare(
             self, "solve_period", 0.5, "minimum wall-clock seconds between solves", 0.0, 3600.0
         )
+        self.provisional_period = declare(
+            self,
+            "provisional_period",
+            1.0,
+            "minimum wall-clock seconds between provisional joined maps (the newest local maps "
+            "placed by the last join; 0: none)",
+            0.0,
+            3600.0,
+        )
         # online, a rendezvous stamp may reach the merger before the observed robot's map has
         # its pose: leave such a measurement out until the next solve instead of failing
         self.config = declare_settings(self, CsamConfig, CsamConfig(skip_missing_poses=True))
@@ -205,6 +225,9 @@ class Merger(Node):
         # dict is replaced, never mutated, so a solve's snapshot of them stays as it was taken
         self.local_maps: dict[str, RobotMap] = {}
         self.held: dict[str, HeldMap] = {}  # each robot's map as its updates built it
+        self.sources: dict[str, HeldMap] = {}  # the held map each of local_maps was built from
+        # robot -> (held map, its map refined to the sender's optimum): the solve worker's
+        self._refined: dict[str, tuple[HeldMap, RobotMap]] = {}
         self.resync_requests: dict[str, int] = {}
         self._behind: set[str] = set()  # robots an update of did not apply: resync until one does
         self._resync_clients: dict[str, Any] = {}
@@ -227,6 +250,10 @@ class Merger(Node):
         self.local_views = LocalViewCache()  # the solve worker's alone
         self.solves = 0
         self.solve_seconds = 0.0  # how long the last solve took
+        self.provisional_maps = 0  # provisional joined maps published
+        # the local map stamps the newest joined or provisional map used
+        self._published_stamps: dict[str, int] = {}
+        self._provisional_next = 0.0  # steady clock s from which the next one may go out
         self.last_error = ""
         # the node's state above is read and written under _lock; one solve at a time holds
         # _solve_lock; publications of a solve hold _publish_lock (destroy_node waits on it)
@@ -243,10 +270,12 @@ class Merger(Node):
             if robot not in self.robots:
                 self._subscribe(robot)
         self.joined_pub = publisher(self, JOINED_MAP)
+        self.provisional_pub = publisher(self, PROVISIONAL_MAP)
         self.markers_pub = publisher(self, MARKERS)
         self.status_pub = publisher(self, STATUS)
         self.tf_pub = publisher(self, TF)
         if resumed and self.last_result is not None:
+            self._published_stamps = dict(self.local_map_stamps)
             self._publish(self.last_result, dict(self.local_map_stamps), tuple(self.robots))
         self.create_timer(
             max(period, 0.01), guarded(self, self.drops, self.on_timer), clock=steady_clock()
@@ -365,8 +394,8 @@ class Merger(Node):
         self._behind.discard(robot)
         if msg.base_sequence == 0:
             self._resync_next.pop(robot, None)  # a whole map came: a request no longer stands
-        try:
-            new = held_robot_map(robot, held)
+        try:  # checked here; refined by the solve worker (refine_inputs)
+            new = held_robot_map(robot, held, refine=False)
         except RefusedMessageError as error:
             self._refuse(robot, "local map update", error)
             return
@@ -381,6 +410,7 @@ class Merger(Node):
                     self._first_heard_at = time.monotonic()
                 self.heard = [*self.heard, robot]
             self.local_maps = {**self.local_maps, robot: new}
+            self.sources = {**self.sources, robot: held}
             self.local_map_stamps = {**self.local_map_stamps, robot: stamp}
             self.dirty = True
 
@@ -469,6 +499,7 @@ class Merger(Node):
             if self.dirty and not self.solving:
                 self._requested = True
                 self._wake.notify()
+        self.publish_provisional()
         self.publish_status()
 
     def _work(self) -> None:
@@ -499,12 +530,13 @@ class Merger(Node):
                 if not (self._first_inputs_complete() and self._choose_reference()):
                     self.dirty = True  # the timer asks again
                     return False
-                order = [self.reference] + [r for r in self.heard if r != self.reference]
+                order, robots = self._order()
                 inputs = SolveInputs(
                     maps=tuple(self.local_maps[r] for r in order),
+                    sources=self.sources,
                     logs={r: self.rendezvous[r] for r in order if r in self.rendezvous},
                     stamps=self.local_map_stamps,
-                    robots=(*order, *(r for r in self.robots if r not in order)),
+                    robots=robots,
                 )
                 self.solving = True
             try:
@@ -513,6 +545,12 @@ class Merger(Node):
                 with self._lock:
                     self.solving = False
             return True
+
+    def _order(self) -> tuple[list[str], tuple[str, ...]]:
+        """The robots heard from, the reference first (the order they are joined in), and
+        those followed by every other robot subscribed to (call under the lock)."""
+        order = [self.reference] + [r for r in self.heard if r != self.reference]
+        return order, (*order, *(r for r in self.robots if r not in order))
 
     def _first_inputs_complete(self) -> bool:
         """Whether the first solve may run: every listed robot's local map and rendezvous
@@ -555,6 +593,7 @@ class Merger(Node):
     def _solve(self, inputs: SolveInputs) -> None:
         """Join ``inputs``; record the result (or the failure) and publish it."""
         start = time.perf_counter()
+        inputs = self._refine_inputs(inputs)
         try:
             result = join_maps(
                 list(inputs.maps),
@@ -585,12 +624,66 @@ class Merger(Node):
             self.solve_seconds = seconds
             self.solves += 1
             self.last_result = result
+            self._published_stamps = dict(inputs.stamps)
             stats = self.stats()
         if self._stopping:
             return
         if self.state_path is not None:
             self._write_state(inputs, result, stats)
         self._publish(result, dict(inputs.stamps), inputs.robots, stats)
+
+    def publish_provisional(self) -> bool:
+        """Publish the newest local maps placed by the last join (module docs) while a solve
+        runs, when one is newer than those the last joined map used and
+        ``provisional_period`` has passed; whether one was published."""
+        with self._lock:
+            now = time.monotonic()
+            last, stamps = self.last_result, dict(self.local_map_stamps)
+            if (
+                last is None
+                or not self.solving
+                or self.provisional_period <= 0.0
+                or now < self._provisional_next
+                or stamps == self._published_stamps
+            ):
+                return False
+            order, robots = self._order()
+            maps = [self.local_maps[r] for r in order]
+            self._published_stamps = stamps
+            self._provisional_next = now + self.provisional_period
+        result = carried_forward(last, maps, self.config.stamp_tolerance)
+        message = joined_map_message(result, max(stamps.values()), stamps, robots)
+        with self._publish_lock:
+            if self._stopping:
+                return False
+            self.provisional_pub.publish(message)
+        with self._lock:
+            self.provisional_maps += 1
+        return True
+
+    def _refine_inputs(self, inputs: SolveInputs) -> SolveInputs:
+        """``inputs`` with each map built from updates taken back to its sender's optimum
+        (:func:`~csam_ros.ros.map_messages.checked_robot_map`), once per held map: the
+        executor only checks a map as it arrives, so that taking input stays cheap. A map
+        whose refinement fails is dropped under its reason, and the robot's last refined map
+        (else the map as it came) is joined."""
+        maps = []
+        for m in inputs.maps:
+            held = inputs.sources.get(m.name)
+            cached = self._refined.get(m.name)
+            if held is None:
+                maps.append(m)
+            elif cached is not None and cached[0] is held:
+                maps.append(cached[1])
+            else:
+                try:
+                    refined = held_robot_map(m.name, held)
+                except RefusedMessageError as error:
+                    self._refuse(m.name, "local map update", error)
+                    refined = cached[1] if cached is not None else m
+                self._refined[m.name] = (held, refined)
+                maps.append(refined)
+        return replace(inputs, maps=tuple(maps))
 
     def _write_state(self, inputs: SolveInputs, result: CsamResult, stats: MergerStats) -> None:
         """Write the state of this solve to ``state_path`` (a failure is logged, not fatal)."""
@@ -694,6 +787,7 @@ class Merger(Node):
             "associations": len(result.associations) if result is not None else 0,
             "solve_seconds": round(self.solve_seconds, 4),
             "solving": self.solving,
+            "provisional_maps": self.provisional_maps,
             "converged": result.converged if result is not None else "",
             "dropped": self.drops.total,
             "restarts": sum(self.restarts.values()),

@@ -255,14 +255,15 @@ def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -
     return robot_map
 
 
-def held_robot_map(name: str, held: HeldMap) -> RobotMap:
-    """The local problem of a map built from updates, refined to its sender's optimum
-    (:func:`checked_robot_map`); :class:`LocalMapError` when it is not usable."""
+def held_robot_map(name: str, held: HeldMap, refine: bool = True) -> RobotMap:
+    """The local problem of a map built from updates, with ``refine`` taken back to its
+    sender's optimum (:func:`checked_robot_map`); :class:`LocalMapError` when it is not
+    usable."""
     try:
         arrays = held.map.arrays()
     except ValueError as error:  # a factor at a stamp with no pose
         raise LocalMapError(f"{name}: {error}") from None
-    return checked_robot_map(name, arrays, refine=True)
+    return checked_robot_map(name, arrays, refine=refine)
 
 
 def _numbers(values: np.ndarray, typecode: str) -> array.array:

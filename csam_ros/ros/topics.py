@@ -110,6 +110,8 @@ RENDEZVOUS_POSES = Topic("rendezvous_poses", RendezvousPoses, LATCHED)
 # the local trajectory, for a look on the robot (published only while subscribed, not recorded)
 PATH = Topic("path", Path, LATCHED, recorded=False)
 JOINED_MAP = Topic("/csam/joined_map", JoinedMap, LATCHED)
+# the newest local maps placed by the last join, while the next one runs (nodes/merger.py)
+PROVISIONAL_MAP = Topic("/csam/joined_map/provisional", JoinedMap, LATCHED)
 MARKERS = Topic("/csam/markers", MarkerArray, LATCHED)
 STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
 # REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/base_link
@@ -132,6 +134,7 @@ TOPICS: tuple[Topic, ...] = (
     RENDEZVOUS_POSES,
     PATH,
     JOINED_MAP,
+    PROVISIONAL_MAP,
     MARKERS,
     STATUS,
     TF,

@@ -9,7 +9,9 @@ joined map includes (e.g. the last one published after the merger's last solve) 
 included*: counted apart, not in the mean, p95 or max. Times are the recorder's log times (its
 wall clock at reception): a local map and a joined map that reach the recorder out of order
 are measured from the next joined map, and a recorder that falls behind (many robots on few
-cores) records both late, in bursts, which blurs the lags by its delay.
+cores) records both late, in bursts, which blurs the lags by its delay. The same lags to
+the first joined map, solved or provisional (``/csam/joined_map/provisional``, the newest
+local maps placed by the last join), say how soon a map shows in the joined frame at all.
 
 :func:`lag_stats` computes this on plain arrays; :func:`read_timeline` takes them from a
 recorded bag (``bag/`` of a ``csam demo`` or live ``csam replay`` output).
@@ -38,25 +40,27 @@ class LagStats:
     p95: float  # numpy's linear interpolation
     max: float
     never_included: int  # local maps that no later joined map includes
+    to: str = "the joined map"  # the maps that include them (what the lags are to)
 
     @classmethod
-    def of(cls, lags: ArrayLike) -> LagStats:
+    def of(cls, lags: ArrayLike, to: str = "the joined map") -> LagStats:
         """The statistics of per-map lags, NaN marking a map never included."""
         lags = np.asarray(lags, dtype=float).reshape(-1)
         done = lags[np.isfinite(lags)]
         if len(done) == 0:
-            return cls(0, np.nan, np.nan, np.nan, len(lags))
+            return cls(0, np.nan, np.nan, np.nan, len(lags), to)
         return cls(
             count=len(done),
             mean=float(done.mean()),
             p95=float(np.percentile(done, 95)),
             max=float(done.max()),
             never_included=len(lags) - len(done),
+            to=to,
         )
 
     def __str__(self) -> str:
         never = f", {self.never_included} never included" if self.never_included else ""
-        head = "lag from a local map to the joined map that uses it"
+        head = f"lag from a local map to {self.to} that uses it"
         if self.count == 0:
             return f"{head}: no local map included ({self.never_included} local maps)"
         return (
@@ -126,10 +130,11 @@ def lag_stats(
     map_stamps: Mapping[str, ArrayLike],
     joined_times: ArrayLike,
     used_stamps: Mapping[str, ArrayLike],
+    to: str = "the joined map",
 ) -> LagStats:
     """The lags of every robot's local maps (robot -> arrival times and stamps [s]) to the
     joined maps (their times, and robot -> the stamp each used, :data:`NOT_USED` for none; a
-    robot missing from ``used_stamps`` is in no joined map)."""
+    robot missing from ``used_stamps`` is in no joined map); ``to`` names those maps."""
     n = len(np.asarray(joined_times).reshape(-1))
     lags = [
         map_lags(
@@ -140,7 +145,7 @@ def lag_stats(
         )
         for robot in map_arrivals
     ]
-    return LagStats.of(np.concatenate(lags) if lags else np.zeros(0))
+    return LagStats.of(np.concatenate(lags) if lags else np.zeros(0), to)
 
 
 @dataclass(frozen=True)
@@ -154,9 +159,25 @@ class Timeline:
     used_stamps: dict[str, FloatArray]
     solves: int
     solve_seconds: FloatArray
+    provisional_times: FloatArray  # /csam/joined_map/provisional, as the joined maps above
+    provisional_used: dict[str, FloatArray]
 
     def lag_stats(self) -> LagStats:
+        """The lags to the solved joined maps."""
         return lag_stats(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
+
+    def provisional_lag_stats(self) -> LagStats | None:
+        """The lags to the first joined map, solved or provisional, that uses a local map;
+        None when the run published no provisional map."""
+        if len(self.provisional_times) == 0:
+            return None
+        return lag_stats(
+            self.map_arrivals,
+            self.map_stamps,
+            np.concatenate([self.joined_times, self.provisional_times]),
+            {r: np.concatenate([u, self.provisional_used[r]]) for r, u in self.used_stamps.items()},
+            to="the first joined or provisional map",
+        )
 
     def solve_stats(self, solves: int | None = None) -> SolveStats:
         """The solve times in the bag; ``solves`` is the merger's own count where known
@@ -169,22 +190,24 @@ def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
     :func:`~csam_ros.bag.read_bag`)."""
     from csam_ros.bag import inspect_bag, read_bag_messages
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP_UPDATES, STATUS, parse
+    from csam_ros.ros.topics import JOINED_MAP, LOCAL_MAP_UPDATES, PROVISIONAL_MAP, STATUS, parse
 
     declared = [parse(name) for name in inspect_bag(bag).topics]
     robots = sorted(d[1] for d in declared if d is not None and d[0] is LOCAL_MAP_UPDATES)
-    topics = [LOCAL_MAP_UPDATES.of(r) for r in robots] + [JOINED_MAP.name, STATUS.name]
+    joined_kinds = (JOINED_MAP.name, PROVISIONAL_MAP.name)
+    topics = [LOCAL_MAP_UPDATES.of(r) for r in robots] + [*joined_kinds, STATUS.name]
     arrivals: dict[str, list[int]] = {r: [] for r in robots}
     stamps: dict[str, list[int]] = {r: [] for r in robots}
-    joined: list[int] = []
-    used: list[dict[str, int]] = []
+    # per kind of joined map: the log times and the local map stamps each used
+    joined: dict[str, list[int]] = {k: [] for k in joined_kinds}
+    used: dict[str, list[dict[str, int]]] = {k: [] for k in joined_kinds}
     solves, solve_seconds = 0, []
     start: int | None = None
     for m in read_bag_messages(bag, topics, on_damage=on_damage):
         start = m.log_time_ns if start is None else start
-        if m.topic == JOINED_MAP.name:
-            joined.append(m.log_time_ns)
-            used.append(
+        if m.topic in joined_kinds:
+            joined[m.topic].append(m.log_time_ns)
+            used[m.topic].append(
                 {
                     b.robot: time_to_ns(b.local_map_stamp)
                     for b in m.message.base_nodes
@@ -213,15 +236,17 @@ def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
     def seconds(ns: list[int], origin: int = 0) -> FloatArray:
         return (np.asarray(ns, dtype=np.int64).reshape(-1) - origin) / 1e9
 
-    def used_by(robot: str) -> FloatArray:
-        held = np.array([robot in u for u in used], dtype=bool)
-        return np.where(held, seconds([u.get(robot, 0) for u in used]), NOT_USED)
+    def used_by(robot: str, kind: str) -> FloatArray:
+        held = np.array([robot in u for u in used[kind]], dtype=bool)
+        return np.where(held, seconds([u.get(robot, 0) for u in used[kind]]), NOT_USED)
 
     return Timeline(
         map_arrivals={r: seconds(arrivals[r], start) for r in robots},
         map_stamps={r: seconds(stamps[r]) for r in robots},
-        joined_times=seconds(joined, start),
-        used_stamps={r: used_by(r) for r in robots},
+        joined_times=seconds(joined[JOINED_MAP.name], start),
+        used_stamps={r: used_by(r, JOINED_MAP.name) for r in robots},
         solves=solves,
         solve_seconds=np.asarray(solve_seconds, dtype=float),
+        provisional_times=seconds(joined[PROVISIONAL_MAP.name], start),
+        provisional_used={r: used_by(r, PROVISIONAL_MAP.name) for r in robots},
     )

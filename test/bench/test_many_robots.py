@@ -79,7 +79,7 @@ def test_the_command_on_two_robots(tmp_path: Path) -> None:
     row = lines[lines.index(HEADER) + 2].split()
     assert row[:3] == ["2", "1/1", "2/2"]  # two robots, their pair met, both joined
     assert int(row[4]) > 0  # associations
-    assert "live - offline" in HEADER and float(row[14]) < 1e-6  # metres, live vs offline
+    assert "live - offline" in HEADER and float(row[15]) < 1e-6  # metres, live vs offline
     live = RunSummary.read(out / "ring2" / "live" / "summary.json").result
     offline = RunSummary.read(out / "ring2" / "offline" / "summary.json").result
     same = joined_difference(live, offline)

@@ -16,7 +16,7 @@ from csam_ros.core.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.result import CsamResult
 from csam_ros.core.simulation import simulate
-from csam_ros.core.warm_start import WarmStart
+from csam_ros.core.warm_start import WarmStart, carried_forward
 from csam_ros.datasets.scenario import load_scenario
 
 
@@ -142,3 +142,61 @@ def test_from_result_keeps_what_a_restart_needs() -> None:
     np.testing.assert_allclose(warm.base_nodes["robot2"], robot.alignment_base_node)
     assert "robot1" not in warm.base_nodes  # the reference has none
     assert len(warm.features) == sum(len(f.members) for f in result.features)
+
+
+def test_carried_forward_of_the_joined_maps_is_their_join() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = _maps_until(log, float(end))
+    result = join_maps(maps, logs)
+    carried = carried_forward(result, maps, CsamConfig().stamp_tolerance)
+    assert any(len(f.members) > 1 for f in result.features)
+    assert _largest_difference(result, carried) < 1e-9
+    assert [a.a for a in carried.associations] == [a.a for a in result.associations]
+
+
+def test_carried_forward_places_grown_maps_by_the_last_join() -> None:
+    """Poses held at the last join keep their correction, new ones take the last one; a
+    feature seen since enters alone at its local position moved by the base node."""
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    config = CsamConfig(skip_missing_poses=True)
+    before, logs = _maps_until(log, float(end) - 10.0)
+    last = join_maps(before, logs, config)
+    now, _ = _maps_until(log, float(end))
+    carried = carried_forward(last, now, config.stamp_tolerance)
+    assert carried.joined_robots() == last.joined_robots() == {"robot1", "robot2"}
+    for m in now:
+        robot, was = carried.robots[m.name], last.robots[m.name]
+        held = len(was.stamps)
+        np.testing.assert_array_equal(m.stamps[:held], was.stamps)
+        correction = se2.compose(was.poses_joined, se2.inverse(was.poses_local))
+        expected = se2.compose(correction[np.minimum(np.arange(len(m.stamps)), held - 1)], m.poses)
+        np.testing.assert_allclose(robot.poses_joined, expected, atol=1e-12)
+        assert len(robot.poses_joined) > held and np.all(np.isnan(robot.sigma_phi_local))
+        np.testing.assert_array_equal(robot.base_node, was.base_node)
+    members = {k for f in last.features for k in f.members}
+    new = [f for f in carried.features if f.members[0] not in members]
+    assert new and all(len(f.members) == 1 and np.isnan(f.cov).all() for f in new)
+    for f in new:
+        name, label = f.members[0].split("/")
+        m = next(m for m in now if m.name == name)
+        local = m.feature_positions[list(m.feature_labels).index(int(label))]
+        base = carried.robots[name].base_node
+        np.testing.assert_allclose(f.xy, se2.transform_point(base[None], local[None])[0])
+    old = [f for f in carried.features if f.members[0] in members]
+    assert len(old) == len(last.features)
+    assert all(np.isfinite(f.cov).all() for f in old)
+
+
+def test_carried_forward_keeps_a_robot_pending_until_a_join_places_it() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    first = min(r.rendezvous.stamps.min() for r in log.robots.values() if len(r.rendezvous.stamps))
+    maps, logs = _maps_until(log, float(first) - 1.0)
+    last = join_maps(maps, logs, CsamConfig(skip_missing_poses=True))
+    assert last.joined_robots() == {"robot1"}
+    later, _ = _maps_until(log, float(first) + 5.0)
+    carried = carried_forward(last, later, 1e-6)
+    assert carried.robots["robot2"].alignment == last.robots["robot2"].alignment
+    assert carried.robots["robot2"].poses_joined is None
+    assert carried.joined_robots() == {"robot1"}

@@ -24,6 +24,7 @@ from csam_msgs.msg import (
 )
 from diagnostic_msgs.msg import DiagnosticStatus
 from merger_harness import (
+    ROBOTS,
     STAMP_NS,
     MergerHarness,
     RunMessages,
@@ -39,8 +40,10 @@ import csam_ros.nodes.merger as merger_module
 from csam_ros.core.map_arrays import robot_map_arrays
 from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.result import RunSummary
-from csam_ros.ros.conversions import ns_to_time
-from csam_ros.ros.map_messages import local_map_update_message
+from csam_ros.core.warm_start import carried_forward
+from csam_ros.ros.conversions import ns_to_time, time_to_ns
+from csam_ros.ros.map_messages import held_robot_map, local_map_update_message
+from csam_ros.ros.topics import PROVISIONAL_MAP
 
 RESTART_AT = 12.0  # s: robot2's smoother restarted here (the run: 0-40 s, rendezvous 18-22 s)
 CUTS = (20.0, 30.0, None)  # s: robot2's map at these moments of the run (None: its end)
@@ -534,3 +537,76 @@ def test_an_update_of_another_session_asks_for_the_whole_map(
     assert sender.held is not None
     _keyed_equal(harness.merger.held["robot2"].map, sender.held.map)
     assert harness.merger.drops.total == 0 and harness.merger.restarts == {}
+
+
+def test_a_running_solve_publishes_the_newest_maps_provisionally(
+    harness, growing: list[RunMessages], monkeypatch
+) -> None:
+    """While a solve runs, robot2's newer map goes out on /csam/joined_map/provisional, once:
+    placed by the last join, as the core carries it forward. The solved map follows."""
+    middle, last = growing[1], growing[2]
+    sender = UpdateSender(11)
+    first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
+    harness.start(_with_robot2(middle, first))
+    joined = harness.merger.last_result
+    provisional: list[JoinedMap] = []
+    harness.injector.create_subscription(
+        JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
+    )
+    real_join = merger_module.join_maps
+    started, release = threading.Event(), threading.Event()
+
+    def slow_join(maps: Any, logs: Any, config: Any, **options: Any) -> Any:
+        started.set()
+        assert release.wait(60.0), "never released"
+        return real_join(maps, logs, config, **options)
+
+    monkeypatch.setattr(merger_module, "join_maps", slow_join)
+    newer = STAMP_NS + 10**9
+    update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
+    harness.publish("robot2", local_map_update_message(update, "robot2", newer))
+    try:
+        harness.wait(lambda: started.is_set() and len(provisional) > 0)
+        harness.settle(1.5)  # past provisional_period: nothing newer to publish
+        assert len(provisional) == 1 and harness.merger.solving
+    finally:
+        release.set()
+    message = provisional[0]
+    stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in message.base_nodes}
+    assert stamps == {"robot1": STAMP_NS, "robot2": newer}
+    maps = [harness.merger.local_maps[r] for r in ROBOTS]
+    expected = carried_forward(joined, maps, harness.merger.config.stamp_tolerance)
+    trajectories = {t.robot: t for t in message.trajectories}
+    for name, robot in expected.robots.items():
+        poses = [[p.x, p.y, p.theta] for p in trajectories[name].poses]
+        np.testing.assert_allclose(poses, robot.poses_joined, atol=1e-12)
+        assert not trajectories[name].sigma_phi
+    assert len(trajectories["robot2"].poses) == len(last.robot_maps["robot2"].stamps)
+    assert [tuple(f.members) for f in message.features] == [
+        tuple(f.members) for f in expected.features
+    ]
+    solves, published = harness.merger.solves, len(harness.joined)
+    harness.wait(lambda: harness.merger.solves > solves and len(harness.joined) > published)
+    harness.settle(1.5)
+    assert len(provisional) == 1  # the solved map holds the newest maps: nothing provisional
+    assert time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == newer
+
+
+def test_maps_are_checked_on_arrival_and_joined_refined(
+    harness, growing: list[RunMessages]
+) -> None:
+    """The executor holds robot2's grown map as its updates built it (within the smoother's
+    update tolerance of its optimum); the solve joins it refined to that optimum."""
+    middle, last = growing[1], growing[2]
+    sender = UpdateSender(11)
+    first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
+    harness.start(_with_robot2(middle, first))
+    solves = harness.merger.solves
+    harness.publish("robot2", _message(sender.update(robot_map_arrays(last.robot_maps["robot2"]))))
+    harness.wait(lambda: harness.merger.solves > solves and not harness.merger.solving)
+    held = harness.merger.local_maps["robot2"]
+    refined = held_robot_map("robot2", harness.merger.sources["robot2"])
+    joined = harness.merger.last_result.robots["robot2"]
+    assert np.abs(held.poses - refined.poses).max() > 1e-9  # the update left some behind
+    np.testing.assert_allclose(joined.poses_local, refined.poses, atol=1e-12)
+    np.testing.assert_allclose(refined.poses, last.robot_maps["robot2"].poses, atol=1e-6)

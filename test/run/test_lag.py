@@ -133,7 +133,8 @@ def _write_run_bag(path: Path) -> None:
         (1.0, "/robot1/local_map_updates", local_map("robot1", 2.0)),
         (1.4, "/csam/joined_map", joined({"robot1": 2.0, "robot2": 1.0})),
         (1.5, "/csam/status", status(1, 0.25)),
-        (2.0, "/robot2/local_map_updates", local_map("robot2", 3.0)),  # never included
+        (2.0, "/robot2/local_map_updates", local_map("robot2", 3.0)),  # never joined
+        (2.2, "/csam/joined_map/provisional", joined({"robot1": 2.0, "robot2": 3.0})),
         (2.5, "/csam/status", status(3, 0.75)),  # two solves, one time
     ]
     with BagWriter(path) as bag:
@@ -158,6 +159,13 @@ def test_read_timeline_of_a_small_bag(tmp_path: Path) -> None:
     assert (solves.solves, solves.seen) == (3, 2)
     assert solves.max == pytest.approx(0.75)
     assert timeline.solve_stats(solves=4).solves == 4  # the merger's own count, where known
+    np.testing.assert_allclose(timeline.provisional_times, [2.2])
+    provisional = timeline.provisional_lag_stats()
+    assert provisional is not None and (provisional.count, provisional.never_included) == (4, 0)
+    assert provisional.mean == pytest.approx((1.4 + 1.2 + 0.4 + 0.2) / 4)
+    assert str(provisional).startswith(
+        "lag from a local map to the first joined or provisional map that uses it: mean 0.80 s"
+    )
 
 
 def test_read_timeline_of_a_recorded_live_run() -> None:
@@ -168,6 +176,7 @@ def test_read_timeline_of_a_recorded_live_run() -> None:
     assert stats.count >= 80  # at most the maps published after the last solve are left
     assert 0.0 <= stats.mean <= stats.p95 <= stats.max
     assert len(timeline.joined_times) == 13
+    assert timeline.provisional_lag_stats() is None  # recorded before provisional maps
     solves = timeline.solve_stats()
     assert solves.solves == 13 and 1 <= solves.seen <= 13
     assert 0.0 < solves.mean <= solves.max
