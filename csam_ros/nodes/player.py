@@ -5,8 +5,12 @@
 
 Messages go out raw (the recorded CDR bytes) with their recorded log-time spacing divided by
 ``--rate`` (2 = twice as fast, 0 = as fast as possible). /clock (rosgraph_msgs/Clock) carries
-the recorded log time: before each message, and every ``--clock-period`` seconds while waiting
-between messages; a /clock recorded in the bag is not replayed (``--no-clock`` replays it
+the recorded log time in steps of ``--clock-period`` seconds, as ``ros2 bag play --clock`` does
+at a fixed rate: before a message logged at least that long after the last /clock, and every
+``--clock-period`` seconds while waiting between messages (a message never goes out before a
+/clock less than a period older than its log time). Before each message instead, a bag of five
+robots' odometry made hundreds of /clock messages a second, each one a callback in every node
+under sim time. A /clock recorded in the bag is not replayed (``--no-clock`` replays it
 instead). Each topic is published with the recorded QoS (reliability and durability, when all
 recorded publishers agree; transient local with the recorded depth).
 
@@ -115,6 +119,7 @@ class PlayerNode(Node):
         """Publish ``messages`` (in log-time order) with their spacing divided by ``rate``."""
         start_wall = time.monotonic()
         start_log_ns: int | None = None
+        self._last_clock = -1  # each pass (--loop) starts the clock again
         for message in messages:
             publisher = self._topic_publishers.get(message.topic)
             if publisher is None:
@@ -126,7 +131,8 @@ class PlayerNode(Node):
                 self._sleep_until(due, start_wall, start_log_ns, rate, clock_period_s)
             if self.stop.is_set():
                 return
-            self._publish_clock(message.log_time_ns)
+            if message.log_time_ns - self._last_clock >= clock_period_s * 1e9:
+                self._publish_clock(message.log_time_ns)
             publisher.publish(message.data)
             self.published += 1
 
@@ -166,7 +172,11 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
         "--no-clock", action="store_true", help="do not publish /clock (replay a recorded one)"
     )
     parser.add_argument(
-        "--clock-period", type=float, default=0.05, metavar="S", help="/clock period in gaps"
+        "--clock-period",
+        type=float,
+        default=0.05,
+        metavar="S",
+        help="/clock period (s of log time)",
     )
     parser.add_argument(
         "--delay",

@@ -10,6 +10,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from waiting import wait_until
 
@@ -298,3 +299,34 @@ def test_min_subscribers_below_one_is_refused() -> None:
     assert parse_arguments(["bag", "--min-subscribers", "2"]).min_subscribers == 2
     with pytest.raises(SystemExit):
         parse_arguments(["bag", "--min-subscribers", "0"])
+
+
+def test_clock_steps_by_its_period_through_dense_messages(
+    ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
+) -> None:
+    """Messages 10 ms apart: /clock goes out before every fifth one (--clock-period 0.05),
+    not before each, and never lags a message by a period or more."""
+    from rosgraph_msgs.msg import Clock
+
+    bag = tmp_path / "bag"
+    payloads = _features_bag(bag, count=40, spacing_ns=SECOND // 100)
+    with _features_sink(ros_context, "dense_sink") as (executor, received):
+        clock_ns: list[int] = []
+        executor.get_nodes()[0].create_subscription(
+            Clock, "/clock", lambda m: clock_ns.append(m.clock.sec * SECOND + m.clock.nanosec), 1000
+        )
+        player = nodes.start(
+            "player", bag, "--rate", "1", "--delay", "0", "--linger", "5",
+            "--wait-for-subscribers", FEATURES, "/clock",
+        )  # fmt: skip
+        last = 10 * SECOND + 39 * SECOND // 100
+        assert spin(
+            executor,
+            lambda: len(received) == len(payloads) and clock_ns[-1:] >= [last - 5 * SECOND // 100],
+            30,
+        ), f"{len(received)} messages, clock {clock_ns}; {nodes.output(player)}"
+    assert received == payloads
+    log_times = {10 * SECOND + k * SECOND // 100 for k in range(40)}
+    steps = np.diff(clock_ns)
+    assert set(clock_ns) <= log_times and len(clock_ns) == 8, clock_ns
+    assert np.all(steps >= SECOND // 20) and clock_ns[0] == 10 * SECOND
