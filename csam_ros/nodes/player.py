@@ -7,8 +7,8 @@ Messages go out raw (the recorded CDR bytes) with their recorded log-time spacin
 ``--rate`` (2 = twice as fast, 0 = as fast as possible). /clock (rosgraph_msgs/Clock) carries
 the recorded log time in steps of ``--clock-period`` seconds, as ``ros2 bag play --clock`` does
 at a fixed rate: before a message logged at least that long after the last /clock, and every
-``--clock-period`` seconds while waiting between messages (a message never goes out before a
-/clock less than a period older than its log time). Before each message instead, a bag of five
+``--clock-period`` seconds while waiting between messages (a message leads /clock by less
+than a period of log time). Before each message instead, a bag of five
 robots' odometry made hundreds of /clock messages a second, each one a callback in every node
 under sim time. A /clock recorded in the bag is not replayed (``--no-clock`` replays it
 instead). Each topic is published with the recorded QoS (reliability and durability, when all

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
+SOLVED = "the joined map"  # what lags are to by default: the solved joined maps
 NOT_USED = -np.inf  # the used stamp of a robot that a joined map holds no local map of
 _CHUNK = 1 << 22  # most (local map x joined map) comparisons held at once
 
@@ -40,10 +41,10 @@ class LagStats:
     p95: float  # numpy's linear interpolation
     max: float
     never_included: int  # local maps that no later joined map includes
-    to: str = "the joined map"  # the maps that include them (what the lags are to)
+    to: str = SOLVED  # the maps that include them (what the lags are to)
 
     @classmethod
-    def of(cls, lags: ArrayLike, to: str = "the joined map") -> LagStats:
+    def of(cls, lags: ArrayLike, to: str = SOLVED) -> LagStats:
         """The statistics of per-map lags, NaN marking a map never included."""
         lags = np.asarray(lags, dtype=float).reshape(-1)
         done = lags[np.isfinite(lags)]
@@ -130,7 +131,7 @@ def lag_stats(
     map_stamps: Mapping[str, ArrayLike],
     joined_times: ArrayLike,
     used_stamps: Mapping[str, ArrayLike],
-    to: str = "the joined map",
+    to: str = SOLVED,
 ) -> LagStats:
     """The lags of every robot's local maps (robot -> arrival times and stamps [s]) to the
     joined maps (their times, and robot -> the stamp each used, :data:`NOT_USED` for none; a

@@ -346,9 +346,9 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypa
     assert harness.merger.drops.total == 0
 
 
-def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkeypatch) -> None:
-    """destroy_node returns while a solve runs; the solve finishes unpublished, unfailed."""
-    harness.start(good)
+def _held_solves(monkeypatch: Any) -> tuple[threading.Event, threading.Event]:
+    """Make the merger's solves wait, once started (the first event), until released (the
+    second)."""
     real_join = merger_module.join_maps
     started, release = threading.Event(), threading.Event()
 
@@ -358,6 +358,13 @@ def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkey
         return real_join(maps, logs, config, **options)
 
     monkeypatch.setattr(merger_module, "join_maps", slow_join)
+    return started, release
+
+
+def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkeypatch) -> None:
+    """destroy_node returns while a solve runs; the solve finishes unpublished, unfailed."""
+    harness.start(good)
+    started, release = _held_solves(monkeypatch)
     monkeypatch.setattr(merger_module, "SHUTDOWN_JOIN_S", 0.2)
     merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
     merger.dirty = True
@@ -553,15 +560,7 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
     harness.injector.create_subscription(
         JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
     )
-    real_join = merger_module.join_maps
-    started, release = threading.Event(), threading.Event()
-
-    def slow_join(maps: Any, logs: Any, config: Any, **options: Any) -> Any:
-        started.set()
-        assert release.wait(60.0), "never released"
-        return real_join(maps, logs, config, **options)
-
-    monkeypatch.setattr(merger_module, "join_maps", slow_join)
+    started, release = _held_solves(monkeypatch)
     newer = STAMP_NS + 10**9
     update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
     harness.publish("robot2", local_map_update_message(update, "robot2", newer))
