@@ -99,7 +99,7 @@ def test_plays_in_order_with_clock_and_recorded_qos(
         QoSProfile(depth=1000),
     )
     player = nodes.start(
-        "player", bag, "--rate", "5", "--delay", "0", "--linger", "30",
+        "player", bag, "--rate", "5", "--delay", "1", "--linger", "30",
         "--wait-for-subscribers", FEATURES, "/clock",
     )  # fmt: skip
     log_times = [10 * SECOND + label * SECOND // 10 for label in range(20)]
@@ -316,7 +316,7 @@ def test_clock_steps_by_its_period_through_dense_messages(
             Clock, "/clock", lambda m: clock_ns.append(m.clock.sec * SECOND + m.clock.nanosec), 1000
         )
         player = nodes.start(
-            "player", bag, "--rate", "1", "--delay", "0", "--linger", "5",
+            "player", bag, "--rate", "1", "--delay", "1", "--linger", "5",
             "--wait-for-subscribers", FEATURES, "/clock",
         )  # fmt: skip
         last = 10 * SECOND + 39 * SECOND // 100
