@@ -38,13 +38,12 @@ from csam_ros.core.csam import (  # noqa: E402
 )
 from csam_ros.core.local_map import LocalMap, LocalMapConfig  # noqa: E402
 from csam_ros.core.log import MultiRobotLog, RendezvousLog  # noqa: E402
-from csam_ros.core.map_arrays import robot_map_arrays  # noqa: E402
+from csam_ros.core.map_arrays import checked_robot_map, robot_map_arrays  # noqa: E402
 from csam_ros.core.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
 from csam_ros.core.rendezvous import required_stamps  # noqa: E402
 from csam_ros.core.result import CsamResult  # noqa: E402
 from csam_ros.core.robust import select_rendezvous  # noqa: E402
 from csam_ros.core.validation import LocalMapArrays  # noqa: E402
-from csam_ros.ros.map_messages import checked_robot_map  # noqa: E402
 
 PARTS = 10
 

@@ -27,10 +27,10 @@ import numpy as np  # noqa: E402
 from csam_ros.bag.reader import inspect_bag, read_bag_messages  # noqa: E402
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps  # noqa: E402
 from csam_ros.core.joining import RobotMap  # noqa: E402
+from csam_ros.core.map_arrays import held_robot_map  # noqa: E402
 from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update  # noqa: E402
 from csam_ros.core.result import CsamResult  # noqa: E402
 from csam_ros.ros.map_messages import (  # noqa: E402
-    held_robot_map,
     map_update_from_message,
     rendezvous_log_from_message,
 )

@@ -16,8 +16,13 @@ from csam_ros.core.factors import (
     RobustKernel,
 )
 from csam_ros.core.joining import RobotMap
-from csam_ros.core.solver import Problem
-from csam_ros.core.validation import LocalMapArrays, local_map_fault
+from csam_ros.core.local_map import LocalMapOptions
+from csam_ros.core.map_updates import HeldMap
+from csam_ros.core.solver import Problem, SingularProblemError
+from csam_ros.core.validation import LocalMapArrays, LocalMapError, local_map_fault
+
+# how a map built from updates is taken back to its sender's optimum (checked_robot_map)
+REFINE = LocalMapOptions().online_solver
 
 
 def robot_map_arrays(m: RobotMap) -> LocalMapArrays:
@@ -131,3 +136,47 @@ def robot_map_from_arrays(name: str, m: LocalMapArrays) -> RobotMap:
     return RobotMap(
         name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
     )
+
+
+def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -> RobotMap:
+    """The local problem of ``arrays``: every field is checked first
+    (:func:`~csam_ros.core.validation.local_map_fault`), then the problem is linearised and
+    factored once at the estimate (non-finite or singular information, which C-SAM would meet
+    at every solve). Raises :class:`LocalMapError` naming the fault, with the reason to count
+    it under (``malformed_local_map``).
+
+    ``refine``: the estimate is within a tolerance of the sender's optimum (a map built from
+    local map updates), so it is taken back to that optimum first by the online smoother's
+    capped Gauss-Newton (:data:`REFINE`): between a pose sent again and a neighbour held back
+    the odometry would otherwise disagree by up to the tolerance, which the local map check
+    counts as outliers and the local views linearise at."""
+    try:
+        robot_map = robot_map_from_arrays(name, arrays)
+    except ValueError as error:
+        raise LocalMapError(str(error)) from None
+    problem = robot_map.problem
+    with np.errstate(all="ignore"):  # values within bounds may still overflow together
+        try:
+            system = problem.normal_equations()
+            system.linearize(problem.values)
+            system.check_blocks()
+            if refine:  # its first step factors at the estimate
+                problem.solve(REFINE)
+            else:
+                system.factorize(0.0)
+        except (FloatingPointError, SingularProblemError, np.linalg.LinAlgError) as error:
+            raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
+    if not np.isfinite(problem.values).all():
+        raise LocalMapError(f"{name}: its estimate refined is not finite")
+    return robot_map
+
+
+def held_robot_map(name: str, held: HeldMap, refine: bool = True) -> RobotMap:
+    """The local problem of a map built from updates, with ``refine`` taken back to its
+    sender's optimum (:func:`checked_robot_map`); :class:`LocalMapError` when it is not
+    usable."""
+    try:
+        arrays = held.map.arrays()
+    except ValueError as error:  # a factor at a stamp with no pose
+        raise LocalMapError(f"{name}: {error}") from None
+    return checked_robot_map(name, arrays, refine=refine)

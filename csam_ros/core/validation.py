@@ -52,6 +52,22 @@ BEARING_MARGIN_SIGMAS = 5.0
 GAP_SIGMA = 1000.0
 
 
+class RefusedMessageError(ValueError):
+    """A message refused at the merger's boundary, with the reason its drop is counted under."""
+
+    def __init__(self, detail: str, reason: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+class LocalMapError(RefusedMessageError):
+    """A local map that cannot be turned into a local problem (or a map that has no
+    message form)."""
+
+    def __init__(self, detail: str, reason: str = MALFORMED_LOCAL_MAP) -> None:
+        super().__init__(detail, reason)
+
+
 @dataclass(frozen=True)
 class InputBounds:
     """The ``input:`` section of a parameter file, and the smoother node's parameters of the

@@ -21,9 +21,11 @@ seconds) with the core's :func:`~csam_ros.core.csam.join_maps`, then writes
 ``stale_after`` seconds is reported stale there; its last map stays joined. A map delivered
 again unchanged starts no solve.
 
-Solves run in one worker thread, off the executor, so subscriptions, services and the status
-keep running during a solve. A solve works on a snapshot of the inputs taken under a lock
-(their dicts are replaced, never mutated, when a message arrives). Input arriving during a
+Solves run off the executor: a worker thread hands each to the merger's solve process
+(:mod:`csam_ros.solve_process`), which refines each changed map to its sender's optimum and
+joins them, so subscriptions, services and the status keep running during a solve, on a core's
+share of their own. A solve works on a snapshot of the inputs taken under a lock (their dicts
+are replaced, never mutated, when a message arrives). Input arriving during a
 solve marks the inputs dirty again; the next solve starts after the current one ends, with
 the newest inputs: at most one solve runs and one is pending. ``/csam/status`` says whether a
 solve is running (``solving``) and how long the last one took (``solve_seconds``).
@@ -58,7 +60,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -72,12 +74,20 @@ from tf2_msgs.msg import TFMessage
 
 from csam_ros.core import se2
 from csam_ros.core.checkpoint import CheckpointError, MergerState
-from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
+from csam_ros.core.csam import CsamConfig
+from csam_ros.core.joiner import JoinRequest, MapSource
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
+from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update
 from csam_ros.core.result import CsamResult, MergerStats, RunSummary
-from csam_ros.core.validation import CALLBACK_ERROR, FAILED_SOLVE, DropCounter
+from csam_ros.core.validation import (
+    CALLBACK_ERROR,
+    FAILED_SOLVE,
+    DropCounter,
+    LocalMapError,
+    RefusedMessageError,
+)
 from csam_ros.core.warm_start import carried_forward
 from csam_ros.nodes.common import (
     declare,
@@ -90,9 +100,6 @@ from csam_ros.nodes.common import (
 )
 from csam_ros.ros.conversions import tf_message, time_to_ns
 from csam_ros.ros.map_messages import (
-    LocalMapError,
-    RefusedMessageError,
-    held_robot_map,
     joined_map_message,
     map_update_from_message,
     rendezvous_log_from_message,
@@ -109,6 +116,7 @@ from csam_ros.ros.topics import (
     TF,
     smoother_service,
 )
+from csam_ros.solve_process import SolveProcess
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
 # asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
@@ -118,7 +126,7 @@ DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
 RESYNC_FIRST_S = 3.0
 RESYNC_TIMEOUT_S = 30.0
 RESYNC_RETRY_S = 2.0
-SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for a running solve before leaving it behind
+SHUTDOWN_JOIN_S = 5.0  # s destroy_node waits for the solve worker to stop
 
 
 class SharedDropCounter(DropCounter):
@@ -150,8 +158,8 @@ class SharedDropCounter(DropCounter):
 class SolveInputs:
     """What one solve works on, taken under the merger's lock: never changed afterwards."""
 
-    maps: tuple[RobotMap, ...]  # as checked on arrival, not yet refined
-    sources: Mapping[str, HeldMap]  # the held map each was built from (none: resumed)
+    order: tuple[str, ...]  # the robots joined, the reference first
+    sources: Mapping[str, MapSource]  # each robot's map as held (refined by the solve)
     logs: Mapping[str, RendezvousLog]
     stamps: Mapping[str, int]
     robots: tuple[str, ...]  # every known robot, in the solve's order
@@ -225,9 +233,8 @@ class Merger(Node):
         # dict is replaced, never mutated, so a solve's snapshot of them stays as it was taken
         self.local_maps: dict[str, RobotMap] = {}
         self.held: dict[str, HeldMap] = {}  # each robot's map as its updates built it
-        self.sources: dict[str, HeldMap] = {}  # the held map each of local_maps was built from
-        # robot -> (held map, its map refined to the sender's optimum): the solve worker's
-        self._refined: dict[str, tuple[HeldMap, RobotMap]] = {}
+        # what each of local_maps was built from: a held map, or a resumed map's arrays
+        self.sources: dict[str, MapSource] = {}
         self.resync_requests: dict[str, int] = {}
         self._behind: set[str] = set()  # robots an update of did not apply: resync until one does
         self._resync_clients: dict[str, Any] = {}
@@ -247,7 +254,7 @@ class Merger(Node):
         self.dirty = False  # inputs changed since the last solve's snapshot
         self.solving = False  # a solve is running
         self.last_result: CsamResult | None = None
-        self.local_views = LocalViewCache()  # the solve worker's alone
+        self.solve_process = SolveProcess()  # the solve worker's alone (and destroy_node's)
         self.solves = 0
         self.solve_seconds = 0.0  # how long the last solve took
         self.provisional_maps = 0  # provisional joined maps published
@@ -287,11 +294,12 @@ class Merger(Node):
         self._worker.start()
 
     def destroy_node(self) -> None:
-        """Stop the solve worker (a solve still running after ``SHUTDOWN_JOIN_S`` finishes in
-        the background and publishes nothing), then destroy the node."""
+        """Stop the solve worker and the solve process (a solve running is lost: nothing of it
+        is published or counted), then destroy the node."""
         with self._lock:
             self._stopping = True
             self._wake.notify_all()
+        self.solve_process.close()
         if self._worker is not threading.current_thread():
             self._worker.join(timeout=SHUTDOWN_JOIN_S)
         if self._worker.is_alive():
@@ -317,6 +325,7 @@ class Merger(Node):
             return False
         now = time.monotonic()
         self.local_maps = dict(saved.maps)
+        self.sources = {robot: robot_map_arrays(m) for robot, m in saved.maps.items()}
         self.local_map_stamps = dict(saved.map_stamps)
         self.rendezvous = dict(saved.rendezvous)
         self.heard = list(saved.heard)
@@ -394,7 +403,7 @@ class Merger(Node):
         self._behind.discard(robot)
         if msg.base_sequence == 0:
             self._resync_next.pop(robot, None)  # a whole map came: a request no longer stands
-        try:  # checked here; refined by the solve worker (refine_inputs)
+        try:  # checked here; refined by the solve process
             new = held_robot_map(robot, held, refine=False)
         except RefusedMessageError as error:
             self._refuse(robot, "local map update", error)
@@ -532,7 +541,7 @@ class Merger(Node):
                     return False
                 order, robots = self._order()
                 inputs = SolveInputs(
-                    maps=tuple(self.local_maps[r] for r in order),
+                    order=tuple(order),
                     sources=self.sources,
                     logs={r: self.rendezvous[r] for r in order if r in self.rendezvous},
                     stamps=self.local_map_stamps,
@@ -591,29 +600,52 @@ class Merger(Node):
         return True
 
     def _solve(self, inputs: SolveInputs) -> None:
-        """Join ``inputs``; record the result (or the failure) and publish it."""
+        """Join ``inputs`` in the solve process; record the result (or the failure) and
+        publish it."""
         start = time.perf_counter()
-        inputs = self._refine_inputs(inputs)
-        try:
-            result = join_maps(
-                list(inputs.maps),
-                dict(inputs.logs),
-                self.config,
-                previous=self.last_result if self.config.warm_start else None,
-                cache=self.local_views,
+        with self._lock:
+            previous, stats = self.last_result, self.stats()
+        state = None
+        if self.state_path is not None:  # as it will be once this solve is counted
+            state = MergerState(
+                reference=inputs.order[0],
+                heard=list(inputs.order),
+                robots=list(inputs.robots),
+                maps={},
+                map_stamps={r: inputs.stamps[r] for r in inputs.order},
+                rendezvous={},
+                solves=stats.solves + 1,
+                dropped=stats.dropped,
+                restarts=stats.restarts,
+                restart_poses_lost=stats.restart_poses_lost,
             )
-            fault = _non_finite(result)
-            if fault:
-                raise ValueError(f"the joined map has non-finite numbers ({fault})")
-        except Exception as err:  # noqa: BLE001 - a solve never takes the merger down
-            with self._lock:
-                self.solve_seconds = time.perf_counter() - start
-                self.last_error = f"{type(err).__name__}: {err}"
-                self.drops.add(FAILED_SOLVE)
-                error = self.last_error
-            self.get_logger().error(f"C-SAM failed, the last joined map stays: {error}")
-            return
+        reply = self.solve_process.join(
+            JoinRequest(
+                maps=tuple((r, inputs.sources[r]) for r in inputs.order),
+                logs=inputs.logs,
+                config=self.config,
+                previous=previous,
+                state=state,
+                state_path=self.state_path,
+            )
+        )
         seconds = time.perf_counter() - start
+        if self._stopping:
+            return
+        for refusal in reply.refused:
+            self._refuse(
+                refusal.robot, "local map update", LocalMapError(refusal.detail, refusal.reason)
+            )
+        if reply.state_error:
+            self.get_logger().error(reply.state_error)
+        result = reply.result
+        if result is None:
+            with self._lock:
+                self.solve_seconds = seconds
+                self.last_error = reply.error
+                self.drops.add(FAILED_SOLVE)
+            self.get_logger().error(f"C-SAM failed, the last joined map stays: {reply.error}")
+            return
         result.timing_s["merger_solve"] = seconds
         if not result.converged:
             for note in result.notes:
@@ -626,10 +658,6 @@ class Merger(Node):
             self.last_result = result
             self._published_stamps = dict(inputs.stamps)
             stats = self.stats()
-        if self._stopping:
-            return
-        if self.state_path is not None:
-            self._write_state(inputs, result, stats)
         self._publish(result, dict(inputs.stamps), inputs.robots, stats)
 
     def publish_provisional(self) -> bool:
@@ -660,51 +688,6 @@ class Merger(Node):
         with self._lock:
             self.provisional_maps += 1
         return True
-
-    def _refine_inputs(self, inputs: SolveInputs) -> SolveInputs:
-        """``inputs`` with each map built from updates taken back to its sender's optimum
-        (:func:`~csam_ros.ros.map_messages.checked_robot_map`), once per held map: the
-        executor only checks a map as it arrives, so that taking input stays cheap. A map
-        whose refinement fails is dropped under its reason, and the robot's last refined map
-        (else the map as it came) is joined."""
-        maps = []
-        for m in inputs.maps:
-            held = inputs.sources.get(m.name)
-            cached = self._refined.get(m.name)
-            if held is None:
-                maps.append(m)
-            elif cached is not None and cached[0] is held:
-                maps.append(cached[1])
-            else:
-                try:
-                    refined = held_robot_map(m.name, held)
-                except RefusedMessageError as error:
-                    self._refuse(m.name, "local map update", error)
-                    refined = cached[1] if cached is not None else m
-                self._refined[m.name] = (held, refined)
-                maps.append(refined)
-        return replace(inputs, maps=tuple(maps))
-
-    def _write_state(self, inputs: SolveInputs, result: CsamResult, stats: MergerStats) -> None:
-        """Write the state of this solve to ``state_path`` (a failure is logged, not fatal)."""
-        assert self.state_path is not None
-        order = inputs.robots[: len(inputs.maps)]
-        try:
-            MergerState(
-                reference=order[0],
-                heard=list(order),
-                robots=list(inputs.robots),
-                maps=dict(zip(order, inputs.maps, strict=True)),
-                map_stamps={r: inputs.stamps[r] for r in order},
-                rendezvous=dict(inputs.logs),
-                solves=stats.solves,
-                dropped=stats.dropped,
-                restarts=stats.restarts,
-                restart_poses_lost=stats.restart_poses_lost,
-                result=result,
-            ).write(self.state_path)
-        except (OSError, ValueError) as err:
-            self.get_logger().error(f"merger state not written to {self.state_path}: {err}")
 
     def _publish(
         self,
@@ -834,19 +817,6 @@ def _outside_trajectory(result: CsamResult | None) -> int:
     """Rendezvous measurements a solve left out as stamped outside a map's span."""
     report = result.rendezvous_filter.get("trajectory_span") if result is not None else None
     return report.total("outside_trajectory") if report is not None else 0
-
-
-def _non_finite(result: CsamResult) -> str:
-    """The first part of a result holding a non-finite number ("" when none)."""
-    for name, r in result.robots.items():
-        for part in ("base_node", "base_node_cov", "poses_joined", "sigma_phi_joined"):
-            value = getattr(r, part)
-            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=float))):
-                return f"{name} {part}"
-    for f in result.features:
-        if not (np.all(np.isfinite(f.xy)) and np.all(np.isfinite(f.cov))):
-            return f"feature {'+'.join(f.members)}"
-    return ""
 
 
 def main(args: list[str] | None = None) -> int:

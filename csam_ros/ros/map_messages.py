@@ -35,40 +35,20 @@ from csam_ros.core.factors import (
     RobustKernel,
 )
 from csam_ros.core.joining import RobotMap
-from csam_ros.core.local_map import LocalMapOptions
 from csam_ros.core.log import RendezvousLog
-from csam_ros.core.map_arrays import robot_map_from_arrays
-from csam_ros.core.map_updates import HeldMap, KeyedMap, MapUpdate
+from csam_ros.core.map_arrays import checked_robot_map
+from csam_ros.core.map_updates import KeyedMap, MapUpdate
 from csam_ros.core.result import CsamResult
-from csam_ros.core.solver import SingularProblemError
 from csam_ros.core.validation import (
-    MALFORMED_LOCAL_MAP,
     MALFORMED_RENDEZVOUS_POSES,
     ROBOT_MISMATCH,
     DropCounter,
     LocalMapArrays,
+    LocalMapError,
+    RefusedMessageError,
     rendezvous_row_mask,
 )
 from csam_ros.ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
-
-# how a map built from updates is taken back to its sender's optimum (checked_robot_map)
-REFINE = LocalMapOptions().online_solver
-
-
-class RefusedMessageError(ValueError):
-    """A message refused at the merger's boundary, with the reason its drop is counted under."""
-
-    def __init__(self, detail: str, reason: str) -> None:
-        super().__init__(detail)
-        self.reason = reason
-
-
-class LocalMapError(RefusedMessageError):
-    """A local map message that cannot be turned into a local problem (or a map that has no
-    message form)."""
-
-    def __init__(self, detail: str, reason: str = MALFORMED_LOCAL_MAP) -> None:
-        super().__init__(detail, reason)
 
 
 def _kernel_to_message(kernel: RobustKernel | None) -> tuple[str, float]:
@@ -220,50 +200,6 @@ def robot_map_from_message(msg: LocalMap, robot: str | None = None) -> RobotMap:
     """
     name = _robot_of(msg, robot, LocalMapError)
     return checked_robot_map(name, local_map_arrays(msg, name))
-
-
-def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -> RobotMap:
-    """The local problem of ``arrays``: every field is checked first
-    (:func:`~csam_ros.core.validation.local_map_fault`), then the problem is linearised and
-    factored once at the estimate (non-finite or singular information, which C-SAM would meet
-    at every solve). Raises :class:`LocalMapError` naming the fault, with the reason to count
-    it under (``malformed_local_map``).
-
-    ``refine``: the estimate is within a tolerance of the sender's optimum (a map built from
-    local map updates), so it is taken back to that optimum first by the online smoother's
-    capped Gauss-Newton (:data:`REFINE`): between a pose sent again and a neighbour held back
-    the odometry would otherwise disagree by up to the tolerance, which the local map check
-    counts as outliers and the local views linearise at."""
-    try:
-        robot_map = robot_map_from_arrays(name, arrays)
-    except ValueError as error:
-        raise LocalMapError(str(error)) from None
-    problem = robot_map.problem
-    with np.errstate(all="ignore"):  # values within bounds may still overflow together
-        try:
-            system = problem.normal_equations()
-            system.linearize(problem.values)
-            system.check_blocks()
-            if refine:  # its first step factors at the estimate
-                problem.solve(REFINE)
-            else:
-                system.factorize(0.0)
-        except (FloatingPointError, SingularProblemError, np.linalg.LinAlgError) as error:
-            raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
-    if not np.isfinite(problem.values).all():
-        raise LocalMapError(f"{name}: its estimate refined is not finite")
-    return robot_map
-
-
-def held_robot_map(name: str, held: HeldMap, refine: bool = True) -> RobotMap:
-    """The local problem of a map built from updates, with ``refine`` taken back to its
-    sender's optimum (:func:`checked_robot_map`); :class:`LocalMapError` when it is not
-    usable."""
-    try:
-        arrays = held.map.arrays()
-    except ValueError as error:  # a factor at a stamp with no pose
-        raise LocalMapError(f"{name}: {error}") from None
-    return checked_robot_map(name, arrays, refine=refine)
 
 
 def _numbers(values: np.ndarray, typecode: str) -> array.array:

@@ -9,8 +9,10 @@ nothing does; an update delivered twice is applied once.
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Callable
+import contextlib
+import os
+import signal
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -37,12 +39,13 @@ from merger_harness import (
 )
 
 import csam_ros.nodes.merger as merger_module
-from csam_ros.core.map_arrays import robot_map_arrays
+from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.result import RunSummary
+from csam_ros.core.validation import FAILED_SOLVE
 from csam_ros.core.warm_start import carried_forward
 from csam_ros.ros.conversions import ns_to_time, time_to_ns
-from csam_ros.ros.map_messages import held_robot_map, local_map_update_message
+from csam_ros.ros.map_messages import local_map_update_message
 from csam_ros.ros.topics import PROVISIONAL_MAP
 
 RESTART_AT = 12.0  # s: robot2's smoother restarted here (the run: 0-40 s, rendezvous 18-22 s)
@@ -282,22 +285,11 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
     assert result is not None and len(result.robots["robot2"].stamps) == poses_of(new_map)
 
 
-def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypatch) -> None:
+def test_a_running_solve_blocks_neither_status_nor_input(harness, good) -> None:
     """The issue: the merger solved in its executor thread, so while C-SAM ran no status was
-    published and no message taken. Now a solve runs in a worker; input arriving meanwhile is
-    held and solved once, newest, after the running solve ends."""
+    published and no message taken. Now a solve runs in the solve process; input arriving
+    meanwhile is held and solved once, newest, after the running solve ends."""
     harness.start(good)
-    real_join = merger_module.join_maps
-    started, release = threading.Event(), threading.Event()
-    solved: list[dict[str, int]] = []  # poses per robot of each solve's inputs
-
-    def slow_join(maps: Any, logs: Any, config: Any, **options: Any) -> Any:
-        solved.append({m.name: len(m.stamps) for m in maps})
-        started.set()
-        assert release.wait(60.0), "never released"
-        return real_join(maps, logs, config, **options)
-
-    monkeypatch.setattr(merger_module, "join_maps", slow_join)
     status: list[dict[str, str]] = []
     harness.injector.create_subscription(
         __import__("diagnostic_msgs.msg").msg.DiagnosticArray,
@@ -307,10 +299,10 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypa
         ),
         10,
     )
-    solves = harness.merger.solves
-    harness.merger.dirty = True
-    try:
-        harness.wait(lambda: started.is_set() and harness.merger.solving)
+    solves, published = harness.merger.solves, len(harness.joined)
+    with _held_solves(harness.merger):
+        harness.merger.dirty = True
+        harness.wait(lambda: _solving_newest(harness.merger))
         seen = len(status)
         harness.wait(lambda: len(status) > seen + 1 and status[-1]["solving"] == "True")
 
@@ -327,57 +319,82 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good, monkeypa
         harness.publish("robot2", restarted.rendezvous["robot2"])
         harness.wait(lambda: harness.merger.rendezvous["robot2"] is not old_log)
         assert harness.merger.solving and harness.merger.solves == solves
-        assert len(solved) == 1
-    finally:
-        release.set()
     harness.wait(
         lambda: (
             harness.merger.solves == solves + 2
             and not harness.merger.dirty
             and not harness.merger.solving
+            and len(harness.joined) == published + 2
         )
     )
     harness.settle(0.5)
-    assert harness.merger.solves == solves + 2 and len(solved) == 2
-    assert solved[0]["robot2"] == poses_of(good.local_maps["robot2"])
-    assert solved[1]["robot2"] == poses_of(new_map)
-    result = harness.merger.last_result
-    assert result is not None and len(result.robots["robot2"].stamps) == poses_of(new_map)
+    assert harness.merger.solves == solves + 2 and len(harness.joined) == published + 2
+    poses = [{t.robot: len(t.poses) for t in m.trajectories} for m in harness.joined[-2:]]
+    assert poses[0]["robot2"] == poses_of(good.local_maps["robot2"])
+    assert poses[1]["robot2"] == poses_of(new_map)
     assert harness.merger.drops.total == 0
 
 
-def _held_solves(monkeypatch: Any) -> tuple[threading.Event, threading.Event]:
-    """Make the merger's solves wait, once started (the first event), until released (the
-    second)."""
-    real_join = merger_module.join_maps
-    started, release = threading.Event(), threading.Event()
+@contextlib.contextmanager
+def _held_solves(merger: merger_module.Merger) -> Iterator[None]:
+    """Stop the merger's solve process until the block ends: a solve started meanwhile
+    waits in it."""
+    pid = merger.solve_process.pid
+    assert pid is not None, "the merger has not solved yet"
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
 
-    def slow_join(maps: Any, logs: Any, config: Any, **options: Any) -> Any:
-        started.set()
-        assert release.wait(60.0), "never released"
-        return real_join(maps, logs, config, **options)
 
-    monkeypatch.setattr(merger_module, "join_maps", slow_join)
-    return started, release
+def _solving_newest(merger: merger_module.Merger) -> bool:
+    """Whether a solve of the newest inputs runs (the last solve may still be ending when its
+    joined map arrives)."""
+    return merger.solving and not merger.dirty
 
 
-def test_destroying_the_node_leaves_a_running_solve_behind(harness, good, monkeypatch) -> None:
-    """destroy_node returns while a solve runs; the solve finishes unpublished, unfailed."""
+def test_destroying_the_node_stops_a_running_solve(harness, good) -> None:
+    """destroy_node stops the solve process at once; the solve it ran is neither published
+    nor counted as failed."""
     harness.start(good)
-    started, release = _held_solves(monkeypatch)
-    monkeypatch.setattr(merger_module, "SHUTDOWN_JOIN_S", 0.2)
     merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
-    merger.dirty = True
-    harness.wait(lambda: started.is_set())
-    merger.destroy_node()
-    worker = merger._worker
-    assert worker.is_alive()
-    release.set()
-    worker.join(60.0)
-    assert not worker.is_alive()
-    assert merger.solves == solves + 1 and merger.drops.total == 0
+    with _held_solves(merger):
+        merger.dirty = True
+        harness.wait(lambda: _solving_newest(merger))
+        merger.destroy_node()
+        worker = merger._worker
+        worker.join(10.0)
+        assert not worker.is_alive()
+    assert merger.solve_process.pid is None
+    assert merger.solves == solves and merger.drops.total == 0
     harness.settle(0.3)
     assert len(harness.joined) == published
+
+
+def test_a_solve_process_that_dies_is_a_failed_solve_and_started_again(harness, good) -> None:
+    """The solve process killed during a solve: that solve counts as failed, the last joined
+    map stays, and the next solve starts a new process that is sent every map again."""
+    harness.start(good)
+    merger, solves = harness.merger, harness.merger.solves
+    before = merger.last_result
+    starts = merger.solve_process.starts
+    with _held_solves(merger):
+        merger.dirty = True
+        harness.wait(lambda: _solving_newest(merger))
+        os.kill(merger.solve_process.pid, signal.SIGKILL)
+        harness.wait(lambda: not merger.solving)
+    assert merger.drops.as_dict() == {FAILED_SOLVE: 1}
+    assert merger.solves == solves and merger.last_result is before
+    assert "the solve process ended" in merger.last_error
+    merger.dirty = True
+    harness.wait(lambda: merger.solves == solves + 1)
+    assert merger.solve_process.starts == starts + 1
+    after = merger.last_result
+    assert after is not None and after is not before
+    for f, g in zip(before.features, after.features, strict=True):
+        np.testing.assert_allclose(f.xy, g.xy, atol=1e-9)
 
 
 def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
@@ -547,7 +564,7 @@ def test_an_update_of_another_session_asks_for_the_whole_map(
 
 
 def test_a_running_solve_publishes_the_newest_maps_provisionally(
-    harness, growing: list[RunMessages], monkeypatch
+    harness, growing: list[RunMessages]
 ) -> None:
     """While a solve runs, robot2's newer map goes out on /csam/joined_map/provisional, once:
     placed by the last join, as the core carries it forward. The solved map follows."""
@@ -560,16 +577,13 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
     harness.injector.create_subscription(
         JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
     )
-    started, release = _held_solves(monkeypatch)
     newer = STAMP_NS + 10**9
     update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
-    harness.publish("robot2", local_map_update_message(update, "robot2", newer))
-    try:
-        harness.wait(lambda: started.is_set() and len(provisional) > 0)
+    with _held_solves(harness.merger):
+        harness.publish("robot2", local_map_update_message(update, "robot2", newer))
+        harness.wait(lambda: _solving_newest(harness.merger) and len(provisional) > 0)
         harness.settle(1.5)  # past provisional_period: nothing newer to publish
         assert len(provisional) == 1 and harness.merger.solving
-    finally:
-        release.set()
     message = provisional[0]
     stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in message.base_nodes}
     assert stamps == {"robot1": STAMP_NS, "robot2": newer}

@@ -14,10 +14,10 @@ from csam_ros.core.map_arrays import robot_map_arrays
 from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.simulation import simulate
+from csam_ros.core.validation import LocalMapError
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
-    LocalMapError,
     joined_map_message,
     local_map_update_message,
     map_update_from_message,

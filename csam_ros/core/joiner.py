@@ -1,0 +1,143 @@
+"""What a live merger's solves share, and one solve on it (docs/METHOD.md section 6.4).
+
+A :class:`Joiner` keeps, between solves, each robot's local map refined to its sender's
+optimum, the local views (:class:`~csam_ros.core.csam.LocalViewCache`) and the last result,
+the warm start of the next join. :meth:`Joiner.join` takes a :class:`JoinRequest`: each robot's
+map source (a map built from updates, refined here once; or a map as saved, joined as it is),
+or ``None`` for the source of the last request, so that a caller in another process sends a
+map only when it changed. The merger node runs a joiner in a process of its own
+(:mod:`csam_ros.solve_process`); nothing here knows of ROS.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from csam_ros.core.checkpoint import MergerState
+from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
+from csam_ros.core.joining import RobotMap
+from csam_ros.core.log import RendezvousLog
+from csam_ros.core.map_arrays import held_robot_map, robot_map_from_arrays
+from csam_ros.core.map_updates import HeldMap
+from csam_ros.core.result import CsamResult
+from csam_ros.core.validation import MALFORMED_LOCAL_MAP, LocalMapArrays, LocalMapError
+
+# a robot's local map as the merger holds it: built from updates (refined when joined), or
+# as a saved merger state held it (joined as it is)
+MapSource = HeldMap | LocalMapArrays
+
+
+@dataclass(frozen=True)
+class JoinRequest:
+    """One solve: the robots' map sources in the join's order (the reference first)."""
+
+    maps: tuple[tuple[str, MapSource | None], ...]  # None: the source of the last request
+    logs: Mapping[str, RendezvousLog]
+    config: CsamConfig
+    previous: CsamResult | None = None  # when given, the warm start instead of the last result
+    # the merger's state to write after a successful join, its maps, rendezvous and result
+    # filled in here
+    state: MergerState | None = None
+    state_path: Path | None = None
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A map source that could not be refined (its robot's last map is joined instead)."""
+
+    robot: str
+    reason: str
+    detail: str
+
+
+@dataclass(frozen=True)
+class JoinReply:
+    """A solve's outcome: the result, or why there is none."""
+
+    result: CsamResult | None
+    error: str = ""  # "<exception type>: <message>" of a failed join
+    refused: tuple[Refusal, ...] = ()
+    state_error: str = ""  # why the state could not be written
+
+
+class Joiner:
+    """The joins of one merger, each warm-started from the last (module docstring)."""
+
+    def __init__(self) -> None:
+        self.maps: dict[str, RobotMap] = {}  # each robot's last usable map, refined
+        self.sources: dict[str, MapSource] = {}
+        self.local_views = LocalViewCache()
+        self.previous: CsamResult | None = None
+
+    def join(self, request: JoinRequest) -> JoinReply:
+        """Join the request's maps. A failed join raises nothing: the reply says why (an
+        exception, or a result holding a non-finite number)."""
+        if request.previous is not None:
+            self.previous = request.previous
+        refused = tuple(r for robot, source in request.maps if (r := self._take(robot, source)))
+        order = [robot for robot, _ in request.maps]
+        config = request.config
+        try:
+            maps = [self.maps[robot] for robot in order]
+            result = join_maps(
+                maps,
+                dict(request.logs),
+                config,
+                previous=self.previous if config.warm_start else None,
+                cache=self.local_views,
+            )
+            fault = non_finite(result)
+            if fault:
+                raise ValueError(f"the joined map has non-finite numbers ({fault})")
+        except Exception as err:  # noqa: BLE001 - the caller reports a failed solve
+            return JoinReply(None, f"{type(err).__name__}: {err}", refused)
+        self.previous = result
+        state_error = ""
+        if request.state is not None and request.state_path is not None:
+            try:
+                replace(
+                    request.state,
+                    maps=dict(zip(order, maps, strict=True)),
+                    rendezvous=dict(request.logs),
+                    result=result,
+                ).write(request.state_path)
+            except (OSError, ValueError) as err:
+                state_error = f"merger state not written to {request.state_path}: {err}"
+        return JoinReply(result, refused=refused, state_error=state_error)
+
+    def _take(self, robot: str, source: MapSource | None) -> Refusal | None:
+        """Hold ``robot``'s map of ``source`` (None: keep the last); a refusal if it is not
+        usable (the robot's last map stays, else a map built from updates is held as it
+        came)."""
+        if source is None:
+            if robot not in self.sources:
+                raise ValueError(f"{robot}: no map source sent before to take again")
+            return None
+        self.sources[robot] = source
+        try:
+            if isinstance(source, HeldMap):
+                self.maps[robot] = held_robot_map(robot, source)
+            else:
+                self.maps[robot] = robot_map_from_arrays(robot, source)
+            return None
+        except (LocalMapError, ValueError) as error:
+            if robot not in self.maps and isinstance(source, HeldMap):
+                self.maps[robot] = held_robot_map(robot, source, refine=False)
+            return Refusal(robot, getattr(error, "reason", MALFORMED_LOCAL_MAP), str(error))
+
+
+def non_finite(result: CsamResult) -> str:
+    """The first part of a result holding a non-finite number ("" when none)."""
+    for name, r in result.robots.items():
+        for part in ("base_node", "base_node_cov", "poses_joined", "sigma_phi_joined"):
+            value = getattr(r, part)
+            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                return f"{name} {part}"
+    for f in result.features:
+        if not (np.all(np.isfinite(f.xy)) and np.all(np.isfinite(f.cov))):
+            return f"feature {'+'.join(f.members)}"
+    return ""
