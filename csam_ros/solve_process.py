@@ -46,8 +46,9 @@ def _serve(connection: Connection) -> None:
 
 
 class SolveProcess:
-    """A child process joining maps for one merger (module docstring); started at the first
-    :meth:`join`, again after it died, stopped by :meth:`close`."""
+    """A child process joining maps for one merger (module docstring): started by
+    :meth:`start` (else by the first :meth:`join`), again by a join after it died, stopped
+    by :meth:`close`."""
 
     def __init__(self) -> None:
         self._process: Any = None
@@ -55,19 +56,26 @@ class SolveProcess:
         self._lock = threading.Lock()  # join and close may come from different threads
         self._sent: dict[str, MapSource] = {}  # the source of each robot the child holds
         self._previous: CsamResult | None = None  # the result the child holds as warm start
+        self._closed = False
         self.starts = 0
 
     @property
     def pid(self) -> int | None:
-        """The child's process id (None before the first solve)."""
+        """The child's process id (None when none runs)."""
         return self._process.pid if self._process is not None else None
+
+    def start(self) -> None:
+        """Start the child unless it runs: it imports the core while the caller goes on."""
+        with self._lock:
+            self._ensure_started()
 
     def join(self, request: JoinRequest) -> JoinReply:
         """``request`` joined by the child (started first if need be); a failed join or a
         child that died is a reply with an error, never an exception."""
         with self._lock:
-            if self._process is None or not self._process.is_alive():
-                self._start()
+            if self._closed:
+                return JoinReply(None, "the solve process is closed")
+            self._ensure_started()
             connection = self._connection
             assert connection is not None
             stripped = self.stripped(request)
@@ -75,7 +83,7 @@ class SolveProcess:
             connection.send(stripped)
             reply: JoinReply = connection.recv()
         except (EOFError, OSError) as err:
-            self.close()
+            self._stop_child()
             return JoinReply(None, f"the solve process ended ({type(err).__name__})")
         with self._lock:
             self._sent.update({robot: source for robot, source in request.maps})
@@ -94,7 +102,12 @@ class SolveProcess:
         return replace(request, maps=maps, previous=previous)
 
     def close(self) -> None:
-        """Stop the child, at once if it is solving (its solve is lost)."""
+        """Stop the child, at once if it is solving (its solve is lost), for good."""
+        with self._lock:
+            self._closed = True
+        self._stop_child()
+
+    def _stop_child(self) -> None:
         with self._lock:
             process, connection = self._process, self._connection
             self._process = self._connection = None
@@ -104,6 +117,10 @@ class SolveProcess:
             process.join()
         if connection is not None:
             connection.close()
+
+    def _ensure_started(self) -> None:
+        if self._process is None or not self._process.is_alive():
+            self._start()
 
     def _start(self) -> None:
         context = multiprocessing.get_context("forkserver")

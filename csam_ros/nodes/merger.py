@@ -290,6 +290,7 @@ class Merger(Node):
         self.create_timer(
             DISCOVERY_PERIOD_S, guarded(self, self.drops, self.discover), clock=steady_clock()
         )
+        self.solve_process.start()  # its imports overlap the wait for the first maps
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
         self._worker.start()
 
