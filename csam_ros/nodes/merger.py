@@ -30,11 +30,9 @@ solve marks the inputs dirty again; the next solve starts after the current one 
 the newest inputs: at most one solve runs and one is pending. ``/csam/status`` says whether a
 solve is running (``solving``) and how long the last one took (``solve_seconds``).
 
-A join takes seconds to minutes on large maps. While one runs, when some local map is newer
-than those the last joined map used, the executor publishes ``/csam/joined_map/provisional``
-once ``PROVISIONAL_SETTLE_S`` passed without a new map (the smoothers' maps come together) or
-the oldest new one waited ``provisional_period`` wall-clock seconds, and at most every
-``provisional_period`` (:func:`provisional_due`): the newest local
+A join takes seconds to minutes on large maps. While one runs, at most every
+``provisional_period`` wall-clock seconds and only when some local map is newer than those the
+last joined map used, the executor publishes ``/csam/joined_map/provisional``: the newest local
 maps placed by the last join, unsolved (:func:`~csam_ros.core.warm_start.carried_forward`; what
 the next join starts from). Its base nodes name the local maps it holds; it has no heading
 sigmas, and the features first seen since the last join have NaN covariances.
@@ -61,7 +59,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -121,10 +119,6 @@ from csam_ros.ros.topics import (
 from csam_ros.solve_process import SolveProcess
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
-# s without a new local map before a provisional joined map goes out: the smoothers publish on
-# the same clock, so their maps come together, and one provisional map then holds them all
-PROVISIONAL_SETTLE_S = 0.2
-PROVISIONAL_CHECK_S = 0.1  # s between the executor's looks at whether one is due
 # asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
 # long after it was subscribed to (its first update, whole, usually comes first); a request
 # stands this long before another is made (the whole map may take long on a slow link), and
@@ -228,7 +222,7 @@ class Merger(Node):
             "provisional_period",
             1.0,
             "minimum wall-clock seconds between provisional joined maps (the newest local maps "
-            "placed by the last join), and the longest a new local map waits for one (0: none)",
+            "placed by the last join; 0: none)",
             0.0,
             3600.0,
         )
@@ -296,12 +290,6 @@ class Merger(Node):
         self.create_timer(
             DISCOVERY_PERIOD_S, guarded(self, self.drops, self.discover), clock=steady_clock()
         )
-        if self.provisional_period > 0.0:
-            self.create_timer(
-                PROVISIONAL_CHECK_S,
-                guarded(self, self.drops, self.publish_provisional),
-                clock=steady_clock(),
-            )
         self.solve_process.start()  # its imports overlap the wait for the first maps
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
         self._worker.start()
@@ -521,6 +509,7 @@ class Merger(Node):
             if self.dirty and not self.solving:
                 self._requested = True
                 self._wake.notify()
+        self.publish_provisional()
         self.publish_status()
 
     def _work(self) -> None:
@@ -674,22 +663,17 @@ class Merger(Node):
 
     def publish_provisional(self) -> bool:
         """Publish the newest local maps placed by the last join (module docs) while a solve
-        runs, when one is newer than those the last joined map used (:func:`provisional_due`);
-        whether one was published."""
+        runs, when one is newer than those the last joined map used and
+        ``provisional_period`` has passed; whether one was published."""
         with self._lock:
             now = time.monotonic()
             last, stamps = self.last_result, dict(self.local_map_stamps)
-            new = [r for r, s in stamps.items() if self._published_stamps.get(r) != s]
             if (
                 last is None
                 or not self.solving
-                or not provisional_due(
-                    now,
-                    [self.map_arrival[r] for r in new],
-                    max(self.map_arrival.values(), default=now),
-                    self._provisional_next,
-                    self.provisional_period,
-                )
+                or self.provisional_period <= 0.0
+                or now < self._provisional_next
+                or stamps == self._published_stamps
             ):
                 return False
             order, robots = self._order()
@@ -814,23 +798,6 @@ class Merger(Node):
             )
         )
         return array
-
-
-def provisional_due(
-    now: float,
-    waiting: Sequence[float],
-    last_arrival: float,
-    next_allowed: float,
-    period: float,
-    settle: float = PROVISIONAL_SETTLE_S,
-) -> bool:
-    """Whether a provisional joined map is due at ``now`` (steady clock s): some local map
-    (arrived at ``waiting``) is in no published map, ``next_allowed`` has passed (at most one
-    every ``period``), and no map arrived in the last ``settle`` s, or the oldest waiting one
-    has waited ``period``."""
-    if not waiting or now < next_allowed:
-        return False
-    return now - last_arrival >= settle or now - min(waiting) >= period
 
 
 def robot_map_transforms(result: CsamResult, stamp_ns: int) -> TFMessage:

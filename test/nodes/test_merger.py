@@ -623,18 +623,3 @@ def test_maps_are_checked_on_arrival_and_joined_refined(
     assert np.abs(held.poses - refined.poses).max() > 1e-9  # the update left some behind
     np.testing.assert_allclose(joined.poses_local, refined.poses, atol=1e-12)
     np.testing.assert_allclose(refined.poses, last.robot_maps["robot2"].poses, atol=1e-6)
-
-
-def test_a_provisional_map_waits_for_the_maps_that_come_together() -> None:
-    """Due once no map came for the settle time, or the oldest waited a period; never twice
-    within a period, never with nothing new."""
-    due = merger_module.provisional_due
-    # maps at 10.0 and 10.1 s: not at 10.2 (one just came), at 10.3 (the round settled)
-    assert not due(10.2, [10.0, 10.1], 10.1, 0.0, 1.0, settle=0.2)
-    assert due(10.3, [10.0, 10.1], 10.1, 0.0, 1.0, settle=0.2)
-    # maps keep coming: out once the oldest waited a period
-    assert not due(10.9, [10.0, 10.8], 10.8, 0.0, 1.0, settle=0.2)
-    assert due(11.0, [10.0, 10.9], 10.9, 0.0, 1.0, settle=0.2)
-    # at most one a period, and none without a new map
-    assert not due(10.3, [10.0], 10.0, 10.5, 1.0, settle=0.2)
-    assert not due(20.0, [], 10.0, 0.0, 1.0, settle=0.2)
