@@ -11,6 +11,7 @@ map only when it changed. The merger node runs a joiner in a process of its own
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -62,6 +63,7 @@ class JoinReply:
     error: str = ""  # "<exception type>: <message>" of a failed join
     refused: tuple[Refusal, ...] = ()
     state_error: str = ""  # why the state could not be written
+    state_seconds: float = 0.0  # how long writing it took
 
 
 class Joiner:
@@ -97,6 +99,7 @@ class Joiner:
             return JoinReply(None, f"{type(err).__name__}: {err}", refused)
         self.previous = result
         state_error = ""
+        start = time.perf_counter()
         if request.state is not None and request.state_path is not None:
             try:
                 replace(
@@ -107,7 +110,12 @@ class Joiner:
                 ).write(request.state_path)
             except (OSError, ValueError) as err:
                 state_error = f"merger state not written to {request.state_path}: {err}"
-        return JoinReply(result, refused=refused, state_error=state_error)
+        return JoinReply(
+            result,
+            refused=refused,
+            state_error=state_error,
+            state_seconds=time.perf_counter() - start,
+        )
 
     def _take(self, robot: str, source: MapSource | None) -> Refusal | None:
         """Hold ``robot``'s map of ``source`` (None: keep the last); a refusal if it is not
