@@ -9,13 +9,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from log_slices import robot_log_between
+from growing_joins import maps_until
 
-from csam_ros.core.csam import CsamConfig, robot_map_from_local_map
+from csam_ros.core.csam import CsamConfig
 from csam_ros.core.joiner import Joiner, JoinRequest
-from csam_ros.core.local_map import build_local_map
 from csam_ros.core.map_arrays import robot_map_arrays
-from csam_ros.core.rendezvous import required_stamps
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.solve_process import SolveProcess
@@ -30,13 +28,10 @@ def _requests() -> list[JoinRequest]:
     end = max(r.odometry.stamps.max() for r in log.robots.values())
     requests, sources = [], {}
     for t in (0.6 * end, end):
-        robots = {n: robot_log_between(r, end=t) for n, r in log.robots.items()}
-        logs = {n: r.rendezvous for n, r in robots.items()}
-        stamps = required_stamps(logs)
-        for n, r in robots.items():
-            if n not in sources or n != "robot1":
-                m = robot_map_from_local_map(build_local_map(r, stamps[n]))
-                sources[n] = robot_map_arrays(m)
+        maps, logs = maps_until(log, t)
+        for m in maps:
+            if m.name not in sources or m.name != "robot1":
+                sources[m.name] = robot_map_arrays(m)
         requests.append(JoinRequest(tuple(sources.items()), logs, CONFIG))
     return requests
 

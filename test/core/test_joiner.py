@@ -7,45 +7,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from log_slices import robot_log_between
+from growing_joins import largest_difference, maps_until
 
-from csam_ros.core import se2
 from csam_ros.core.checkpoint import MergerState
-from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
+from csam_ros.core.csam import CsamConfig, join_maps
 from csam_ros.core.joiner import Joiner, JoinRequest, MapSource
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.local_map import build_local_map
-from csam_ros.core.log import MultiRobotLog, RendezvousLog
+from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.map_updates import HeldMap, UpdateSender, apply_update
-from csam_ros.core.rendezvous import required_stamps
-from csam_ros.core.result import CsamResult
 from csam_ros.core.simulation import simulate
 from csam_ros.core.validation import MALFORMED_LOCAL_MAP
 from csam_ros.datasets.scenario import load_scenario
 
 CONFIG = CsamConfig(skip_missing_poses=True)
-
-
-def _maps_until(log: MultiRobotLog, t: float) -> tuple[list[RobotMap], dict[str, RendezvousLog]]:
-    robots = {n: robot_log_between(r, end=t) for n, r in log.robots.items()}
-    logs = {n: r.rendezvous for n, r in robots.items()}
-    stamps = required_stamps(logs)
-    maps = [robot_map_from_local_map(build_local_map(r, stamps[n])) for n, r in robots.items()]
-    return maps, logs
-
-
-def _difference(a: CsamResult, b: CsamResult) -> float:
-    assert a.joined_robots() == b.joined_robots()
-    assert [f.members for f in a.features] == [f.members for f in b.features]
-    worst = 0.0
-    for name in a.joined_robots():
-        d = a.robots[name].poses_joined - b.robots[name].poses_joined
-        d[:, 2] = se2.wrap_angle(d[:, 2])
-        worst = max(worst, float(np.abs(d).max()))
-    for fa, fb in zip(a.features, b.features, strict=True):
-        worst = max(worst, float(np.abs(fa.xy - fb.xy).max()), float(np.abs(fa.cov - fb.cov).max()))
-    return worst
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +40,7 @@ def test_sources_sent_once_and_refined_join_as_cold_joins(run: MultiRobotLog) ->
     senders: dict[str, UpdateSender] = {}
     held: dict[str, HeldMap] = {}
     for k, t in enumerate(_moments(run)):
-        maps, logs = _maps_until(run, t)
+        maps, logs = maps_until(run, t)
         sources: list[tuple[str, MapSource | None]] = []
         for m in maps:
             if k == 1 and m.name == maps[0].name:  # the reference's map kept from the first
@@ -81,12 +55,12 @@ def test_sources_sent_once_and_refined_join_as_cold_joins(run: MultiRobotLog) ->
         for m, u in zip(maps, used, strict=True):
             if k != 1 or m.name != maps[0].name:
                 np.testing.assert_allclose(u.poses, m.poses, atol=1e-6)
-        assert _difference(reply.result, join_maps(used, logs, CONFIG)) < 1e-6
+        assert largest_difference(reply.result, join_maps(used, logs, CONFIG)) < 1e-6
         assert joiner.previous is reply.result
 
 
 def test_an_unusable_source_is_refused_and_the_last_map_joined(run: MultiRobotLog) -> None:
-    maps, logs = _maps_until(run, _moments(run)[1])
+    maps, logs = maps_until(run, _moments(run)[1])
     joiner = Joiner()
     arrays = {m.name: robot_map_arrays(m) for m in maps}
     first = joiner.join(JoinRequest(tuple(arrays.items()), logs, CONFIG))
@@ -98,17 +72,17 @@ def test_an_unusable_source_is_refused_and_the_last_map_joined(run: MultiRobotLo
     reply = joiner.join(JoinRequest(((maps[0].name, None), (bad_robot, bad)), logs, CONFIG))
     assert [(r.robot, r.reason) for r in reply.refused] == [(bad_robot, MALFORMED_LOCAL_MAP)]
     assert reply.result is not None
-    assert _difference(reply.result, first.result) < 1e-6
+    assert largest_difference(reply.result, first.result) < 1e-6
 
 
 def test_a_map_never_sent_cannot_be_taken_again(run: MultiRobotLog) -> None:
-    maps, logs = _maps_until(run, _moments(run)[1])
+    maps, logs = maps_until(run, _moments(run)[1])
     with pytest.raises(ValueError, match="no map source sent before"):
         Joiner().join(JoinRequest(((maps[0].name, None),), logs, CONFIG))
 
 
 def test_a_failed_join_is_a_reply_and_keeps_the_warm_start(run: MultiRobotLog) -> None:
-    maps, logs = _maps_until(run, _moments(run)[1])
+    maps, logs = maps_until(run, _moments(run)[1])
     joiner = Joiner()
     sources = tuple((m.name, robot_map_arrays(m)) for m in maps)
     good = joiner.join(JoinRequest(sources, logs, CONFIG)).result
@@ -118,7 +92,7 @@ def test_a_failed_join_is_a_reply_and_keeps_the_warm_start(run: MultiRobotLog) -
 
 
 def test_the_state_holds_the_joined_maps_and_result(run: MultiRobotLog, tmp_path: Path) -> None:
-    maps, logs = _maps_until(run, _moments(run)[2])
+    maps, logs = maps_until(run, _moments(run)[2])
     sender = UpdateSender(3)
     held = apply_update(None, sender.update(robot_map_arrays(maps[1])))
     sources = ((maps[0].name, robot_map_arrays(maps[0])), (maps[1].name, held))
@@ -131,6 +105,6 @@ def test_the_state_holds_the_joined_maps_and_result(run: MultiRobotLog, tmp_path
     assert saved.solves == 4 and list(saved.maps) == order and set(saved.rendezvous) == set(logs)
     refined = held_robot_map(maps[1].name, held)
     np.testing.assert_allclose(saved.maps[maps[1].name].poses, refined.poses, atol=1e-12)
-    assert saved.result is not None and _difference(saved.result, reply.result) < 1e-9
+    assert saved.result is not None and largest_difference(saved.result, reply.result) < 1e-9
     unwritable = JoinRequest(sources, logs, CONFIG, state=state, state_path=path / "x")
     assert "merger state not written" in Joiner().join(unwritable).state_error

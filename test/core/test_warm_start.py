@@ -6,41 +6,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from log_slices import robot_log_between
+from growing_joins import largest_difference, maps_until
 
 from csam_ros.core import se2
-from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps, robot_map_from_local_map
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.local_map import build_local_map
-from csam_ros.core.log import MultiRobotLog, RendezvousLog
-from csam_ros.core.rendezvous import required_stamps
+from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
 from csam_ros.core.result import CsamResult
 from csam_ros.core.simulation import simulate
 from csam_ros.core.warm_start import WarmStart, carried_forward
 from csam_ros.datasets.scenario import load_scenario
-
-
-def _maps_until(log: MultiRobotLog, t: float) -> tuple[list[RobotMap], dict[str, RendezvousLog]]:
-    """The robots' local maps and rendezvous logs of the run up to ``t``."""
-    robots = {n: robot_log_between(r, end=t) for n, r in log.robots.items()}
-    logs = {n: r.rendezvous for n, r in robots.items()}
-    stamps = required_stamps(logs)
-    maps = [robot_map_from_local_map(build_local_map(r, stamps[n])) for n, r in robots.items()]
-    return maps, logs
-
-
-def _largest_difference(a: CsamResult, b: CsamResult) -> float:
-    assert a.joined_robots() == b.joined_robots()
-    assert [f.members for f in a.features] == [f.members for f in b.features]
-    worst = 0.0
-    for name in a.joined_robots():
-        d = a.robots[name].poses_joined - b.robots[name].poses_joined
-        d[:, 2] = se2.wrap_angle(d[:, 2])
-        worst = max(worst, float(np.abs(d).max()))
-        worst = max(worst, float(np.abs(a.robots[name].base_node - b.robots[name].base_node).max()))
-    for fa, fb in zip(a.features, b.features, strict=True):
-        worst = max(worst, float(np.abs(fa.xy - fb.xy).max()), float(np.abs(fa.cov - fb.cov).max()))
-    return worst
 
 
 @pytest.mark.parametrize("scenario", ["map_joining", "chain"])
@@ -52,10 +25,10 @@ def test_warm_equals_cold_over_growing_maps(scenario: str) -> None:
     cache = LocalViewCache()
     warm: CsamResult | None = None
     for t in np.arange(first + 2.0, end, 3.0):  # a solve every 3 s, as a merger does
-        maps, logs = _maps_until(log, float(t))
+        maps, logs = maps_until(log, float(t))
         cold = join_maps(maps, logs, config)
         warm = join_maps(maps, logs, config, previous=warm, cache=cache)
-        assert _largest_difference(cold, warm) < 1e-6, t
+        assert largest_difference(cold, warm) < 1e-6, t
     assert len(warm.joined_robots()) == len(log.robots)
     assert cache.reused == 0  # every map grew between solves
 
@@ -63,7 +36,7 @@ def test_warm_equals_cold_over_growing_maps(scenario: str) -> None:
 def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
-    maps, logs = _maps_until(log, float(end))
+    maps, logs = maps_until(log, float(end))
     cache = LocalViewCache()
     first = join_maps(maps, logs, previous=None, cache=cache)
     assert (cache.built, cache.reused) == (2, 0)
@@ -71,7 +44,7 @@ def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
     assert (cache.built, cache.reused) == (2, 2)
     # both stop where the relative cost decrease falls below 1e-10 (CsamConfig): equal to the
     # 1e-6 of a converged solve (1.4e-8 on one machine, below 1e-8 on another, same code)
-    assert _largest_difference(first, again) < 1e-6
+    assert largest_difference(first, again) < 1e-6
     assert again.statistics["joint_iterations"] <= 2
     # a new map object of one robot is a new view for that robot only
     maps[1] = replace(maps[1])
@@ -82,12 +55,12 @@ def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
 def test_a_previous_result_of_another_reference_is_not_used() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
-    maps, logs = _maps_until(log, float(end))
+    maps, logs = maps_until(log, float(end))
     other = join_maps(maps[::-1], logs)
     cold = join_maps(maps, logs)
     warm = join_maps(maps, logs, previous=other)
     assert warm.reference == maps[0].name
-    assert _largest_difference(cold, warm) < 1e-9
+    assert largest_difference(cold, warm) < 1e-9
     assert warm.statistics["joint_iterations"] == cold.statistics["joint_iterations"]
 
 
@@ -133,7 +106,7 @@ def test_feature_start_moves_the_joined_position_by_the_local_change() -> None:
 def test_from_result_keeps_what_a_restart_needs() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
-    maps, logs = _maps_until(log, float(end))
+    maps, logs = maps_until(log, float(end))
     result = join_maps(maps, logs)
     warm = WarmStart.from_result(result)
     robot = result.robots["robot2"]
@@ -147,11 +120,11 @@ def test_from_result_keeps_what_a_restart_needs() -> None:
 def test_carried_forward_of_the_joined_maps_is_their_join() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
-    maps, logs = _maps_until(log, float(end))
+    maps, logs = maps_until(log, float(end))
     result = join_maps(maps, logs)
     carried = carried_forward(result, maps, CsamConfig().stamp_tolerance)
     assert any(len(f.members) > 1 for f in result.features)
-    assert _largest_difference(result, carried) < 1e-9
+    assert largest_difference(result, carried) < 1e-9
     assert [a.a for a in carried.associations] == [a.a for a in result.associations]
 
 
@@ -161,9 +134,9 @@ def test_carried_forward_places_grown_maps_by_the_last_join() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
     config = CsamConfig(skip_missing_poses=True)
-    before, logs = _maps_until(log, float(end) - 10.0)
+    before, logs = maps_until(log, float(end) - 10.0)
     last = join_maps(before, logs, config)
-    now, _ = _maps_until(log, float(end))
+    now, _ = maps_until(log, float(end))
     carried = carried_forward(last, now, config.stamp_tolerance)
     assert carried.joined_robots() == last.joined_robots() == {"robot1", "robot2"}
     for m in now:
@@ -192,10 +165,10 @@ def test_carried_forward_places_grown_maps_by_the_last_join() -> None:
 def test_carried_forward_keeps_a_robot_pending_until_a_join_places_it() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     first = min(r.rendezvous.stamps.min() for r in log.robots.values() if len(r.rendezvous.stamps))
-    maps, logs = _maps_until(log, float(first) - 1.0)
+    maps, logs = maps_until(log, float(first) - 1.0)
     last = join_maps(maps, logs, CsamConfig(skip_missing_poses=True))
     assert last.joined_robots() == {"robot1"}
-    later, _ = _maps_until(log, float(first) + 5.0)
+    later, _ = maps_until(log, float(first) + 5.0)
     carried = carried_forward(last, later, 1e-6)
     assert carried.robots["robot2"].alignment == last.robots["robot2"].alignment
     assert carried.robots["robot2"].poses_joined is None
