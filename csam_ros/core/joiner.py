@@ -22,10 +22,10 @@ from csam_ros.core.checkpoint import MergerState
 from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
-from csam_ros.core.map_arrays import held_robot_map, robot_map_from_arrays
+from csam_ros.core.map_arrays import checked_robot_map, held_robot_map
 from csam_ros.core.map_updates import HeldMap
 from csam_ros.core.result import CsamResult
-from csam_ros.core.validation import MALFORMED_LOCAL_MAP, LocalMapArrays, LocalMapError
+from csam_ros.core.validation import LocalMapArrays, LocalMapError
 
 # a robot's local map as the merger holds it: built from updates (refined when joined), or
 # as a saved merger state held it (joined as it is)
@@ -130,12 +130,12 @@ class Joiner:
             if isinstance(source, HeldMap):
                 self.maps[robot] = held_robot_map(robot, source)
             else:
-                self.maps[robot] = robot_map_from_arrays(robot, source)
+                self.maps[robot] = checked_robot_map(robot, source)
             return None
-        except (LocalMapError, ValueError) as error:
+        except LocalMapError as error:
             if robot not in self.maps and isinstance(source, HeldMap):
                 self.maps[robot] = held_robot_map(robot, source, refine=False)
-            return Refusal(robot, getattr(error, "reason", MALFORMED_LOCAL_MAP), str(error))
+            return Refusal(robot, error.reason, str(error))
 
 
 def non_finite(result: CsamResult) -> str:
