@@ -11,6 +11,7 @@ map only when it changed. The merger node runs a joiner in a process of its own
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -71,7 +72,6 @@ class Joiner:
 
     def __init__(self) -> None:
         self.maps: dict[str, RobotMap] = {}  # each robot's last usable map, refined
-        self.sources: dict[str, MapSource] = {}
         self.local_views = LocalViewCache()
         self.previous: CsamResult | None = None
 
@@ -84,6 +84,9 @@ class Joiner:
         order = [robot for robot, _ in request.maps]
         config = request.config
         try:
+            missing = [robot for robot in order if robot not in self.maps]
+            if missing:
+                raise ValueError(f"no usable map held of {', '.join(missing)}")
             maps = [self.maps[robot] for robot in order]
             result = join_maps(
                 maps,
@@ -120,12 +123,9 @@ class Joiner:
     def _take(self, robot: str, source: MapSource | None) -> Refusal | None:
         """Hold ``robot``'s map of ``source`` (None: keep the last); a refusal if it is not
         usable (the robot's last map stays, else a map built from updates is held as it
-        came)."""
+        came). Never raises: every source of a request is taken, whatever one of them is."""
         if source is None:
-            if robot not in self.sources:
-                raise ValueError(f"{robot}: no map source sent before to take again")
             return None
-        self.sources[robot] = source
         try:
             if isinstance(source, HeldMap):
                 self.maps[robot] = held_robot_map(robot, source)
@@ -134,7 +134,8 @@ class Joiner:
             return None
         except LocalMapError as error:
             if robot not in self.maps and isinstance(source, HeldMap):
-                self.maps[robot] = held_robot_map(robot, source, refine=False)
+                with contextlib.suppress(LocalMapError):
+                    self.maps[robot] = held_robot_map(robot, source, refine=False)
             return Refusal(robot, error.reason, str(error))
 
 

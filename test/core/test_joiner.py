@@ -76,9 +76,16 @@ def test_an_unusable_source_is_refused_and_the_last_map_joined(run: MultiRobotLo
 
 
 def test_a_map_never_sent_cannot_be_taken_again(run: MultiRobotLog) -> None:
+    """A failed reply, and the request's other sources are still taken."""
     maps, logs = maps_until(run, _moments(run)[1])
-    with pytest.raises(ValueError, match="no map source sent before"):
-        Joiner().join(JoinRequest(((maps[0].name, None),), logs, CONFIG))
+    joiner = Joiner()
+    first, second = maps[0].name, maps[1].name
+    request = JoinRequest(((first, None), (second, robot_map_arrays(maps[1]))), logs, CONFIG)
+    reply = joiner.join(request)
+    assert reply.result is None
+    assert reply.error == f"ValueError: no usable map held of {first}"
+    again = ((first, robot_map_arrays(maps[0])), (second, None))
+    assert joiner.join(JoinRequest(again, logs, CONFIG)).result is not None
 
 
 def test_a_failed_join_is_a_reply_and_keeps_the_warm_start(run: MultiRobotLog) -> None:
