@@ -7,34 +7,72 @@ in a child process started from a fork server (a clean process that imported the
 the merger has threads, which a fork would not copy). The child keeps the joiner's state
 between solves, so a request carries a robot's map only when it changed, and the warm start
 only when the child does not hold it. A child that dies is started again at the next solve,
-which then sends everything.
+which then sends everything. :meth:`SolveProcess.cancel` gives the running join up (a signal
+the child turns into :class:`~csam_ros.core.joiner.JoinCancelled` while it joins): the child
+keeps its maps and warm start, and the join's reply says it was cancelled.
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
+import os
 import signal
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from multiprocessing.connection import Connection
+from types import FrameType
 from typing import Any
 
-from csam_ros.core.joiner import Joiner, JoinReply, JoinRequest, MapSource
+from csam_ros.core.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest, MapSource
 from csam_ros.core.result import CsamResult
 
 # what the fork server imports once, so that a child starts at once
 PRELOAD = ["csam_ros.core.joiner"]
+CANCEL_SIGNAL = signal.SIGUSR1
 
 
-def _serve(connection: Connection) -> None:
+class _Cancellation:
+    """In the child: the requests are numbered from 1 as they come; ``cancelled`` (shared
+    with the parent) holds the number of the one to give up. Entering :meth:`cancellable`
+    for it, or :data:`CANCEL_SIGNAL` coming while inside, raises :class:`JoinCancelled`; at
+    any other time the signal does nothing (a request or reply on the pipe is never cut)."""
+
+    def __init__(self, cancelled: Any) -> None:
+        self.cancelled = cancelled  # a multiprocessing.Value("q")
+        self.request = 0  # the number of the request being served
+        self.armed = False
+        signal.signal(CANCEL_SIGNAL, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        if self.armed and self.cancelled.value == self.request:
+            self.armed = False
+            raise JoinCancelled("given up by the merger")
+
+    @contextmanager
+    def cancellable(self) -> Iterator[None]:
+        if self.cancelled.value == self.request:
+            raise JoinCancelled("given up by the merger")
+        self.armed = True
+        try:
+            yield
+        finally:
+            self.armed = False
+
+
+def _serve(connection: Connection, cancelled: Any) -> None:
     """The child: one reply per request, until the parent closes its end or goes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    joiner = Joiner()
+    cancellation = _Cancellation(cancelled)
+    joiner = Joiner(cancellation.cancellable)
     while True:
         try:
             request = connection.recv()
         except (EOFError, OSError):
             return
+        cancellation.request += 1
         try:
             reply = joiner.join(request)
         except Exception as err:  # noqa: BLE001 - the child outlives any one request
@@ -57,6 +95,9 @@ class SolveProcess:
         self._sent: dict[str, MapSource] = {}  # the source of each robot the child holds
         self._previous: CsamResult | None = None  # the result the child holds as warm start
         self._closed = False
+        self._joining = False  # a request is with the child
+        self._requests = 0  # requests sent to the child (its numbering)
+        self._cancelled: Any = None  # shared with the child: the request it is to give up
         self.starts = 0
 
     @property
@@ -79,17 +120,33 @@ class SolveProcess:
             connection = self._connection
             assert connection is not None
             stripped = self.stripped(request)
+            self._joining = True
+            self._requests += 1
         try:
             connection.send(stripped)
             reply: JoinReply = connection.recv()
         except (EOFError, OSError) as err:
             self._stop_child()
             return JoinReply(None, f"the solve process ended ({type(err).__name__})")
+        finally:
+            with self._lock:
+                self._joining = False
         with self._lock:
             self._sent.update({robot: source for robot, source in request.maps})
             if reply.result is not None:
                 self._previous = reply.result
         return reply
+
+    def cancel(self) -> bool:
+        """Give up the running join, if any: its :meth:`join` returns a reply that says it
+        was cancelled, unless the join was already ending. Whether a join was running."""
+        with self._lock:
+            if not self._joining or self._process is None:
+                return False
+            self._cancelled.value = self._requests
+            with contextlib.suppress(ProcessLookupError):  # it has just ended
+                os.kill(self._process.pid, CANCEL_SIGNAL)
+            return True
 
     def stripped(self, request: JoinRequest) -> JoinRequest:
         """``request`` without what the child holds: the maps it was sent last (``None``)
@@ -126,11 +183,12 @@ class SolveProcess:
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(PRELOAD)  # read when the fork server starts
         mine, theirs = context.Pipe()
+        cancelled = context.Value("q", 0, lock=False)
         process = context.Process(
-            target=_serve, args=(theirs,), name="csam-merger-solve", daemon=True
+            target=_serve, args=(theirs, cancelled), name="csam-merger-solve", daemon=True
         )
         process.start()
         theirs.close()
-        self._process, self._connection = process, mine
-        self._sent, self._previous = {}, None
+        self._process, self._connection, self._cancelled = process, mine, cancelled
+        self._sent, self._previous, self._requests = {}, None, 0
         self.starts += 1

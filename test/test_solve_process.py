@@ -1,22 +1,25 @@
 """The solve process: the same replies as a joiner in this process, maps sent only when
-changed, and a child that died started again."""
+changed, a child that died started again, a join cancelled."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
+import threading
+import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
-from growing_joins import maps_until
+from growing_joins import largest_difference, maps_until
 
 from csam_ros.core.csam import CsamConfig
-from csam_ros.core.joiner import Joiner, JoinRequest
+from csam_ros.core.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest
 from csam_ros.core.map_arrays import robot_map_arrays
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
-from csam_ros.solve_process import SolveProcess
+from csam_ros.solve_process import CANCEL_SIGNAL, SolveProcess, _Cancellation
 
 CONFIG = CsamConfig(skip_missing_poses=True)
 
@@ -72,3 +75,60 @@ def test_a_child_that_died_is_an_error_then_started_again(process) -> None:
     reply = lost if lost.result is not None else process.join(second)
     assert reply.error == "" and reply.result is not None
     assert process.starts == 2 and process.pid != pid
+
+
+def test_a_cancelled_join_is_a_reply_saying_so_and_the_next_as_without_it(process) -> None:
+    """Cancelled while its request waits for the child (stopped), the join is given up as
+    it begins; the child keeps the maps and warm start, and the next join of the same
+    request equals a joiner's here that never saw the cancelled one."""
+    first, second = _requests()
+    here = Joiner()
+    here.join(first)
+    expected = here.join(second).result
+    assert process.join(first).result is not None
+    pid = process.pid
+    replies: list[JoinReply] = []
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        worker = threading.Thread(target=lambda: replies.append(process.join(second)))
+        worker.start()
+        deadline = time.monotonic() + 20
+        while not process.cancel():  # the join is under way from the parent's side
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    worker.join(60)
+    assert replies[0].cancelled and replies[0].result is None
+    assert process.stripped(second).maps == tuple((r, None) for r, _ in second.maps)
+    reply = process.join(second)
+    assert not reply.cancelled and reply.result is not None and expected is not None
+    assert largest_difference(reply.result, expected) < 1e-12
+    assert not process.cancel()  # no join under way
+    assert process.starts == 1 and process.pid == pid
+
+
+def test_the_cancel_signal_raises_only_inside_the_join_it_names() -> None:
+    """In the child, the signal gives a join up wherever it computes, and only the request
+    it names; outside a join it does nothing."""
+    cancelled = multiprocessing.Value("q", 0, lock=False)
+    previous = signal.getsignal(CANCEL_SIGNAL)
+    try:
+        cancellation = _Cancellation(cancelled)
+        cancellation.request = 1
+        os.kill(os.getpid(), CANCEL_SIGNAL)  # named none: nothing
+        cancelled.value = 1
+        os.kill(os.getpid(), CANCEL_SIGNAL)  # outside a join: nothing
+        with pytest.raises(JoinCancelled), cancellation.cancellable():
+            pass  # the request named on entry
+        cancellation.request = 2
+        with cancellation.cancellable():
+            os.kill(os.getpid(), CANCEL_SIGNAL)  # another request named: nothing
+            time.sleep(0.05)
+        cancelled.value = 2
+        with pytest.raises(JoinCancelled), cancellation.cancellable():
+            os.kill(os.getpid(), CANCEL_SIGNAL)
+            time.sleep(5)  # the handler raises here, as soon as the signal comes
+        assert not cancellation.armed
+    finally:
+        signal.signal(CANCEL_SIGNAL, previous)

@@ -5,15 +5,18 @@ optimum, the local views (:class:`~csam_ros.core.csam.LocalViewCache`) and the l
 the warm start of the next join. :meth:`Joiner.join` takes a :class:`JoinRequest`: each robot's
 map source (a map built from updates, refined here once; or a map as saved, joined as it is),
 or ``None`` for the source of the last request, so that a caller in another process sends a
-map only when it changed. The merger node runs a joiner in a process of its own
-(:mod:`csam_ros.solve_process`); nothing here knows of ROS.
+map only when it changed. A join may be given up part-way (:class:`JoinCancelled`, raised
+inside the ``cancellable`` context the joiner was made with): the joiner keeps the maps it took
+and its warm start, and the reply says it was cancelled. The merger node runs a joiner in a
+process of its own (:mod:`csam_ros.solve_process`); nothing here knows of ROS.
 """
 
 from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -31,6 +34,11 @@ from csam_ros.core.validation import LocalMapArrays, LocalMapError
 # a robot's local map as the merger holds it: built from updates (refined when joined), or
 # as a saved merger state held it (joined as it is)
 MapSource = HeldMap | LocalMapArrays
+
+
+class JoinCancelled(BaseException):
+    """A join given up part-way. Not an :class:`Exception`: no handler of the core's may take
+    it for a failure of one part and go on."""
 
 
 @dataclass(frozen=True)
@@ -65,15 +73,22 @@ class JoinReply:
     refused: tuple[Refusal, ...] = ()
     state_error: str = ""  # why the state could not be written
     state_seconds: float = 0.0  # how long writing it took
+    cancelled: bool = False  # the join was given up (JoinCancelled): no result, no failure
 
 
 class Joiner:
     """The joins of one merger, each warm-started from the last (module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(
+        self,
+        cancellable: Callable[[], AbstractContextManager[object]] = contextlib.nullcontext,
+    ) -> None:
         self.maps: dict[str, RobotMap] = {}  # each robot's last usable map, refined
         self.local_views = LocalViewCache()
         self.previous: CsamResult | None = None
+        # entered around the join itself (not the maps' refinement or the state write): a
+        # JoinCancelled raised within gives the join up
+        self.cancellable = cancellable
 
     def join(self, request: JoinRequest) -> JoinReply:
         """Join the request's maps. A failed join raises nothing: the reply says why (an
@@ -88,16 +103,19 @@ class Joiner:
             if missing:
                 raise ValueError(f"no usable map held of {', '.join(missing)}")
             maps = [self.maps[robot] for robot in order]
-            result = join_maps(
-                maps,
-                dict(request.logs),
-                config,
-                previous=self.previous if config.warm_start else None,
-                cache=self.local_views,
-            )
+            with self.cancellable():
+                result = join_maps(
+                    maps,
+                    dict(request.logs),
+                    config,
+                    previous=self.previous if config.warm_start else None,
+                    cache=self.local_views,
+                )
             fault = non_finite(result)
             if fault:
                 raise ValueError(f"the joined map has non-finite numbers ({fault})")
+        except JoinCancelled as cancelled:
+            return JoinReply(None, f"cancelled: {cancelled}", refused, cancelled=True)
         except Exception as err:  # noqa: BLE001 - the caller reports a failed solve
             return JoinReply(None, f"{type(err).__name__}: {err}", refused)
         self.previous = result

@@ -29,6 +29,9 @@ are replaced, never mutated, when a message arrives). Input arriving during a
 solve marks the inputs dirty again; the next solve starts after the current one ends, with
 the newest inputs: at most one solve runs and one is pending. ``/csam/status`` says whether a
 solve is running (``solving``) and how long the last one took (``solve_seconds``).
+``~/flush`` (std_srvs/Trigger; called when the data has ended, after the smoothers' own
+``~/flush``) solves the newest inputs at once: a running solve of older inputs is given up
+(counted as ``solves_given_up``), since its result would be out of date when it came.
 
 A join takes seconds to minutes on large maps. While one runs, at most every
 ``provisional_period`` wall-clock seconds and only when some local map is newer than those the
@@ -106,9 +109,11 @@ from csam_ros.ros.map_messages import (
 )
 from csam_ros.ros.markers import joined_map_markers
 from csam_ros.ros.topics import (
+    FLUSH,
     JOINED_MAP,
     LOCAL_MAP_UPDATES,
     MARKERS,
+    MERGER_NODE,
     PROVISIONAL_MAP,
     RENDEZVOUS_POSES,
     RESYNC,
@@ -169,7 +174,7 @@ class Merger(Node):
     """C-SAM merger node (see the module docstring)."""
 
     def __init__(self, **node_options: Any) -> None:
-        super().__init__("merger", **node_options)
+        super().__init__(MERGER_NODE, **node_options)
         # an empty list has no element type: ROS reads `robots:=[]` as a byte array, so the
         # parameter takes any type and is checked here
         allowed = self.declare_parameter(
@@ -256,6 +261,7 @@ class Merger(Node):
         self.last_result: CsamResult | None = None
         self.solve_process = SolveProcess()  # the solve worker's alone (and destroy_node's)
         self.solves = 0
+        self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
         self.solve_seconds = 0.0  # how long the last solve took
         self.provisional_maps = 0  # provisional joined maps published
         # the local map stamps the newest joined or provisional map used
@@ -290,6 +296,7 @@ class Merger(Node):
         self.create_timer(
             DISCOVERY_PERIOD_S, guarded(self, self.drops, self.discover), clock=steady_clock()
         )
+        self.create_service(Trigger, f"~/{FLUSH}", self.on_flush)
         self.solve_process.start()  # its imports overlap the wait for the first maps
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
         self._worker.start()
@@ -512,6 +519,24 @@ class Merger(Node):
         self.publish_provisional()
         self.publish_status()
 
+    def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Solve the newest inputs now (module docstring); the reply says what was done."""
+        with self._lock:
+            newer = self.dirty
+            running = self.solving
+            if newer:
+                self._requested = True
+                self._wake.notify()
+        given_up = newer and running and self.solve_process.cancel()
+        response.success = True
+        if not newer:
+            response.message = "the joined map (or the running solve) holds the newest inputs"
+        elif given_up:
+            response.message = "a solve of older inputs was given up: solving the newest"
+        else:
+            response.message = "solving the newest inputs"
+        return response
+
     def _work(self) -> None:
         """The solve worker: one solve per request of the timer, until the node stops."""
         while True:
@@ -639,6 +664,11 @@ class Merger(Node):
             )
         if reply.state_error:
             self.get_logger().error(reply.state_error)
+        if reply.cancelled:
+            with self._lock:
+                self.solves_given_up += 1
+            self.get_logger().info("a solve of older inputs was given up for the newest")
+            return
         result = reply.result
         if result is None:
             with self._lock:
@@ -771,6 +801,7 @@ class Merger(Node):
             "associations": len(result.associations) if result is not None else 0,
             "solve_seconds": round(self.solve_seconds, 4),
             "solving": self.solving,
+            "solves_given_up": self.solves_given_up,
             "provisional_maps": self.provisional_maps,
             "converged": result.converged if result is not None else "",
             "dropped": self.drops.total,

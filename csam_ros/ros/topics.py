@@ -140,15 +140,22 @@ TOPICS: tuple[Topic, ...] = (
     TF,
     CLOCK,
 )
-# the smoother's services (std_srvs/Trigger): solve to convergence and publish; resend the
+# the services (std_srvs/Trigger): the smoother's solve to convergence and publish, the
+# merger's solve the newest maps at once (the data has ended); the smoother's resend of the
 # whole local map as one update
 FLUSH = "flush"
 RESYNC = "resync"
+MERGER_NODE = "merger"
 
 
 def smoother_service(robot: str, service: str) -> str:
     """The absolute name of ``robot``'s smoother service (the node is ``/<robot>/smoother``)."""
     return f"/{robot}/smoother/{service}"
+
+
+def merger_service(service: str) -> str:
+    """The absolute name of the merger's service (the node is ``/merger``)."""
+    return f"/{MERGER_NODE}/{service}"
 
 
 _GLOBAL = {t.name: t for t in TOPICS if not t.per_robot}

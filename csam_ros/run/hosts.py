@@ -14,8 +14,8 @@ truth); every other node follows it across the links. Several /clock publishers 
 pace their own timeline, and nodes would see time jump back and forth between them.
 
 The run ends over ROS: when every simulator has published its data, the monitor (on the
-base station) calls each smoother's ``~/flush`` across the links, waits for the merger's
-joined map of those final local maps, and writes what it saw to ``hosts.json``.
+base station) calls each smoother's ``~/flush`` across the links, then the merger's, waits for
+the merger's joined map of those final local maps, and writes what it saw to ``hosts.json``.
 
 Link faults (:class:`Links`): every IP packet a host receives over its link is dropped with
 probability ``loss`` (iptables' ``statistic`` match in the raw table, before reassembly, so a
@@ -56,6 +56,7 @@ from csam_ros.run.launch import ProcessGroup
 from csam_ros.run.live import (
     LiveRun,
     LiveRunError,
+    end_of_data,
     joined_map_is_final,
     recorder_holds_results,
     ros_params,
@@ -597,14 +598,21 @@ def monitor(
     """Wait for the smoothers' ``~/flush`` services and local maps (then call ``ready``),
     count the joined maps while the data comes, and once ``data_end()`` gives the time
     (wall clock) the data ended, flush every smoother (again, until their latest stamps hold
-    still) and wait for the joined map of those final local maps."""
+    still) and the merger (:func:`~csam_ros.run.live.end_of_data`) and wait for the joined
+    map of those final local maps."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
     from csam_ros.nodes.common import subscribe
-    from csam_ros.ros.topics import FLUSH, JOINED_MAP, LOCAL_MAP_UPDATES, smoother_service
+    from csam_ros.ros.topics import (
+        FLUSH,
+        JOINED_MAP,
+        LOCAL_MAP_UPDATES,
+        merger_service,
+        smoother_service,
+    )
 
     rclpy.init()
     # a client of the smoothers and a reader of the joined map, nothing more to discover
@@ -620,6 +628,7 @@ def monitor(
     received: list[float] = []  # when (wall clock)
     subscribe(node, JOINED_MAP, lambda m: (joined.append(m), received.append(time.time())))
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in robots}
+    merger = node.create_client(Trigger, merger_service(FLUSH))
     deadline = time.monotonic() + timeout_s
 
     def spin(seconds: float) -> None:
@@ -631,8 +640,8 @@ def monitor(
 
     try:
 
-        def reached() -> bool:  # every smoother's flush service and local map seen
-            return all(c.service_is_ready() for c in clients.values()) and all(
+        def reached() -> bool:  # every flush service and smoother's local map seen
+            return all(c.service_is_ready() for c in [*clients.values(), merger]) and all(
                 node.get_publishers_info_by_topic(LOCAL_MAP_UPDATES.of(r)) for r in robots
             )
 
@@ -646,27 +655,7 @@ def monitor(
             if time.monotonic() - last_print > 2.0:
                 progress(f"  base station: {len(joined)} joined maps so far")
                 last_print = time.monotonic()
-        calls = 0
-
-        def flush_all() -> dict[str, int]:
-            nonlocal calls
-            stamps: dict[str, int] = {}
-            for robot, client in clients.items():
-                while True:  # a reply lost on a bad link is asked again
-                    calls += 1
-                    future = client.call_async(Trigger.Request())
-                    executor.spin_until_future_complete(future, timeout_sec=30)
-                    if future.result() is not None:
-                        stamps[robot] = int(future.result().message)
-                        break
-                    client.remove_pending_request(future)
-                    spin(0.0)
-            return stamps
-
-        final, previous = flush_all(), None
-        while final != previous or min(final.values()) < 0:
-            spin(0.5)
-            previous, final = final, flush_all()
+        final, calls = end_of_data(clients, merger, spin, timeout_s=30.0)
 
         while not joined_map_is_final(joined[-1] if joined else None, final):
             spin(0.05)

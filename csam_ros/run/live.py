@@ -1,8 +1,9 @@
 """A live run: smoothers, merger and recorder as separate node processes fed by a source.
 
 The source is the simulator (``csam demo``) or the player of a bag (``csam replay``). The run
-ends when the source has published everything: every smoother is flushed (``~/flush``), the
-merger's joined map is awaited for those final local maps, the recorder is stopped (which
+ends when the source has published everything: every smoother is flushed (``~/flush``, all at
+once), then the merger (its ``~/flush``: it solves those final maps at once), the merger's
+joined map is awaited for those final local maps, the recorder is stopped (which
 finalises the bag) and every process is gone. The merger writes ``summary.json``; each
 smoother its checkpoint and the merger its state in ``state/`` of the run folder, so that a
 node restarted with the same parameters resumes. The summary's ``dropped`` holds what each
@@ -14,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -120,6 +121,52 @@ def joined_map_is_final(joined: Any, final: Mapping[str, int]) -> bool:
     return all(stamps.get(r) == s for r, s in final.items())
 
 
+def flush_all(
+    clients: Mapping[str, Any], spin: Callable[[float], None], timeout_s: float
+) -> tuple[dict[str, str], int]:
+    """Call every std_srvs/Trigger client of ``clients`` at once and wait for each reply; a
+    call unanswered after ``timeout_s`` (a reply lost on a bad link) is made again. Each
+    reply's message, and the number of calls made. ``spin(seconds)`` runs the clients' node."""
+    from std_srvs.srv import Trigger
+
+    pending = {name: client.call_async(Trigger.Request()) for name, client in clients.items()}
+    calls, asked, messages = len(pending), time.monotonic(), {}
+    while pending:
+        spin(0.02)
+        for name, future in list(pending.items()):
+            if future.done() and future.result() is not None:
+                messages[name] = future.result().message
+                del pending[name]
+        if pending and time.monotonic() - asked > timeout_s:
+            for name, future in pending.items():
+                clients[name].remove_pending_request(future)
+                pending[name] = clients[name].call_async(Trigger.Request())
+            calls, asked = calls + len(pending), time.monotonic()
+    return messages, calls
+
+
+def end_of_data(
+    smoothers: Mapping[str, Any],
+    merger: Any,
+    spin: Callable[[float], None],
+    timeout_s: float,
+) -> tuple[dict[str, int], int]:
+    """End a run whose data has all been sent: flush every smoother (``smoothers``: robot ->
+    ``~/flush`` client), again until their final local maps' stamps hold still over half a
+    second (data may still wait in a smoother's queue when the source ends: best-effort
+    odometry is not acknowledged, and a service call can be served before it), then the
+    merger (``merger``: its ``~/flush`` client), so that it solves those maps at once. The
+    final stamps (ns), and the number of calls made."""
+    replies, calls = flush_all(smoothers, spin, timeout_s)
+    final, previous = {r: int(m) for r, m in replies.items()}, None
+    while final != previous or min(final.values()) < 0:
+        spin(0.5)
+        replies, more = flush_all(smoothers, spin, timeout_s)
+        previous, final, calls = final, {r: int(m) for r, m in replies.items()}, calls + more
+    _, more = flush_all({"merger": merger}, spin, timeout_s)
+    return final, calls + more
+
+
 def recorder_holds_results(node: Any) -> bool:
     """Whether the recorder subscribes to the merger's (latched) results, as it must before
     it is stopped."""
@@ -159,7 +206,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import CLOCK, FLUSH, JOINED_MAP, smoother_service
+    from csam_ros.ros.topics import CLOCK, FLUSH, JOINED_MAP, merger_service, smoother_service
 
     sim_time = _param("use_sim_time", True)
     group.start("recorder", run.recorder_argv())
@@ -175,13 +222,15 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
     subscribe(node, CLOCK, lambda m: latest.__setitem__("clock", m))
     subscribe(node, JOINED_MAP, lambda m: latest.__setitem__("joined", m))
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in run.robots}
+    merger_client = node.create_client(Trigger, merger_service(FLUSH))
     try:
         deadline = time.monotonic() + 60
-        while not all(c.service_is_ready() for c in clients.values()):
+        ready = [*clients.values(), merger_client]
+        while not all(c.service_is_ready() for c in ready):
             _check_alive(group)
             executor.spin_once(timeout_sec=0.1)
             if time.monotonic() > deadline:
-                raise LiveRunError("the smoothers did not come up within 60 s")
+                raise LiveRunError("the smoothers and the merger did not come up within 60 s")
         group.start(
             run.source_name, [*run.source_argv, "--ros-args", *sim_time, *run.source_ros_args]
         )
@@ -204,31 +253,18 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
             raise LiveRunError(
                 f"{run.source_name} exited with {code}:\n{group.log_tail(run.source_name)}"
             )
-        progress("  source done; flushing the smoothers")
+        progress("  source done; flushing the smoothers, then the merger")
+        settle_deadline = time.monotonic() + 120
 
-        def flush_all() -> dict[str, int]:
-            stamps: dict[str, int] = {}
-            for robot, client in clients.items():
-                future = client.call_async(Trigger.Request())
-                executor.spin_until_future_complete(future, timeout_sec=120)
-                reply = future.result()
-                if reply is None:
-                    raise LiveRunError(f"the smoother of {robot} did not answer ~/flush")
-                stamps[robot] = int(reply.message)
-            return stamps
+        def spin(seconds: float) -> None:
+            until = time.monotonic() + seconds
+            while time.monotonic() < until:
+                _check_alive(group, ignore=run.source_name)
+                executor.spin_once(timeout_sec=min(0.1, max(until - time.monotonic(), 0.0)))
+            if time.monotonic() > settle_deadline:
+                raise LiveRunError("the smoothers and the merger did not settle within 120 s")
 
-        # Messages may still wait in a smoother's queue when the source exits (best-effort
-        # odometry is not acknowledged), and a service call can be served before them: flush
-        # until every smoother's latest stamp stays the same over half a second.
-        final, previous = flush_all(), None
-        deadline = time.monotonic() + 60
-        while final != previous or min(final.values()) < 0:
-            if time.monotonic() > deadline:
-                raise LiveRunError(f"the smoothers did not settle within 60 s: {final}")
-            settle = time.monotonic() + 0.5
-            while time.monotonic() < settle:
-                executor.spin_once(timeout_sec=0.1)
-            previous, final = final, flush_all()
+        final, _ = end_of_data(clients, merger_client, spin, timeout_s=30.0)
         progress("  waiting for the merger's final joined map")
         deadline = time.monotonic() + 300
 

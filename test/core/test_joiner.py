@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -11,7 +13,7 @@ from growing_joins import largest_difference, maps_until
 
 from csam_ros.core.checkpoint import MergerState
 from csam_ros.core.csam import CsamConfig, join_maps
-from csam_ros.core.joiner import Joiner, JoinRequest, MapSource
+from csam_ros.core.joiner import JoinCancelled, Joiner, JoinRequest, MapSource
 from csam_ros.core.log import MultiRobotLog
 from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.map_updates import HeldMap, UpdateSender, apply_update
@@ -96,6 +98,36 @@ def test_a_failed_join_is_a_reply_and_keeps_the_warm_start(run: MultiRobotLog) -
     reply = joiner.join(JoinRequest((), logs, CONFIG))
     assert reply.result is None and reply.error.startswith("ValueError: ")
     assert joiner.previous is good
+
+
+def test_a_cancelled_join_keeps_the_maps_taken_and_the_warm_start(run: MultiRobotLog) -> None:
+    """A join given up part-way (here where the join itself begins) is a reply saying so; the
+    maps it brought are held, and the next join is the one a joiner that never saw it gives."""
+    early, later = (maps_until(run, t) for t in _moments(run)[1:])
+    cancel = False
+
+    @contextlib.contextmanager
+    def cancellable() -> Iterator[None]:
+        if cancel:
+            raise JoinCancelled("given up")
+        yield
+
+    joiner, reference = Joiner(cancellable), Joiner()
+    for joins in (joiner, reference):
+        sources = tuple((m.name, robot_map_arrays(m)) for m in early[0])
+        assert joins.join(JoinRequest(sources, early[1], CONFIG)).result is not None
+    good = joiner.previous
+    cancel = True
+    sources = tuple((m.name, robot_map_arrays(m)) for m in later[0])
+    reply = joiner.join(JoinRequest(sources, later[1], CONFIG))
+    assert reply.cancelled and reply.result is None and reply.error == "cancelled: given up"
+    assert joiner.previous is good
+    cancel = False
+    kept = tuple((name, None) for name, _ in sources)
+    result = joiner.join(JoinRequest(kept, later[1], CONFIG)).result
+    expected = reference.join(JoinRequest(sources, later[1], CONFIG)).result
+    assert result is not None and expected is not None
+    assert largest_difference(result, expected) < 1e-12
 
 
 def test_the_state_holds_the_joined_maps_and_result(run: MultiRobotLog, tmp_path: Path) -> None:

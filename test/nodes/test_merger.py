@@ -37,6 +37,7 @@ from merger_harness import (
     run_messages,
     status_values,
 )
+from std_srvs.srv import Trigger
 
 import csam_ros.nodes.merger as merger_module
 from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
@@ -46,7 +47,7 @@ from csam_ros.core.validation import FAILED_SOLVE
 from csam_ros.core.warm_start import carried_forward
 from csam_ros.ros.conversions import ns_to_time, time_to_ns
 from csam_ros.ros.map_messages import local_map_update_message
-from csam_ros.ros.topics import PROVISIONAL_MAP
+from csam_ros.ros.topics import FLUSH, PROVISIONAL_MAP, merger_service
 
 RESTART_AT = 12.0  # s: robot2's smoother restarted here (the run: 0-40 s, rendezvous 18-22 s)
 CUTS = (20.0, 30.0, None)  # s: robot2's map at these moments of the run (None: its end)
@@ -395,6 +396,42 @@ def test_a_solve_process_that_dies_is_a_failed_solve_and_started_again(harness, 
     assert after is not None and after is not before
     for f, g in zip(before.features, after.features, strict=True):
         np.testing.assert_allclose(f.xy, g.xy, atol=1e-9)
+
+
+def test_flush_gives_up_a_solve_of_older_maps_and_solves_the_newest(
+    harness, growing: list[RunMessages]
+) -> None:
+    """``~/flush`` while a solve of older maps runs (held in the stopped solve process) and
+    robot2's newer map has come: that solve is given up (neither published nor failed) and
+    the newest maps are solved at once. A flush with nothing newer does nothing."""
+    middle, last = growing[1], growing[2]
+    sender = UpdateSender(11)
+    harness.start(
+        _with_robot2(middle, _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"]))))
+    )
+    merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
+    client = harness.injector.create_client(Trigger, merger_service(FLUSH))
+
+    def flush() -> str:
+        future = client.call_async(Trigger.Request())
+        harness.wait(future.done)
+        return future.result().message
+
+    assert flush().startswith("the joined map (or the running solve) holds the newest")
+    newer = STAMP_NS + 10**9
+    update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
+    with _held_solves(merger):
+        merger.dirty = True
+        harness.wait(lambda: _solving_newest(merger))
+        harness.publish("robot2", local_map_update_message(update, "robot2", newer))
+        harness.wait(lambda: merger.dirty)
+        assert flush() == "a solve of older inputs was given up: solving the newest"
+    harness.wait(lambda: merger.solves > solves and not merger.solving)
+    harness.settle(0.3)
+    assert merger.solves == solves + 1 and merger.solves_given_up == 1
+    assert len(harness.joined) == published + 1 and merger.drops.total == 0
+    assert time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == newer
+    assert status_values(harness.status[-1], "merger")["solves_given_up"] == "1"
 
 
 def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
