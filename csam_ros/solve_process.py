@@ -62,9 +62,10 @@ class _Cancellation:
             self.armed = False
 
 
-def _serve(connection: Connection, cancelled: Any) -> None:
+def _serve(connection: Connection, cancelled: Any, niceness: int) -> None:
     """The child: one reply per request, until the parent closes its end or goes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    os.nice(niceness)
     cancellation = _Cancellation(cancelled)
     joiner = Joiner(cancellation.cancellable)
     while True:
@@ -86,9 +87,11 @@ def _serve(connection: Connection, cancelled: Any) -> None:
 class SolveProcess:
     """A child process joining maps for one merger (module docstring): started by
     :meth:`start` (else by the first :meth:`join`), again by a join after it died, stopped
-    by :meth:`close`."""
+    by :meth:`close`. It runs ``niceness`` below the caller's priority: on a busy machine the
+    nodes that take and publish messages come first, the solves get the rest."""
 
-    def __init__(self) -> None:
+    def __init__(self, niceness: int = 0) -> None:
+        self.niceness = niceness
         self._process: Any = None
         self._connection: Connection | None = None
         self._lock = threading.Lock()  # join and close may come from different threads
@@ -185,7 +188,10 @@ class SolveProcess:
         mine, theirs = context.Pipe()
         cancelled = context.Value("q", 0, lock=False)
         process = context.Process(
-            target=_serve, args=(theirs, cancelled), name="csam-merger-solve", daemon=True
+            target=_serve,
+            args=(theirs, cancelled, self.niceness),
+            name="csam-merger-solve",
+            daemon=True,
         )
         process.start()
         theirs.close()

@@ -132,3 +132,13 @@ def test_the_cancel_signal_raises_only_inside_the_join_it_names() -> None:
         assert not cancellation.armed
     finally:
         signal.signal(CANCEL_SIGNAL, previous)
+
+
+def test_the_child_runs_at_the_niceness_asked() -> None:
+    process = SolveProcess(niceness=7)
+    try:
+        assert process.join(JoinRequest((), {}, CONFIG)).error  # the child is serving
+        mine = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, process.pid) == min(mine + 7, 19)
+    finally:
+        process.close()

@@ -231,6 +231,15 @@ class Merger(Node):
             0.0,
             3600.0,
         )
+        niceness = declare(
+            self,
+            "solve_niceness",
+            10,
+            "how much lower the solve process's CPU priority is than the node's (nice; 0: the "
+            "same): the node, and nodes beside it, take and publish messages first",
+            0,
+            19,
+        )
         # online, a rendezvous stamp may reach the merger before the observed robot's map has
         # its pose: leave such a measurement out until the next solve instead of failing
         self.config = declare_settings(self, CsamConfig, CsamConfig(skip_missing_poses=True))
@@ -259,7 +268,8 @@ class Merger(Node):
         self.dirty = False  # inputs changed since the last solve's snapshot
         self.solving = False  # a solve is running
         self.last_result: CsamResult | None = None
-        self.solve_process = SolveProcess()  # the solve worker's alone (and destroy_node's)
+        # the solve worker's alone (and destroy_node's)
+        self.solve_process = SolveProcess(niceness)
         self.solves = 0
         self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
         self.solve_seconds = 0.0  # how long the last solve took
