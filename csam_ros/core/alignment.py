@@ -39,6 +39,7 @@ its first pose and the rendezvous and may legitimately be large.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -644,7 +645,8 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
     Hessian of the cost that Gauss-Newton leaves out (the priors are linear).
 
     Second derivatives by central differences of the analytic whitened Jacobians, one
-    vectorised evaluation per column of a connector (at most 12).
+    vectorised evaluation per connector at all its rows moved by ``+-h`` along each of its
+    columns (at most 12) at once.
     """
     out = np.zeros((n, n))
     for factor in problem.factors:
@@ -652,15 +654,18 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
             continue
         cols, splits = _factor_columns(problem, factor)
         x = values[cols]
+        k, width = x.shape
         r, _, _ = factor.whitened(np.split(x, splits, axis=1), jacobians=False)
-        curvature = np.empty((len(x), x.shape[1], x.shape[1]))
-        for j in range(x.shape[1]):
-            plus, minus = x.copy(), x.copy()
-            plus[:, j] += CURVATURE_STEP
-            minus[:, j] -= CURVATURE_STEP
-            a_plus = factor.whitened(np.split(plus, splits, axis=1))[1]
-            a_minus = factor.whitened(np.split(minus, splits, axis=1))[1]
-            curvature[:, :, j] = np.einsum("ki,kid->kd", r, a_plus - a_minus)
+        step = CURVATURE_STEP * np.eye(width)
+        moved = np.concatenate(
+            [x + step[j] for j in range(width)] + [x - step[j] for j in range(width)]
+        )
+        tiled = copy.copy(factor)  # the same rows, 2 width times
+        tiled.measured = np.tile(factor.measured, (2 * width, 1))
+        tiled.sqrt_information = np.tile(factor.sqrt_information, (2 * width, 1, 1))
+        a = tiled.whitened(np.split(moved, splits, axis=1))[1]
+        a = a.reshape(2, width, k, *a.shape[1:])
+        curvature = np.einsum("ki,jkid->kdj", r, a[0] - a[1])
         curvature /= 2.0 * CURVATURE_STEP
         curvature = 0.5 * (curvature + curvature.transpose(0, 2, 1))
         rows = np.broadcast_to(cols[:, :, None], curvature.shape)
@@ -670,9 +675,12 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
 
 def _dense_information(system: NormalEquations) -> Array:
     """The assembled ``A^T A`` of normal equations as a full dense matrix."""
-    upper = system.matrix().toarray()
-    full = upper + upper.T
-    full.flat[:: len(full) + 1] *= 0.5
+    n = system.n
+    rows = system.indices
+    cols = np.repeat(np.arange(n), np.diff(system.indptr))
+    full = np.zeros((n, n))
+    full[rows, cols] = system.hessian_data
+    full[cols, rows] = system.hessian_data
     return full
 
 
@@ -759,7 +767,9 @@ def dense_newton(
     if factor is None:
         raise SingularProblemError("the Algorithm 1 information matrix is singular")
     cols = problem.scalar_indices(problem.indices(keys))
-    unit = np.zeros((problem.dim, len(cols)))
-    unit[cols, np.arange(len(cols))] = 1.0
-    cov = scipy.linalg.cho_solve(factor, unit, check_finite=False)[cols]
-    return report, 0.5 * (cov + cov.T)
+    # the inverse from the factor (LAPACK potri, upper triangle), not n solves with unit columns
+    inverse, info = scipy.linalg.lapack.dpotri(factor[0], lower=False, overwrite_c=True)
+    if info != 0:
+        raise SingularProblemError("the Algorithm 1 information matrix is singular")
+    inverse = np.triu(inverse) + np.triu(inverse, 1).T
+    return report, inverse[np.ix_(cols, cols)]

@@ -130,7 +130,7 @@ class _GlobalFeatures:
     def moments(self, state: _State, idx: IntArray) -> tuple[Array, Array]:
         """Mean (K, 2) and covariance (K, 2, 2) of global positions ``idx`` given the state."""
         g = self.gain[idx][:, :, self.columns]
-        sub = state.covariance[np.ix_(self.columns, self.columns)]
+        sub = state.block(self.columns, self.columns)
         pos = self.position[idx] + g @ state.shift[self.columns]
         cov = g @ sub @ g.transpose(0, 2, 1) + self.noise[idx]
         return pos, 0.5 * (cov + cov.swapaxes(1, 2))
@@ -168,12 +168,43 @@ def _global_features(
     )
 
 
-@dataclass
 class _State:
-    """The Algorithm 1 state after conditioning on a set of matches (linear update)."""
+    """The Algorithm 1 state after conditioning on a set of matches (linear update).
 
-    shift: Array  # (d,) posterior minus Algorithm 1 estimate
-    covariance: Array  # (d, d)
+    ``Sigma_post = P - (H P)^T S^-1 H P`` is formed only on the blocks of state columns
+    asked for (:meth:`block`): the candidates need each robot's own columns and those of
+    each pair of robots, never the whole ``d x d`` matrix.
+    """
+
+    def __init__(self, shift: Array, prior: Array, hp: Array, gain_t: Array) -> None:
+        self.shift = shift  # (d,) posterior minus Algorithm 1 estimate
+        self.prior = prior  # (d, d) P
+        self.hp = hp  # (2K, d) H P
+        self.gain_t = gain_t  # (2K, d) S^-1 H P
+        self._blocks: dict[tuple[bytes, bytes], Array] = {}
+
+    @classmethod
+    def unconditioned(cls, prior: Array) -> _State:
+        """The state before any match (``Sigma_post = P``)."""
+        none = np.zeros((0, len(prior)))
+        return cls(np.zeros(len(prior)), prior, none, none)
+
+    def block(self, rows: IntArray, cols: IntArray) -> Array:
+        """``Sigma_post[rows, cols]`` (symmetrised as the whole matrix would be), kept."""
+        key = (rows.tobytes(), cols.tobytes())
+        out = self._blocks.get(key)
+        if out is None:
+            prior = self.prior[np.ix_(rows, cols)] + self.prior[np.ix_(cols, rows)].T
+            update = self.hp[:, rows].T @ self.gain_t[:, cols]
+            update += self.gain_t[:, rows].T @ self.hp[:, cols]
+            out = self._blocks[key] = 0.5 * (prior - update)
+        return out
+
+    @property
+    def covariance(self) -> Array:
+        """The whole ``Sigma_post`` (d, d)."""
+        every = np.arange(len(self.prior))
+        return self.block(every, every)
 
 
 def _condition(
@@ -186,25 +217,29 @@ def _condition(
 
     Kalman form of the linear update, ``S = N + H P H^T`` (2K x 2K for K matches) instead of
     the information form: the state has thousands of columns, the matches a few dozen rows.
+    The leave-one-out covariances need only ``H Sigma_post H^T = A - A S^-1 A`` with
+    ``A = H P H^T``.
     """
     if not pairs:
-        return _State(np.zeros(len(prior_covariance)), prior_covariance), np.zeros(0)
+        return _State.unconditioned(prior_covariance), np.zeros(0)
     nu, h, noise = _stack(glob, pairs)
     k, _, d = h.shape
     rows = h.reshape(2 * k, d)
     hp = rows @ prior_covariance  # (2K, d)
-    innovation = rows @ hp.T
+    a_mat = rows @ hp.T  # H P H^T
+    innovation = a_mat.copy()
     for m in range(k):
         innovation[2 * m : 2 * m + 2, 2 * m : 2 * m + 2] += noise[m]
     factor = cho_factor(0.5 * (innovation + innovation.T))
     gain_t = cho_solve(factor, hp)  # (2K, d) = S^-1 H P
     shift = -gain_t.T @ nu.reshape(-1)
-    cov = prior_covariance - hp.T @ gain_t
-    cov = 0.5 * (cov + cov.T)
     resid = nu + h @ shift
-    v = noise - h @ cov @ h.transpose(0, 2, 1)
+    explained = a_mat @ cho_solve(factor, a_mat)  # A S^-1 A
+    posterior = a_mat - 0.5 * (explained + explained.T)  # H Sigma_post H^T
+    pick = np.arange(k)
+    v = noise - posterior.reshape(k, 2, k, 2)[pick, :, pick, :]
     loo = np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])
-    return _State(shift, cov), loo
+    return _State(shift, prior_covariance, hp, gain_t), loo
 
 
 def _stack(
@@ -248,7 +283,7 @@ def _pair_distances(
     uc, inv_c = np.unique(ic, return_inverse=True)
     pa, va = ga.moments(state, ua)
     pc, vc = gc.moments(state, uc)
-    sigma_ac = state.covariance[np.ix_(ga.columns, gc.columns)]
+    sigma_ac = state.block(ga.columns, gc.columns)
     left = ga.gain[ua][:, :, ga.columns] @ sigma_ac  # (A, 2, m_c)
     right = gc.gain[uc][:, :, gc.columns]  # (C, 2, m_c)
     for lo in range(0, len(ia), chunk):

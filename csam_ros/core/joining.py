@@ -342,44 +342,41 @@ class SelectedInverse:
         data = lower.data
         d = np.asarray(d, dtype=float)
         self._keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
-        values = np.zeros(len(data))
-        diag = np.zeros(n)
+        nnz = len(data)
+        # Z on the pattern, then its diagonal: one array, so Z_SS is one gather
+        store = np.zeros(nnz + n)
         begins, ends, depth = _supernodes(indptr, indices, n)
         widths = ends - begins + 1
         below_counts = indptr[ends + 1] - indptr[ends]
-        order = np.lexsort((below_counts, widths, depth))
-        key = np.stack([depth, widths, below_counts])[:, order]
+        groups = self._by_shape(widths, below_counts, depth)
+        shapes = [
+            _SupernodeShape(self._keys, indptr, indices, data, d, begins[members], ends[members])
+            for members in groups
+        ]
+        steps = sorted(
+            (level, k, lo, hi)
+            for k, members in enumerate(groups)
+            for level, lo, hi in _SupernodeShape.levels(depth[members])
+        )
+        for _, k, lo, hi in steps:  # root first; the supernodes of one depth are independent
+            shape = shapes[k]
+            z_jj = shape.z_jj[lo:hi]
+            if shape.ms:
+                u = shape.u[lo:hi]
+                z_sj = -(store[shape.ss_index[lo:hi]] @ u)
+                z_jj = z_jj - u.transpose(0, 2, 1) @ z_sj
+                store[shape.s_pos[lo:hi]] = z_sj
+            store[shape.jj_index[lo:hi]] = z_jj[:, shape.ti, shape.tj]
+        self._values = store[:nnz]
+        self._diag = store[nnz:]
+
+    @staticmethod
+    def _by_shape(widths: IntArray, below_counts: IntArray, depth: IntArray) -> list[IntArray]:
+        """The supernodes of each shape (width, rows below), each list by depth."""
+        order = np.lexsort((depth, below_counts, widths))
+        key = np.stack([widths, below_counts])[:, order]
         cuts = np.flatnonzero(np.any(np.diff(key, axis=1) != 0, axis=0)) + 1
-        for group in np.split(order, cuts):
-            w, ms = int(widths[group[0]]), int(below_counts[group[0]])
-            c, e = begins[group], ends[group]
-            jj_i, jj_j = _tril(w)
-            columns = c[:, None] + np.arange(w)  # (k, w)
-            col_start = indptr[columns]
-            pos_jj = col_start[:, jj_j] + (jj_i - jj_j - 1)
-            inv_l = _unit_lower_inverse(data[pos_jj], w, jj_i, jj_j)
-            z_jj = inv_l.transpose(0, 2, 1) @ (inv_l / d[columns][:, :, None])
-            if ms:
-                below = indices[indptr[e][:, None] + np.arange(ms)]  # (k, ms), ascending
-                z_ss = np.zeros((len(group), ms, ms))
-                ia, ib = _tril(ms)[::-1]  # upper: row below[ia] < column below[ib]
-                if len(ia):
-                    found = values[np.searchsorted(self._keys, below[:, ia] * n + below[:, ib])]
-                    z_ss[:, ia, ib] = found
-                    z_ss[:, ib, ia] = found
-                every = np.arange(ms)
-                z_ss[:, every, every] = diag[below]
-                # L_SJ: column j's rows below the supernode start e - j entries into it
-                pos_s = (col_start + (e[:, None] - columns))[:, None, :] + every[:, None]
-                u = data[pos_s] @ inv_l
-                z_sj = -(z_ss @ u)
-                z_jj -= u.transpose(0, 2, 1) @ z_sj
-                values[pos_s] = z_sj
-            if w > 1:
-                values[pos_jj] = z_jj[:, jj_i, jj_j]
-            diag[columns] = np.diagonal(z_jj, axis1=1, axis2=2)
-        self._values = values
-        self._diag = diag
+        return np.split(order, cuts)
 
     def entries(self, rows: IntArray, cols: IntArray) -> Array:
         """``Z[rows, cols]`` (original scalar order) for pairs on the factor's pattern."""
@@ -407,3 +404,59 @@ class SelectedInverse:
         rows = np.repeat(scalars, dim, axis=1)
         cols = np.tile(scalars, (1, dim))
         return self.entries(rows.ravel(), cols.ravel()).reshape(len(ids), dim, dim)
+
+
+class _SupernodeShape:
+    """Supernodes of one shape (width ``w``, ``ms`` rows below), ordered by depth, with what
+    :class:`SelectedInverse` needs of them that depends on the factor only: ``Z_JJ``'s first
+    term ``L_JJ^-T D_J^-1 L_JJ^-1``, ``U = L_SJ L_JJ^-1`` and where ``Z_SS``, ``Z_SJ`` and
+    ``Z_JJ`` are in the store (pattern entries, then the diagonal)."""
+
+    def __init__(
+        self,
+        keys: IntArray,
+        indptr: IntArray,
+        indices: IntArray,
+        data: Array,
+        d: Array,
+        begins: IntArray,
+        ends: IntArray,
+    ) -> None:
+        nnz, n = len(keys), len(d)
+        w = int(ends[0] - begins[0] + 1)
+        ms = self.ms = int(indptr[ends[0] + 1] - indptr[ends[0]])
+        jj_i, jj_j = _tril(w)
+        columns = begins[:, None] + np.arange(w)  # (k, w)
+        col_start = indptr[columns]
+        inv_l = _unit_lower_inverse(data[col_start[:, jj_j] + (jj_i - jj_j - 1)], w, jj_i, jj_j)
+        self.z_jj = inv_l.transpose(0, 2, 1) @ (inv_l / d[columns][:, :, None])
+        # Z_JJ is stored as its lower triangle and diagonal
+        self.ti, self.tj = np.tril_indices(w)
+        strict = self.ti > self.tj
+        self.jj_index = np.where(
+            strict,
+            col_start[:, self.tj] + (self.ti - self.tj - 1),
+            nnz + columns[:, self.tj],
+        )
+        if ms:
+            below = indices[indptr[ends][:, None] + np.arange(ms)]  # (k, ms), ascending
+            ia, ib = _tril(ms)[::-1]  # upper: row below[ia] < column below[ib]
+            ss_index = np.empty((len(begins), ms, ms), dtype=np.int64)
+            every = np.arange(ms)
+            ss_index[:, every, every] = nnz + below
+            if len(ia):
+                found = np.searchsorted(keys, below[:, ia] * n + below[:, ib])
+                ss_index[:, ia, ib] = found
+                ss_index[:, ib, ia] = found
+            self.ss_index = ss_index
+            # L_SJ: column j's rows below the supernode start e - j entries into it
+            self.s_pos = (col_start + (ends[:, None] - columns))[:, None, :] + every[:, None]
+            self.u = data[self.s_pos] @ inv_l
+
+    @staticmethod
+    def levels(depth: IntArray) -> list[tuple[int, int, int]]:
+        """``(depth, lo, hi)`` of the runs of equal depth (``depth`` is sorted)."""
+        cuts = np.flatnonzero(np.diff(depth)) + 1
+        lo = np.r_[0, cuts]
+        hi = np.r_[cuts, len(depth)]
+        return list(zip(depth[lo].tolist(), lo.tolist(), hi.tolist(), strict=True))

@@ -302,14 +302,14 @@ class Problem:
                 f"{factor.name}: factor {bad[0]} refers to unknown variable id(s) "
                 f"{ids[bad[0]].tolist()}"
             )
-        for s in range(ids.shape[1]):
-            for t in range(s + 1, ids.shape[1]):
-                same = np.flatnonzero(ids[:, s] == ids[:, t])
-                if same.size:
-                    raise ValueError(
-                        f"{factor.name}: factor {same[0]} connects variable "
-                        f"{self._keys[ids[same[0], s]]!r} twice"
-                    )
+        ordered = np.sort(ids, axis=1)
+        twice = ordered[:, 1:] == ordered[:, :-1]
+        if np.any(twice):
+            row = int(np.flatnonzero(twice.any(axis=1))[0])
+            variable = int(ordered[row, 1:][twice[row]][0])
+            raise ValueError(
+                f"{factor.name}: factor {row} connects variable {self._keys[variable]!r} twice"
+            )
         for j, kind in enumerate(factor.kinds):
             code = self._kind_codes.get(kind, -1)
             wrong = np.flatnonzero(self._kind_of[ids[:, j]] != code)
@@ -392,12 +392,10 @@ class NormalEquations:
         pair_keys: list[IntArray] = [np.arange(num_vars, dtype=np.int64) * (num_vars + 1)]
         for f in problem.factors:
             touched[f.variables.reshape(-1)] = True
-            m = f.variables.shape[1]
-            for s in range(m):
-                for t in range(s + 1, m):
-                    lo = np.minimum(f.variables[:, s], f.variables[:, t])
-                    hi = np.maximum(f.variables[:, s], f.variables[:, t])
-                    pair_keys.append(hi * num_vars + lo)
+            s, t = np.triu_indices(f.variables.shape[1], 1)
+            lo = np.minimum(f.variables[:, s], f.variables[:, t])
+            hi = np.maximum(f.variables[:, s], f.variables[:, t])
+            pair_keys.append((hi * num_vars + lo).reshape(-1))
         free = np.flatnonzero(~touched)
         if free.size:
             raise SingularProblemError(
@@ -470,14 +468,11 @@ class NormalEquations:
             pair_st = np.zeros((m, m, len(var)), dtype=np.int64)
             swap_st = np.zeros((m, m, len(var)), dtype=bool)
             hi_st = np.zeros((m, m, len(var)), dtype=np.int64)
-            for a in range(m):
-                for b in range(a, m):
-                    va, vb = var[:, a], var[:, b]
-                    hi_st[a, b] = np.maximum(va, vb)
-                    swap_st[a, b] = va > vb
-                    pair_st[a, b] = np.searchsorted(
-                        keys, hi_st[a, b] * num_vars + np.minimum(va, vb)
-                    )
+            a, b = np.triu_indices(m)
+            va, vb = var[:, a].T, var[:, b].T  # (pairs a <= b, K)
+            hi_st[a, b] = np.maximum(va, vb)
+            swap_st[a, b] = va > vb
+            pair_st[a, b] = np.searchsorted(keys, hi_st[a, b] * num_vars + np.minimum(va, vb))
             pair = pair_st[block[first], block[second]]  # (pairs, K)
             swap = swap_st[block[first], block[second]]
             hi = hi_st[block[first], block[second]]

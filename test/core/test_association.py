@@ -103,6 +103,10 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
     covariance = np.linalg.inv(information)
     scale = np.abs(covariance).max()
     np.testing.assert_allclose(state.covariance, covariance, atol=1e-9 * scale)
+    # the blocks the candidates use are those of the whole posterior covariance
+    a, c = g[0].columns, g[1].columns
+    np.testing.assert_allclose(state.block(a, c), covariance[np.ix_(a, c)], atol=1e-9 * scale)
+    np.testing.assert_allclose(state.block(c, c), covariance[np.ix_(c, c)], atol=1e-9 * scale)
     shift = -covariance @ rows.T @ weight @ nu.reshape(-1)
     np.testing.assert_allclose(state.shift, shift, atol=1e-8 * np.abs(shift).max())
     for k in (0, 5, 11):
