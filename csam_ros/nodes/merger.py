@@ -531,13 +531,12 @@ class Merger(Node):
 
     def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Solve the newest inputs now (module docstring); the reply says what was done."""
-        with self._lock:
+        with self._lock:  # a solve running now is of older inputs, and no other starts
             newer = self.dirty
-            running = self.solving
+            given_up = newer and self.solving and self.solve_process.cancel()
             if newer:
                 self._requested = True
                 self._wake.notify()
-        given_up = newer and running and self.solve_process.cancel()
         response.success = True
         if not newer:
             response.message = "the joined map (or the running solve) holds the newest inputs"
