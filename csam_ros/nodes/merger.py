@@ -33,12 +33,13 @@ solve is running (``solving``) and how long the last one took (``solve_seconds``
 ``~/flush``) solves the newest inputs at once: a running solve of older inputs is given up
 (counted as ``solves_given_up``), since its result would be out of date when it came.
 
-A join takes seconds to minutes on large maps. While one runs, at most every
-``provisional_period`` wall-clock seconds and only when some local map is newer than those the
-last joined map used, the executor publishes ``/csam/joined_map/provisional``: the newest local
-maps placed by the last join, unsolved (:func:`~csam_ros.core.warm_start.carried_forward`; what
-the next join starts from). Its base nodes name the local maps it holds; it has no heading
-sigmas, and the features first seen since the last join have NaN covariances.
+A join takes seconds to minutes on large maps. When a local map arrives that the last joined
+map does not hold, the executor publishes ``/csam/joined_map/provisional`` at once (at most
+every ``provisional_period`` wall-clock seconds; one held back goes out when the period ends):
+the newest local maps placed by the last join, unsolved
+(:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
+nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
+the last join have NaN covariances.
 ``/csam/joined_map`` stays the solved joined map.
 
 The topic says which robot a message belongs to. Every message is checked whole when it
@@ -124,6 +125,7 @@ from csam_ros.ros.topics import (
 from csam_ros.solve_process import SolveProcess
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
+PROVISIONAL_CHECKS = 4  # looks per provisional_period for a provisional map held back
 # asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
 # long after it was subscribed to (its first update, whole, usually comes first); a request
 # stands this long before another is made (the whole map may take long on a slow link), and
@@ -227,7 +229,7 @@ class Merger(Node):
             "provisional_period",
             1.0,
             "minimum wall-clock seconds between provisional joined maps (the newest local maps "
-            "placed by the last join; 0: none)",
+            "placed by the last join, published as they arrive; 0: none)",
             0.0,
             3600.0,
         )
@@ -306,6 +308,12 @@ class Merger(Node):
         self.create_timer(
             DISCOVERY_PERIOD_S, guarded(self, self.drops, self.discover), clock=steady_clock()
         )
+        if self.provisional_period > 0.0:  # sends those held back by the period when it ends
+            self.create_timer(
+                max(self.provisional_period / PROVISIONAL_CHECKS, 0.01),
+                guarded(self, self.drops, self.publish_provisional),
+                clock=steady_clock(),
+            )
         self.create_service(Trigger, f"~/{FLUSH}", self.on_flush)
         self.solve_process.start()  # its imports overlap the wait for the first maps
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
@@ -440,6 +448,7 @@ class Merger(Node):
             self.sources = {**self.sources, robot: held}
             self.local_map_stamps = {**self.local_map_stamps, robot: stamp}
             self.dirty = True
+        self.publish_provisional()
 
     def _note_restart(self, robot: str, old: RobotMap, new: RobotMap) -> None:
         """Log and count once a new map that starts later or holds fewer poses than the last.
@@ -526,7 +535,6 @@ class Merger(Node):
             if self.dirty and not self.solving:
                 self._requested = True
                 self._wake.notify()
-        self.publish_provisional()
         self.publish_status()
 
     def on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -701,15 +709,14 @@ class Merger(Node):
         self._publish(result, dict(inputs.stamps), inputs.robots, stats)
 
     def publish_provisional(self) -> bool:
-        """Publish the newest local maps placed by the last join (module docs) while a solve
-        runs, when one is newer than those the last joined map used and
-        ``provisional_period`` has passed; whether one was published."""
+        """Publish the newest local maps placed by the last join (module docs) when one is
+        newer than those the last joined or provisional map used and ``provisional_period``
+        has passed; whether one was published."""
         with self._lock:
             now = time.monotonic()
             last, stamps = self.last_result, dict(self.local_map_stamps)
             if (
                 last is None
-                or not self.solving
                 or self.provisional_period <= 0.0
                 or now < self._provisional_next
                 or stamps == self._published_stamps

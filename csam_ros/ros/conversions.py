@@ -31,6 +31,7 @@ from csam_msgs.msg import (
 )
 from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
+from numpy.typing import ArrayLike
 from tf2_msgs.msg import TFMessage
 
 from csam_ros.core.log import (
@@ -72,6 +73,13 @@ def stamp_to_ns(seconds: float) -> int:
 
 def ns_to_time(ns: int) -> Time:
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def times_from_seconds(seconds: ArrayLike) -> list[Time]:
+    """Stamps of many times in seconds, each as :func:`ns_to_time` of :func:`stamp_to_ns`."""
+    ns = np.rint(np.asarray(seconds, dtype=float).reshape(-1) * 1e9).astype(np.int64)
+    sec, nanosec = np.divmod(ns, 1_000_000_000)
+    return [Time(sec=s, nanosec=n) for s, n in zip(sec.tolist(), nanosec.tolist(), strict=True)]
 
 
 def time_to_ns(stamp: Time) -> int:

@@ -48,7 +48,13 @@ from csam_ros.core.validation import (
     RefusedMessageError,
     rendezvous_row_mask,
 )
-from csam_ros.ros.conversions import ns_to_time, rendezvous_message, stamp_to_ns, time_to_ns
+from csam_ros.ros.conversions import (
+    ns_to_time,
+    rendezvous_message,
+    stamp_to_ns,
+    time_to_ns,
+    times_from_seconds,
+)
 
 
 def _kernel_to_message(kernel: RobustKernel | None) -> tuple[str, float]:
@@ -77,7 +83,7 @@ def robot_map_to_message(
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.header.frame_id = f"{m.name}/map"
     msg.robot = m.name
-    msg.pose_stamps = [ns_to_time(stamp_to_ns(t)) for t in m.stamps]
+    msg.pose_stamps = times_from_seconds(m.stamps)
     msg.poses = [Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2])) for p in m.poses]
     if pose_covariances is not None:
         msg.pose_covariances = np.asarray(pose_covariances, dtype=float).reshape(-1).tolist()
@@ -321,7 +327,7 @@ def rendezvous_poses_message(
     msg.header.frame_id = f"{m.name}/map"
     msg.robot = m.name
     poses = m.poses[pose_indices]
-    msg.stamps = [ns_to_time(stamp_to_ns(t)) for t in m.stamps[pose_indices]]
+    msg.stamps = times_from_seconds(m.stamps[pose_indices])
     msg.poses = [Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2])) for p in poses]
     msg.pose_indices = np.asarray(pose_indices, dtype=np.uint32).tolist()
     stamps = measurements.stamps
@@ -434,12 +440,12 @@ def joined_map_message(
             msg.trajectories.append(
                 RobotTrajectory(
                     robot=name,
-                    stamps=[ns_to_time(stamp_to_ns(float(t))) for t in r.stamps],
+                    stamps=times_from_seconds(r.stamps),
                     poses=[
-                        Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2]))
-                        for p in r.poses_joined
+                        Pose2D(x=x, y=y, theta=phi)
+                        for x, y, phi in np.asarray(r.poses_joined, dtype=float).tolist()
                     ],
-                    sigma_phi=[float(s) for s in sigma],
+                    sigma_phi=np.asarray(sigma, dtype=float).tolist(),
                 )
             )
     msg.features = [
