@@ -411,13 +411,16 @@ def align(
     options: AlignmentOptions | None = None,
     start: Array | None = None,
     excluded: Mapping[int, str] | None = None,
+    rendezvous_start: Sequence[Array | None] | None = None,
 ) -> Alignment:
     """Place every robot connected to the reference (robot 0) and refine by Algorithm 1.
 
     ``parts[r]`` is robot ``r``'s rendezvous part (``None`` if it has no rendezvous poses).
     ``start`` (R, 3), when given, holds initial base nodes (a previous solution; NaN rows
     where none): a placed robot with one starts Algorithm 1 there instead of at its pairwise
-    initialisation, which still decides whether it can be placed. ``excluded`` robots (index:
+    initialisation, which still decides whether it can be placed. ``rendezvous_start[r]``
+    (``parts[r].poses``' shape), when given, is where robot ``r``'s rendezvous poses start
+    (a previous solution) instead of at their local estimate. ``excluded`` robots (index:
     reason) are not placed and stay ``pending: <reason>``.
     """
     options = options or AlignmentOptions()
@@ -454,7 +457,7 @@ def align(
             known = np.isfinite(start).all(axis=1) & np.isfinite(initial).all(axis=1)
             known[0] = False
             initial[known] = start[known]
-        result = _refine(parts, measurements, placed, initial, status, options)
+        result = _refine(parts, measurements, placed, initial, status, options, rendezvous_start)
         result.parents, result.methods = parents, methods
         if np.all(np.isfinite(result.covariance)):
             return result
@@ -515,8 +518,10 @@ def _refine(
     initial: Array,
     status: list[str],
     options: AlignmentOptions,
+    rendezvous_start: Sequence[Array | None] | None = None,
 ) -> Alignment:
-    """Algorithm 1 on the rendezvous poses and base nodes of the placed robots."""
+    """Algorithm 1 on the rendezvous poses and base nodes of the placed robots (starting
+    where :func:`align` says)."""
     robots = measurements.robots
     inside = np.isin(measurements.observer, placed) & np.isin(measurements.observed, placed)
     rows = measurements.subset(inside)
@@ -528,7 +533,15 @@ def _refine(
         if part is None:
             continue
         k = [("rho", r, i) for i in range(len(part.pose_indices))]
-        rho_ids[r] = problem.add_variables(POSE, k, part.poses)
+        poses = rendezvous_start[r] if rendezvous_start is not None else None
+        if poses is None:
+            poses = part.poses
+        elif np.shape(poses) != part.poses.shape:
+            raise ValueError(
+                f"align: rendezvous start of {robots[r]!r} has shape {np.shape(poses)}, its "
+                f"part {part.poses.shape}"
+            )
+        rho_ids[r] = problem.add_variables(POSE, k, poses)
         keys.extend(k)
     base_ids: dict[int, int] = {}
     for r in placed:

@@ -441,6 +441,19 @@ def join_maps(
         measurements,
         config.alignment_options(),
         start=warm.base_node_starts(names) if warm is not None else None,
+        rendezvous_start=None
+        if warm is None
+        else [
+            None
+            if p is None
+            else warm.rendezvous_start(
+                m.name,
+                np.asarray(m.stamps, dtype=float)[p.pose_indices],
+                p.poses,
+                config.stamp_tolerance,
+            )
+            for m, p in zip(maps, parts, strict=True)
+        ],
         excluded={r: c.reason for r, c in checks.items() if c.reason and r > 0},
     )
     aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
@@ -516,6 +529,7 @@ def join_maps(
             sigma_phi_local=sigma_local[r],
             alignment_method=alignment.methods.get(r, ""),
             rendezvous_stamps=np.asarray(m.stamps, dtype=float)[rdv_poses[r]],
+            alignment_rendezvous_poses=alignment.rendezvous_poses.get(r),
             feature_labels_local=np.asarray(m.feature_labels, dtype=np.int64),
             features_local=m.feature_positions,
             feature_covariances_local=views[r].feature_covariances,

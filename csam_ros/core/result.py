@@ -189,6 +189,8 @@ class RobotResult:
     alignment_base_node: Array | None = None  # Algorithm 1 (rendezvous parts only)
     alignment_base_node_cov: Array | None = None
     rendezvous_stamps: Array = field(default_factory=lambda: np.zeros(0))  # poses that met
+    # Algorithm 1's estimate of the poses at rendezvous_stamps, in G_r (the next join's start)
+    alignment_rendezvous_poses: Array | None = None
     feature_labels_local: NDArray[np.int64] = field(
         default_factory=lambda: np.zeros(0, dtype=np.int64)
     )
@@ -215,6 +217,7 @@ class RobotResult:
             "poses_joined": _array_list(self.poses_joined) or [],
             "sigma_phi_local": _array_list(self.sigma_phi_local),
             "rendezvous_stamps": _array_list(self.rendezvous_stamps),
+            "alignment_rendezvous_poses": _array_list(self.alignment_rendezvous_poses),
             "features_local": [
                 {"label": f"{self.name}/{int(k)}", "xy": _array_list(xy), "cov": _array_list(c)}
                 for k, xy, c in zip(
@@ -234,8 +237,9 @@ class RobotResult:
         """The inverse of :meth:`to_dict` for the robot ``name``."""
         where = where or f"robots.{name}"
         keys = list(cls(name, "", np.zeros(0), np.zeros((0, 3)), np.zeros(0)).to_dict())
-        node = _object(node, where, keys, optional=("local_check",))
+        node = _object(node, where, keys, optional=("local_check", "alignment_rendezvous_poses"))
         stamps = _array(node["stamps"], (None,), f"{where}.stamps")
+        rendezvous_stamps = _array(node["rendezvous_stamps"], (None,), f"{where}.rendezvous_stamps")
         check = node.get("local_check")
         n = len(stamps)
 
@@ -278,8 +282,11 @@ class RobotResult:
             alignment_base_node_cov=_optional_array(
                 node["alignment_base_node_cov"], (3, 3), f"{where}.alignment_base_node_cov"
             ),
-            rendezvous_stamps=_array(
-                node["rendezvous_stamps"], (None,), f"{where}.rendezvous_stamps"
+            rendezvous_stamps=rendezvous_stamps,
+            alignment_rendezvous_poses=_optional_array(
+                node.get("alignment_rendezvous_poses"),
+                (len(rendezvous_stamps), 3),
+                f"{where}.alignment_rendezvous_poses",
             ),
             feature_labels_local=np.array(labels, dtype=np.int64),
             features_local=np.array(xy, dtype=float).reshape(-1, 2),

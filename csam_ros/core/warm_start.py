@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,12 +48,15 @@ class WarmStart:
     base_nodes: Mapping[str, Array]  # Algorithm 1 base node of each robot aligned before
     corrections: Mapping[str, tuple[Array, Array]]  # robot -> (stamps, C = joined (+) local^-1)
     features: Mapping[str, tuple[Array, Array]]  # "robot/label" -> (joined, local) position
+    # robot -> (rendezvous stamps, Algorithm 1's rendezvous poses (+) their local ones^-1)
+    rendezvous: Mapping[str, tuple[Array, Array]] = field(default_factory=dict)
 
     @classmethod
     def from_result(cls, result: CsamResult) -> WarmStart:
         """The estimates of a result (only its joined robots and features)."""
         base_nodes: dict[str, Array] = {}
         corrections: dict[str, tuple[Array, Array]] = {}
+        rendezvous: dict[str, tuple[Array, Array]] = {}
         local: dict[str, Array] = {}
         for name, robot in result.robots.items():
             if not robot.joined or robot.poses_joined is None:
@@ -63,6 +66,15 @@ class WarmStart:
             corrections[name] = (np.asarray(robot.stamps, dtype=float), correction)
             if robot.alignment_base_node is not None:
                 base_nodes[name] = np.asarray(robot.alignment_base_node, dtype=float)
+            if robot.alignment_rendezvous_poses is not None:
+                stamps = np.asarray(robot.rendezvous_stamps, dtype=float)
+                held = _matching(np.asarray(robot.stamps, dtype=float), stamps, 0.0)
+                rendezvous[name] = (
+                    stamps,
+                    se2.compose(
+                        robot.alignment_rendezvous_poses, se2.inverse(robot.poses_local[held])
+                    ),
+                )
             for label, xy in zip(robot.feature_labels_local, robot.features_local, strict=True):
                 local[f"{name}/{int(label)}"] = np.asarray(xy, dtype=float)
         features = {
@@ -71,7 +83,7 @@ class WarmStart:
             for m in f.members
             if m in local
         }
-        return cls(result.reference, base_nodes, corrections, features)
+        return cls(result.reference, base_nodes, corrections, features, rendezvous)
 
     def base_node_starts(self, names: Sequence[str]) -> Array:
         """(R, 3) previous base nodes of ``names`` in order, NaN rows for robots without."""
@@ -85,16 +97,19 @@ class WarmStart:
         self, name: str, stamps: Array, local_poses: Array, base_node: Array, tolerance: float
     ) -> Array:
         """(N, 3) initial joined poses of robot ``name`` (module docs)."""
-        if name not in self.corrections:
+        corrected = _corrected(self.corrections.get(name), stamps, local_poses, tolerance)
+        if corrected is None:
             return se2.compose(np.broadcast_to(base_node, local_poses.shape), local_poses)
-        before_stamps, before = self.corrections[name]
-        held = _matching(before_stamps, np.asarray(stamps, dtype=float), tolerance)
-        matched = np.flatnonzero(held >= 0)
-        if len(matched) == 0:
-            return se2.compose(np.broadcast_to(base_node, local_poses.shape), local_poses)
-        nearest = np.searchsorted(matched, np.arange(len(held)), side="right") - 1
-        correction = before[held[matched[np.maximum(nearest, 0)]]]
-        return se2.compose(correction, local_poses)
+        return corrected
+
+    def rendezvous_start(
+        self, name: str, stamps: Array, local_poses: Array, tolerance: float
+    ) -> Array:
+        """(k, 3) initial Algorithm 1 rendezvous poses of robot ``name`` at ``stamps`` (in
+        its own frame): their local estimates moved as the last join's Algorithm 1 moved
+        them (a new one as the last one before it), or the local estimates alone."""
+        corrected = _corrected(self.rendezvous.get(name), stamps, local_poses, tolerance)
+        return local_poses if corrected is None else corrected
 
     def feature_start(
         self, name: str, labels: IntArray, local_xy: Array, base_node: Array
@@ -109,6 +124,23 @@ class WarmStart:
                 dx, dy = local_xy[i] - local
                 start[i] = joined + [c * dx - s * dy, s * dx + c * dy]
         return start
+
+
+def _corrected(
+    before: tuple[Array, Array] | None, stamps: Array, local_poses: Array, tolerance: float
+) -> Array | None:
+    """``local_poses`` at ``stamps``, each moved by the correction held at its stamp in
+    ``before`` (stamps, corrections), else by that of the last held stamp before it (the
+    first held one for those before all); None when no stamp is held."""
+    if before is None:
+        return None
+    before_stamps, corrections = before
+    held = _matching(before_stamps, np.asarray(stamps, dtype=float), tolerance)
+    matched = np.flatnonzero(held >= 0)
+    if len(matched) == 0:
+        return None
+    nearest = np.searchsorted(matched, np.arange(len(held)), side="right") - 1
+    return se2.compose(corrections[held[matched[np.maximum(nearest, 0)]]], local_poses)
 
 
 def carried_forward(previous: CsamResult, maps: Sequence[RobotMap], tolerance: float) -> CsamResult:

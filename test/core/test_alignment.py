@@ -143,6 +143,26 @@ def test_refinement_moves_a_rough_start_to_the_optimum(two_robots) -> None:
     assert err @ np.linalg.solve(result.base_covariance(1), err) < 16.3  # chi2(3) 99.9 %
 
 
+def test_a_start_at_the_optimum_ends_there(two_robots) -> None:
+    """Started at its own solution (base node and rendezvous poses), Algorithm 1 stops at
+    once, at the same solution; a start of the wrong shape is an error."""
+    pairs = [(0, 1, i) for i in range(8)] + [(1, 0, i) for i in range(0, 8, 3)]
+    meas = _measurements(two_robots, pairs, ["p", "q"])
+    meas.position += np.random.default_rng(1).normal(0, 0.01, meas.position.shape)
+    parts, _ = _parts(two_robots)
+    cold = align(parts, meas)
+    assert cold.iterations > 1
+    poses = [cold.rendezvous_poses[r] for r in range(2)]
+    warm = align(parts, meas, start=cold.base_nodes, rendezvous_start=poses)
+    assert warm.iterations == 1
+    np.testing.assert_allclose(warm.base_nodes, cold.base_nodes, atol=1e-9)
+    for r in range(2):
+        np.testing.assert_allclose(warm.rendezvous_poses[r], poses[r], atol=1e-9)
+    np.testing.assert_allclose(warm.covariance, cold.covariance, rtol=1e-6, atol=1e-12)
+    with pytest.raises(ValueError, match="rendezvous start of 'q'"):
+        align(parts, meas, rendezvous_start=[poses[0], poses[1][1:]])
+
+
 @pytest.mark.parametrize(
     ("observer_base", "observed_base"), [(False, True), (True, False), (True, True)]
 )

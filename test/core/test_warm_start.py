@@ -117,6 +117,30 @@ def test_from_result_keeps_what_a_restart_needs() -> None:
     assert len(warm.features) == sum(len(f.members) for f in result.features)
 
 
+def test_rendezvous_start_carries_algorithm1s_moves_to_the_new_local_poses() -> None:
+    """The rendezvous poses of the last join start where its Algorithm 1 moved them, a new
+    one as the last before it; a robot without a previous Algorithm 1 at its local poses."""
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = maps_until(log, float(end))
+    robot = join_maps(maps, logs).robots["robot2"]
+    refined, stamps = robot.alignment_rendezvous_poses, robot.rendezvous_stamps
+    assert refined is not None and len(stamps) > 1
+    warm = WarmStart.from_result(join_maps(maps, logs))
+    local = robot.poses_local[np.searchsorted(robot.stamps, stamps)]
+    np.testing.assert_allclose(warm.rendezvous_start("robot2", stamps, local, 1e-6), refined)
+    moved = local + [0.1, -0.2, 0.05]  # the local map changed since
+    new = np.r_[stamps, stamps[-1] + 1.0]
+    start = warm.rendezvous_start("robot2", new, np.r_[moved, moved[-1:]], 1e-6)
+    correction = se2.compose(refined, se2.inverse(local))
+    np.testing.assert_allclose(
+        start,
+        se2.compose(correction[np.r_[np.arange(len(stamps)), -1]], np.r_[moved, moved[-1:]]),
+        atol=1e-12,
+    )
+    np.testing.assert_array_equal(warm.rendezvous_start("robot9", stamps, local, 1e-6), local)
+
+
 def test_carried_forward_of_the_joined_maps_is_their_join() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
