@@ -7,7 +7,9 @@ in a child process started from a fork server (a clean process that imported the
 the merger has threads, which a fork would not copy). The child keeps the joiner's state
 between solves, so a request carries a robot's map only when it changed, and the warm start
 only when the child does not hold it. A child that dies is started again at the next solve,
-which then sends everything. :meth:`SolveProcess.cancel` gives the running join up (a signal
+which then sends everything. A join's state (when asked for) is written after its reply:
+:meth:`SolveProcess.state_written` waits for it. :meth:`SolveProcess.cancel` gives the running
+join up (a signal
 the child turns into :class:`~csam_ros.core.joiner.JoinCancelled` while it joins): the child
 keeps its maps and warm start, and the join's reply says it was cancelled.
 """
@@ -26,7 +28,14 @@ from multiprocessing.connection import Connection
 from types import FrameType
 from typing import Any
 
-from csam_ros.core.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest, MapSource
+from csam_ros.core.joiner import (
+    JoinCancelled,
+    Joiner,
+    JoinReply,
+    JoinRequest,
+    MapSource,
+    StateWritten,
+)
 from csam_ros.core.result import CsamResult
 
 # what the fork server imports once, so that a child starts at once
@@ -80,6 +89,8 @@ def _serve(connection: Connection, cancelled: Any, niceness: int) -> None:
             reply = JoinReply(None, f"{type(err).__name__}: {err}")
         try:
             connection.send(reply)
+            if reply.state_pending:  # after the reply: the joined map goes out first
+                connection.send(joiner.write_state())
         except (EOFError, OSError):
             return
 
@@ -99,6 +110,7 @@ class SolveProcess:
         self._previous: CsamResult | None = None  # the result the child holds as warm start
         self._closed = False
         self._joining = False  # a request is with the child
+        self._state_pending = False  # the child writes the state of the last join
         self._requests = 0  # requests sent to the child (its numbering)
         self._cancelled: Any = None  # shared with the child: the request it is to give up
         self.starts = 0
@@ -116,6 +128,7 @@ class SolveProcess:
     def join(self, request: JoinRequest) -> JoinReply:
         """``request`` joined by the child (started first if need be); a failed join or a
         child that died is a reply with an error, never an exception."""
+        self.state_written()  # a state write not waited for ends first
         with self._lock:
             if self._closed:
                 return JoinReply(None, "the solve process is closed")
@@ -138,7 +151,24 @@ class SolveProcess:
             self._sent.update({robot: source for robot, source in request.maps})
             if reply.result is not None:
                 self._previous = reply.result
+            self._state_pending = reply.state_pending
         return reply
+
+    def state_written(self) -> StateWritten | None:
+        """Wait for the state write of the last join (None when it asked for none, or it
+        was waited for already)."""
+        with self._lock:
+            connection = self._connection
+            if not self._state_pending or connection is None:
+                return None
+        try:
+            written: StateWritten = connection.recv()
+        except (EOFError, OSError) as err:
+            self._stop_child()
+            written = StateWritten(f"merger state not written: the solve process ended ({err!r})")
+        with self._lock:
+            self._state_pending = False
+        return written
 
     def cancel(self) -> bool:
         """Give up the running join, if any: its :meth:`join` returns a reply that says it

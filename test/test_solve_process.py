@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from growing_joins import largest_difference, maps_until
 
+from csam_ros.core.checkpoint import MergerState
 from csam_ros.core.csam import CsamConfig
 from csam_ros.core.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest
 from csam_ros.core.map_arrays import robot_map_arrays
@@ -63,6 +64,26 @@ def test_replies_equal_a_joiner_here_and_unchanged_maps_are_not_sent(process) ->
     # the child holds its last result as the warm start; another one is sent
     assert process.stripped(replace(second, previous=reply.result)).previous is None
     assert process.stripped(replace(second, previous=expected)).previous is expected
+
+
+def test_the_state_is_written_after_the_reply(process, tmp_path) -> None:
+    """A request with the merger's state: the reply says a write follows, state_written
+    waits for it; a join not waited for lets the write end first."""
+    first, second = _requests()
+    order = [robot for robot, _ in first.maps]
+    state = MergerState(order[0], order, order, {}, {r: 1 for r in order}, {}, 1, {})
+    path = tmp_path / "merger.npz"
+    reply = process.join(replace(first, state=state, state_path=path))
+    assert reply.result is not None and reply.state_pending
+    written = process.state_written()
+    assert written is not None and written.error == "" and path.exists()
+    assert process.state_written() is None  # waited for once
+    saved = MergerState.read(path)
+    assert saved.result is not None and largest_difference(saved.result, reply.result) < 1e-12
+    again = process.join(replace(second, state=replace(state, solves=2), state_path=path))
+    assert again.state_pending
+    assert process.join(second).result is not None  # the write ended before it was sent
+    assert not process.state_written() and MergerState.read(path).solves == 2
 
 
 def test_a_child_that_died_is_an_error_then_started_again(process) -> None:

@@ -7,8 +7,10 @@ map source (a map built from updates, refined here once; or a map as saved, join
 or ``None`` for the source of the last request, so that a caller in another process sends a
 map only when it changed. A join may be given up part-way (:class:`JoinCancelled`, raised
 inside the ``cancellable`` context the joiner was made with): the joiner keeps the maps it took
-and its warm start, and the reply says it was cancelled. The merger node runs a joiner in a
-process of its own (:mod:`csam_ros.solve_process`); nothing here knows of ROS.
+and its warm start, and the reply says it was cancelled. A request may carry the merger's
+state, written by :meth:`Joiner.write_state` after the reply (the joined map goes out first).
+The merger node runs a joiner in a process of its own (:mod:`csam_ros.solve_process`); nothing
+here knows of ROS.
 """
 
 from __future__ import annotations
@@ -49,8 +51,8 @@ class JoinRequest:
     logs: Mapping[str, RendezvousLog]
     config: CsamConfig
     previous: CsamResult | None = None  # when given, the warm start instead of the last result
-    # the merger's state to write after a successful join, its maps, rendezvous and result
-    # filled in here
+    # the merger's state to write after a successful join (Joiner.write_state), its maps,
+    # rendezvous and result filled in here
     state: MergerState | None = None
     state_path: Path | None = None
 
@@ -71,9 +73,16 @@ class JoinReply:
     result: CsamResult | None
     error: str = ""  # "<exception type>: <message>" of a failed join
     refused: tuple[Refusal, ...] = ()
-    state_error: str = ""  # why the state could not be written
-    state_seconds: float = 0.0  # how long writing it took
     cancelled: bool = False  # the join was given up (JoinCancelled): no result, no failure
+    state_pending: bool = False  # the request's state is to be written (Joiner.write_state)
+
+
+@dataclass(frozen=True)
+class StateWritten:
+    """How writing the merger's state after a join went."""
+
+    error: str = ""  # why it could not be written ("": written)
+    seconds: float = 0.0
 
 
 class Joiner:
@@ -86,6 +95,7 @@ class Joiner:
         self.maps: dict[str, RobotMap] = {}  # each robot's last usable map, refined
         self.local_views = LocalViewCache()
         self.previous: CsamResult | None = None
+        self._state: tuple[MergerState, Path] | None = None  # what write_state writes
         # entered around the join itself (not the maps' refinement or the state write): a
         # JoinCancelled raised within gives the join up
         self.cancellable = cancellable
@@ -93,6 +103,7 @@ class Joiner:
     def join(self, request: JoinRequest) -> JoinReply:
         """Join the request's maps. A failed join raises nothing: the reply says why (an
         exception, or a result holding a non-finite number)."""
+        self._state = None
         if request.previous is not None:
             self.previous = request.previous
         refused = tuple(r for robot, source in request.maps if (r := self._take(robot, source)))
@@ -119,24 +130,27 @@ class Joiner:
         except Exception as err:  # noqa: BLE001 - the caller reports a failed solve
             return JoinReply(None, f"{type(err).__name__}: {err}", refused)
         self.previous = result
-        state_error = ""
-        start = time.perf_counter()
         if request.state is not None and request.state_path is not None:
-            try:
-                replace(
-                    request.state,
-                    maps=dict(zip(order, maps, strict=True)),
-                    rendezvous=dict(request.logs),
-                    result=result,
-                ).write(request.state_path)
-            except (OSError, ValueError) as err:
-                state_error = f"merger state not written to {request.state_path}: {err}"
-        return JoinReply(
-            result,
-            refused=refused,
-            state_error=state_error,
-            state_seconds=time.perf_counter() - start,
-        )
+            state = replace(
+                request.state,
+                maps=dict(zip(order, maps, strict=True)),
+                rendezvous=dict(request.logs),
+                result=result,
+            )
+            self._state = (state, request.state_path)
+        return JoinReply(result, refused=refused, state_pending=self._state is not None)
+
+    def write_state(self) -> StateWritten | None:
+        """Write the state of the last join's request (None when it had none to write)."""
+        if self._state is None:
+            return None
+        (state, path), self._state = self._state, None
+        start = time.perf_counter()
+        try:
+            state.write(path)
+        except (OSError, ValueError) as err:
+            return StateWritten(f"merger state not written to {path}: {err}")
+        return StateWritten(seconds=time.perf_counter() - start)
 
     def _take(self, robot: str, source: MapSource | None) -> Refusal | None:
         """Hold ``robot``'s map of ``source`` (None: keep the last); a refusal if it is not

@@ -51,7 +51,8 @@ than its last one has had its smoother restarted: the new map is its current tru
 replaces the old one, and the restart and the poses lost are logged once and counted in
 ``/csam/status`` and the summary.
 
-With ``state_path`` set, the merger writes its state there (atomically) after each solve:
+With ``state_path`` set, the merger writes its state there (atomically) after each solve (once
+its joined map is out; a node destroyed meanwhile lets the write end):
 every robot's last local map and rendezvous measurements, the reference, its counts and the
 joined map (:class:`~csam_ros.core.checkpoint.MergerState`). Started with such a file, it
 takes that state up, publishes its joined map at once and goes on from it, also for robots
@@ -287,6 +288,7 @@ class Merger(Node):
         self._solve_lock = threading.Lock()
         self._publish_lock = threading.Lock()
         self._requested = False  # the timer asked the worker for a solve
+        self._writing_state = False  # the worker waits for the last solve's state write
         self._stopping = False
         self._on_map = guarded(self, self.drops, self.on_local_map_update)
         self._on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
@@ -325,6 +327,9 @@ class Merger(Node):
         with self._lock:
             self._stopping = True
             self._wake.notify_all()
+            writing = self._writing_state
+        if writing and self._worker is not threading.current_thread():
+            self._worker.join(timeout=SHUTDOWN_JOIN_S)  # the last solve's state is written
         self.solve_process.close()
         if self._worker is not threading.current_thread():
             self._worker.join(timeout=SHUTDOWN_JOIN_S)
@@ -672,15 +677,13 @@ class Merger(Node):
                 state_path=self.state_path,
             )
         )
-        seconds = time.perf_counter() - start - reply.state_seconds  # not the state write
+        seconds = time.perf_counter() - start
         if self._stopping:
             return
         for refusal in reply.refused:
             self._refuse(
                 refusal.robot, "local map update", LocalMapError(refusal.detail, refusal.reason)
             )
-        if reply.state_error:
-            self.get_logger().error(reply.state_error)
         if reply.cancelled:
             with self._lock:
                 self.solves_given_up += 1
@@ -705,8 +708,16 @@ class Merger(Node):
             self.solves += 1
             self.last_result = result
             self._published_stamps = dict(inputs.stamps)
+            self._writing_state = reply.state_pending
             stats = self.stats()
         self._publish(result, dict(inputs.stamps), inputs.robots, stats)
+        try:
+            written = self.solve_process.state_written()
+        finally:
+            with self._lock:
+                self._writing_state = False
+        if written is not None and written.error:
+            self.get_logger().error(written.error)
 
     def publish_provisional(self) -> bool:
         """Publish the newest local maps placed by the last join (module docs) when one is

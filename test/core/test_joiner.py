@@ -138,12 +138,20 @@ def test_the_state_holds_the_joined_maps_and_result(run: MultiRobotLog, tmp_path
     order = [m.name for m in maps]
     state = MergerState(order[0], order, order, {}, {r: 1 for r in order}, {}, 4, {})
     path = tmp_path / "merger.npz"
-    reply = Joiner().join(JoinRequest(sources, logs, CONFIG, state=state, state_path=path))
-    assert reply.result is not None and reply.state_error == ""
+    joiner = Joiner()
+    reply = joiner.join(JoinRequest(sources, logs, CONFIG, state=state, state_path=path))
+    assert reply.result is not None and reply.state_pending and not path.exists()
+    written = joiner.write_state()
+    assert written is not None and written.error == "" and path.exists()
+    assert joiner.write_state() is None  # written once
     saved = MergerState.read(path)
     assert saved.solves == 4 and list(saved.maps) == order and set(saved.rendezvous) == set(logs)
     refined = held_robot_map(maps[1].name, held)
     np.testing.assert_allclose(saved.maps[maps[1].name].poses, refined.poses, atol=1e-12)
     assert saved.result is not None and largest_difference(saved.result, reply.result) < 1e-9
     unwritable = JoinRequest(sources, logs, CONFIG, state=state, state_path=path / "x")
-    assert "merger state not written" in Joiner().join(unwritable).state_error
+    assert joiner.join(unwritable).state_pending
+    written = joiner.write_state()
+    assert written is not None and "merger state not written" in written.error
+    assert not joiner.join(JoinRequest(sources, logs, CONFIG)).state_pending  # none asked for
+    assert joiner.write_state() is None
