@@ -33,9 +33,10 @@ solve is running (``solving``) and how long the last one took (``solve_seconds``
 ``~/flush``) solves the newest inputs at once: a running solve of older inputs is given up
 (counted as ``solves_given_up``), since its result would be out of date when it came.
 
-A join takes seconds to minutes on large maps. When a local map arrives that the last joined
-map does not hold, the executor publishes ``/csam/joined_map/provisional`` at once (at most
-every ``provisional_period`` wall-clock seconds; one held back goes out when the period ends):
+A join takes seconds to minutes on large maps. When local maps arrive that no joined map
+holds, the executor publishes ``/csam/joined_map/provisional`` once ``provisional_quiet``
+wall-clock seconds pass without another (maps that arrive together go out in one message),
+or ``provisional_period`` after the first of them, and at most every ``provisional_period``:
 the newest local maps placed by the last join, unsolved
 (:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
 nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
@@ -126,7 +127,7 @@ from csam_ros.ros.topics import (
 from csam_ros.solve_process import SolveProcess
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
-PROVISIONAL_CHECKS = 4  # looks per provisional_period for a provisional map held back
+PROVISIONAL_CHECKS = 4  # looks per provisional_quiet (or period) whether a provisional map is due
 # asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
 # long after it was subscribed to (its first update, whole, usually comes first); a request
 # stands this long before another is made (the whole map may take long on a slow link), and
@@ -230,7 +231,16 @@ class Merger(Node):
             "provisional_period",
             1.0,
             "minimum wall-clock seconds between provisional joined maps (the newest local maps "
-            "placed by the last join, published as they arrive; 0: none)",
+            "placed by the last join), and the most a new local map waits for one (0: none)",
+            0.0,
+            3600.0,
+        )
+        self.provisional_quiet = declare(
+            self,
+            "provisional_quiet",
+            0.5,
+            "wall-clock seconds without a new local map after which the provisional joined map "
+            "goes out (local maps that arrive together go out in one)",
             0.0,
             3600.0,
         )
@@ -277,9 +287,11 @@ class Merger(Node):
         self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
         self.solve_seconds = 0.0  # how long the last solve took
         self.provisional_maps = 0  # provisional joined maps published
-        # the local map stamps the newest joined or provisional map used
+        # the local map stamps the last joined map and the last provisional map used
         self._published_stamps: dict[str, int] = {}
+        self._provisional_stamps: dict[str, int] = {}
         self._provisional_next = 0.0  # steady clock s from which the next one may go out
+        self._unpublished_since: float | None = None  # steady clock s a map first waited
         self.last_error = ""
         # the node's state above is read and written under _lock; one solve at a time holds
         # _solve_lock; publications of a solve hold _publish_lock (destroy_node waits on it)
@@ -310,9 +322,11 @@ class Merger(Node):
         self.create_timer(
             DISCOVERY_PERIOD_S, guarded(self, self.drops, self.discover), clock=steady_clock()
         )
-        if self.provisional_period > 0.0:  # sends those held back by the period when it ends
+        if self.provisional_period > 0.0:
             self.create_timer(
-                max(self.provisional_period / PROVISIONAL_CHECKS, 0.01),
+                max(
+                    min(self.provisional_period, self.provisional_quiet) / PROVISIONAL_CHECKS, 0.01
+                ),
                 guarded(self, self.drops, self.publish_provisional),
                 clock=steady_clock(),
             )
@@ -453,6 +467,8 @@ class Merger(Node):
             self.sources = {**self.sources, robot: held}
             self.local_map_stamps = {**self.local_map_stamps, robot: stamp}
             self.dirty = True
+            if self._unpublished_since is None:
+                self._unpublished_since = self.map_arrival[robot]
         self.publish_provisional()
 
     def _note_restart(self, robot: str, old: RobotMap, new: RobotMap) -> None:
@@ -720,22 +736,28 @@ class Merger(Node):
             self.get_logger().error(written.error)
 
     def publish_provisional(self) -> bool:
-        """Publish the newest local maps placed by the last join (module docs) when one is
-        newer than those the last joined or provisional map used and ``provisional_period``
-        has passed; whether one was published."""
+        """Publish the newest local maps placed by the last join (module docs) when neither
+        the last joined nor the last provisional map used them, and when it is time to;
+        whether one was published."""
         with self._lock:
             now = time.monotonic()
             last, stamps = self.last_result, dict(self.local_map_stamps)
+            if stamps in (self._published_stamps, self._provisional_stamps):
+                self._unpublished_since = None
+                return False
+            waited = now - (now if self._unpublished_since is None else self._unpublished_since)
+            quiet = now - max(self.map_arrival.values(), default=now)
             if (
                 last is None
                 or self.provisional_period <= 0.0
                 or now < self._provisional_next
-                or stamps == self._published_stamps
+                or (quiet < self.provisional_quiet and waited < self.provisional_period)
             ):
                 return False
             order, robots = self._order()
             maps = [self.local_maps[r] for r in order]
-            self._published_stamps = stamps
+            self._provisional_stamps = stamps
+            self._unpublished_since = None
             self._provisional_next = now + self.provisional_period
         result = carried_forward(last, maps, self.config.stamp_tolerance)
         message = joined_map_message(result, max(stamps.values()), stamps, robots)
