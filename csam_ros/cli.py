@@ -63,7 +63,7 @@ def _robot_numbers(text: str | None) -> list[int] | None:
     return numbers
 
 
-MERGER_KEYS = {"solve_period", "stale_after", "provisional_period"}  # merger parameters, s
+MERGER_KEYS = {"solve_period", "stale_after", "provisional_period", "provisional_quiet"}  # s
 
 
 def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
@@ -85,7 +85,8 @@ def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
 
 def _csam_params(document: dict) -> dict:
     """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
-    section's ``solve_period``, ``stale_after`` and ``provisional_period``."""
+    section's ``solve_period``, ``stale_after``, ``provisional_period`` and
+    ``provisional_quiet`` (seconds)."""
     from csam_ros.core.csam import MERGER, CsamConfig
 
     csam = _node_params(document, "csam", CsamConfig, MERGER)
