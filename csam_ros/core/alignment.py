@@ -229,6 +229,7 @@ class Alignment:
     stop_reason: str = ""
     parents: dict[int, int] = field(default_factory=dict)  # robot -> robot it was placed from
     methods: dict[int, str] = field(default_factory=dict)
+    warm_start: bool = False  # refined from the start given (lower cost), not the cold one
 
     def aligned(self, r: int) -> bool:
         return self.status[r] in ("reference", "aligned")
@@ -420,7 +421,10 @@ def align(
     where none): a placed robot with one starts Algorithm 1 there instead of at its pairwise
     initialisation, which still decides whether it can be placed. ``rendezvous_start[r]``
     (``parts[r].poses``' shape), when given, is where robot ``r``'s rendezvous poses start
-    (a previous solution) instead of at their local estimate. ``excluded`` robots (index:
+    (a previous solution) instead of at their local estimate. Such a warm start is taken only
+    when its cost is below the cold start's (pairwise base nodes, local rendezvous poses):
+    maps that changed much since can make it the worse start, and a descent from there may
+    end in another minimum. ``excluded`` robots (index:
     reason) are not placed and stay ``pending: <reason>``.
     """
     options = options or AlignmentOptions()
@@ -453,11 +457,9 @@ def align(
         placed, status, initial, parents, methods = _place(
             measurements, poses, n_robots, excluded, options
         )
-        if start is not None:
-            known = np.isfinite(start).all(axis=1) & np.isfinite(initial).all(axis=1)
-            known[0] = False
-            initial[known] = start[known]
-        result = _refine(parts, measurements, placed, initial, status, options, rendezvous_start)
+        result = _refine(
+            parts, measurements, placed, initial, status, options, start, rendezvous_start
+        )
         result.parents, result.methods = parents, methods
         if np.all(np.isfinite(result.covariance)):
             return result
@@ -518,10 +520,11 @@ def _refine(
     initial: Array,
     status: list[str],
     options: AlignmentOptions,
+    start: Array | None = None,
     rendezvous_start: Sequence[Array | None] | None = None,
 ) -> Alignment:
-    """Algorithm 1 on the rendezvous poses and base nodes of the placed robots (starting
-    where :func:`align` says)."""
+    """Algorithm 1 on the rendezvous poses and base nodes of the placed robots, from the
+    cold start or the warm one given, whichever costs less (:func:`align`)."""
     robots = measurements.robots
     inside = np.isin(measurements.observer, placed) & np.isin(measurements.observed, placed)
     rows = measurements.subset(inside)
@@ -533,15 +536,7 @@ def _refine(
         if part is None:
             continue
         k = [("rho", r, i) for i in range(len(part.pose_indices))]
-        poses = rendezvous_start[r] if rendezvous_start is not None else None
-        if poses is None:
-            poses = part.poses
-        elif np.shape(poses) != part.poses.shape:
-            raise ValueError(
-                f"align: rendezvous start of {robots[r]!r} has shape {np.shape(poses)}, its "
-                f"part {part.poses.shape}"
-            )
-        rho_ids[r] = problem.add_variables(POSE, k, poses)
+        rho_ids[r] = problem.add_variables(POSE, k, part.poses)
         keys.extend(k)
     base_ids: dict[int, int] = {}
     for r in placed:
@@ -591,6 +586,7 @@ def _refine(
                 name="rendezvous connector",
             )
         )
+    warm_start = _take_warm_start(problem, rho_ids, base_ids, start, rendezvous_start, robots)
     solver_options = SolverOptions(
         max_iterations=options.max_iterations,
         relative_tolerance=options.relative_tolerance,
@@ -637,7 +633,38 @@ def _refine(
         final_cost=report.final_cost if report else float("inf"),
         converged=report.converged if report else False,
         stop_reason=report.reason if report else "singular system",
+        warm_start=warm_start,
     )
+
+
+def _take_warm_start(
+    problem: Problem,
+    rho_ids: Mapping[int, IntArray],
+    base_ids: Mapping[int, int],
+    start: Array | None,
+    rendezvous_start: Sequence[Array | None] | None,
+    robots: Sequence[str],
+) -> bool:
+    """Set the problem (at the cold start) to the warm start given, base nodes (finite rows
+    of ``start``) and rendezvous poses, if that costs less; whether it did."""
+    warm = problem.values.copy()
+    for r, i in base_ids.items():
+        if start is not None and np.isfinite(start[r]).all():
+            warm[problem.scalar_indices([i])] = start[r]
+    for r, ids in rho_ids.items():
+        poses = rendezvous_start[r] if rendezvous_start is not None else None
+        if poses is None:
+            continue
+        if np.shape(poses) != (len(ids), 3):
+            raise ValueError(
+                f"align: rendezvous start of {robots[r]!r} has shape {np.shape(poses)}, its "
+                f"part {(len(ids), 3)}"
+            )
+        warm[problem.scalar_indices(ids)] = np.asarray(poses, dtype=float).reshape(-1)
+    if np.array_equal(warm, problem.values) or not problem.cost(warm) < problem.cost():
+        return False
+    problem.values = warm
+    return True
 
 
 def _factor_columns(problem: Problem, factor: Factor) -> tuple[IntArray, list[int]]:

@@ -582,8 +582,10 @@ def join_maps(
     statistics = {
         "algorithm1_iterations": alignment.iterations,
         "algorithm1_converged": float(alignment.converged),
+        "algorithm1_warm_start": float(alignment.warm_start),
         "joint_iterations": report.iterations,
         "joint_converged": float(report.converged),
+        "joint_warm_start": float(solution.warm_start),
         "joint_final_cost": report.final_cost,
         "association_candidates": associations.candidates,
         "association_gated": associations.gated,

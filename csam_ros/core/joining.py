@@ -110,6 +110,7 @@ class JointSolution:
     features: list[list[tuple[int, int]]]  # joint feature -> (robot, label) members
     feature_var_ids: IntArray  # joint ids of the features, in the order of ``features``
     report: SolveReport
+    warm_start: bool = False  # solved from the initial values given (lower cost), not cold
 
 
 def joint_solve(
@@ -126,10 +127,12 @@ def joint_solve(
 
     ``robots`` lists the aligned robot indices, the reference (index 0) first;
     ``base_nodes[r]`` places ``G_r`` in the reference frame; each cluster lists the
-    ``(robot, label)`` members of one associated feature. Initial values: robot ``r``'s poses
-    (N, 3) and features (F, 2) in the reference frame from ``initial_poses[r]`` and
-    ``initial_features[r]`` where given, else its local map moved by its base node (an
-    associated feature starts at the mean of its members).
+    ``(robot, label)`` members of one associated feature. Cold start: each robot's local map
+    moved by its base node (an associated feature at the mean of its members). Warm start:
+    robot ``r``'s poses (N, 3) and features (F, 2) in the reference frame from
+    ``initial_poses[r]`` and ``initial_features[r]`` where given, taken only when it costs
+    less than the cold start (maps that changed much since can make it the worse start, and
+    the robust cost has more than one minimum).
     """
     initial_poses = initial_poses or {}
     initial_features = initial_features or {}
@@ -138,21 +141,20 @@ def joint_solve(
         raise ValueError("joint_solve: the reference robot (index 0) must come first")
     problem = Problem()
     pose_ids: dict[int, IntArray] = {}
+    cold_poses: dict[int, Array] = {}
     for r in robots:
         m = maps[r]
-        initial = initial_poses.get(r)
-        if initial is None:
-            initial = se2.compose(np.broadcast_to(base_nodes[r], (len(m.pose_ids), 3)), m.poses)
+        cold_poses[r] = se2.compose(np.broadcast_to(base_nodes[r], (len(m.pose_ids), 3)), m.poses)
         pose_ids[r] = problem.add_variables(
-            POSE, [(m.name, "pose", i) for i in range(len(m.pose_ids))], initial
+            POSE,
+            [(m.name, "pose", i) for i in range(len(m.pose_ids))],
+            initial_poses.get(r, cold_poses[r]),
         )
 
     # features: one unknown per cluster, then one per remaining feature, robot by robot
     label_index = {r: {int(lab): k for k, lab in enumerate(maps[r].feature_labels)} for r in robots}
-    global_xy = {
-        r: initial_features[r]
-        if r in initial_features
-        else se2.transform_point(
+    cold_xy = {
+        r: se2.transform_point(
             np.broadcast_to(base_nodes[r], (len(maps[r].feature_ids), 3)),
             maps[r].feature_positions,
         )
@@ -160,7 +162,7 @@ def joint_solve(
     }
     owner: dict[int, IntArray] = {r: np.full(len(maps[r].feature_ids), -1) for r in robots}
     members: list[list[tuple[int, int]]] = []
-    initial_xy: list[Array] = []
+    cluster_index: list[list[tuple[int, int]]] = []  # (robot, local index) of the members
     aligned = set(robots)
     for cluster in clusters:
         inside = [(r, lab) for r, lab in cluster if r in aligned]
@@ -174,17 +176,25 @@ def joint_solve(
                 raise ValueError(f"feature {maps[r].name}/{lab} is in two associations")
             owner[r][label_index[r][lab]] = k
         members.append(sorted(inside))
-        initial_xy.append(np.mean([global_xy[r][label_index[r][lab]] for r, lab in inside], 0))
+        cluster_index.append([(r, label_index[r][lab]) for r, lab in inside])
+    free: dict[int, IntArray] = {}
     for r in robots:
-        free = np.flatnonzero(owner[r] < 0)
-        owner[r][free] = len(members) + np.arange(len(free))
-        members.extend([(r, int(maps[r].feature_labels[i]))] for i in free)
-        initial_xy.extend(global_xy[r][free])
+        free[r] = np.flatnonzero(owner[r] < 0)
+        owner[r][free[r]] = len(members) + np.arange(len(free[r]))
+        members.extend([(r, int(maps[r].feature_labels[i]))] for i in free[r])
+
+    def feature_starts(xy: Mapping[int, Array]) -> Array:
+        """Each joint feature's start: its member's position, or the mean of its members'."""
+        clustered = [np.mean([xy[r][i] for r, i in index], axis=0) for index in cluster_index]
+        return np.concatenate(
+            [np.reshape(clustered, (-1, 2)), *(np.reshape(xy[r][free[r]], (-1, 2)) for r in robots)]
+        )
+
     keys = [
         ("feature",) + tuple(x for rl in mem for x in (maps[rl[0]].name, rl[1])) for mem in members
     ]
     feature_var_ids = (
-        problem.add_variables(POINT, keys, np.array(initial_xy).reshape(-1, 2))
+        problem.add_variables(POINT, keys, feature_starts({**cold_xy, **initial_features}))
         if members
         else np.zeros(0, dtype=np.int64)
     )
@@ -223,8 +233,20 @@ def joint_solve(
                 observer, observed, rows.position, covariance=rows.covariance, name="rendezvous"
             )
         )
+    warm_start = bool(initial_poses or initial_features)
+    if warm_start:
+        warm = problem.values.copy()
+        for r in robots:
+            problem.set_values(pose_ids[r], cold_poses[r])
+        if members:
+            problem.set_values(feature_var_ids, feature_starts(cold_xy))
+        warm_start = problem.cost(warm) < problem.cost()
+        if warm_start:
+            problem.values = warm
     report = problem.solve(options or SolverOptions())
-    return JointSolution(problem, robots, pose_ids, feature_ids, members, feature_var_ids, report)
+    return JointSolution(
+        problem, robots, pose_ids, feature_ids, members, feature_var_ids, report, warm_start
+    )
 
 
 def covariance_columns(system: NormalEquations, scalar_indices: IntArray) -> Array:

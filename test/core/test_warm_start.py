@@ -64,6 +64,30 @@ def test_a_previous_result_of_another_reference_is_not_used() -> None:
     assert warm.statistics["joint_iterations"] == cold.statistics["joint_iterations"]
 
 
+def test_a_warm_start_costlier_than_the_cold_one_is_not_taken() -> None:
+    """Algorithm 1 and the joint solve start warm from a previous result when it costs less
+    than their cold start; from one moved far off (maps that changed much since) they start
+    cold, and the join is the cold one exactly."""
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = maps_until(log, float(end))
+    cold = join_maps(maps, logs)
+    good = join_maps(maps, logs, previous=cold)
+    assert good.statistics["algorithm1_warm_start"] == good.statistics["joint_warm_start"] == 1.0
+    off = np.array([3.0, -2.0, 1.0])
+    for robot in cold.robots.values():  # the previous result, moved off
+        robot.poses_joined = se2.compose(off, robot.poses_joined)
+        robot.alignment_rendezvous_poses = robot.alignment_rendezvous_poses + off
+        if robot.alignment_base_node is not None:
+            robot.alignment_base_node = se2.compose(off, robot.alignment_base_node)
+    cold.features[:] = [replace(f, xy=se2.transform_point(off, f.xy)) for f in cold.features]
+    bad = join_maps(maps, logs, previous=cold)
+    assert bad.statistics["algorithm1_warm_start"] == bad.statistics["joint_warm_start"] == 0.0
+    again = join_maps(maps, logs)
+    assert largest_difference(bad, again) == 0.0
+    assert bad.statistics["joint_iterations"] == again.statistics["joint_iterations"]
+
+
 def _previous(stamps: np.ndarray, corrections: np.ndarray) -> WarmStart:
     feature = (np.array([1.0, 2.0]), np.array([0.5, 0.5]))  # joined, local
     return WarmStart("robot1", {}, {"robot2": (stamps, corrections)}, {"robot2/4": feature})
