@@ -648,7 +648,7 @@ def test_maps_arriving_together_between_solves_go_out_in_one_provisional_map(
     """Both robots' newer maps, arriving one after the other while no solve runs (the next
     one is kept from starting), go out in one provisional joined map once no other follows
     for provisional_quiet, not after a solve."""
-    harness = MergerHarness(ros_context, spin, provisional_period=10.0, provisional_quiet=2.0)
+    harness = MergerHarness(ros_context, spin, provisional_period=10.0, provisional_quiet=1.0)
     try:
         middle, last = growing[1], growing[2]
         sender = UpdateSender(11)
@@ -665,7 +665,7 @@ def test_maps_arriving_together_between_solves_go_out_in_one_provisional_map(
             harness.publish("robot2", local_map_update_message(robot2, "robot2", newer))
             harness.publish("robot1", local_map_update_message(robot1, "robot1", newer))
             harness.wait(lambda: len(provisional) > 0)
-            harness.settle(1.0)
+            harness.settle(0.5)
             assert len(provisional) == 1 and not harness.merger.solving and harness.merger.dirty
         stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in provisional[0].base_nodes}
         assert stamps == {"robot1": newer, "robot2": newer}
