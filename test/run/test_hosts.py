@@ -2,7 +2,8 @@
 joined by a bridge (``csam demo --hosts``), on clean links and with random packet loss.
 
 Needs root, ``ip`` and ``iptables`` (``.ci/run`` installs it); skipped, with the reason, where
-they are missing.
+they are missing. The runs over the links (marker ``hosts``, about 100 s) are left out of
+``make test`` and run by ``make test-hosts``.
 """
 
 from __future__ import annotations
@@ -120,6 +121,7 @@ def assert_single_host_map(live: CsamResult) -> None:
     assert {(x.a, x.b) for x in live.associations} == {(x.a, x.b) for x in single.associations}
 
 
+@pytest.mark.hosts
 @needs_hosts
 def test_clean_links_give_the_single_host_joined_map(runs: dict[float | str, HostsRun]) -> None:
     run = runs[0.0]
@@ -130,6 +132,7 @@ def test_clean_links_give_the_single_host_joined_map(runs: dict[float | str, Hos
     assert report.joined_before_end > 1
 
 
+@pytest.mark.hosts
 @needs_hosts
 def test_a_robot_cut_off_is_stale_then_fresh_and_the_final_map_is_the_clean_one(
     runs: dict[float | str, HostsRun],
@@ -151,6 +154,7 @@ def test_a_robot_cut_off_is_stale_then_fresh_and_the_final_map_is_the_clean_one(
     assert_single_host_map(RunSummary.read(run.out / "summary.json").result)
 
 
+@pytest.mark.hosts
 @needs_hosts
 def test_lossy_links_keep_the_joined_map_coming(runs: dict[float | str, HostsRun]) -> None:
     loss = LOSSES[-1]
@@ -248,6 +252,8 @@ def test_a_capped_base_link_paces_the_robots_and_slows_the_heartbeats() -> None:
     assert default.find(".//f:heartbeatPeriod/f:sec", ns).text == "2"
 
 
+@pytest.mark.hosts
+@needs_hosts
 def test_ctrl_c_stops_every_node_and_deletes_the_namespaces(tmp_path: Path) -> None:
     before = _namespaces()
     out = tmp_path / "run"
