@@ -38,9 +38,18 @@ from csam_ros.core.joiner import (
 )
 from csam_ros.core.result import CsamResult
 
-# what the fork server imports once, so that a child starts at once
-PRELOAD = ["csam_ros.core.joiner"]
+# what the fork server imports once, so that a child starts at once (this module's and
+# csam_ros.message_process's)
+PRELOAD = ["csam_ros.core.joiner", "csam_ros.message_process"]
 CANCEL_SIGNAL = signal.SIGUSR1
+
+
+def forkserver_context() -> Any:
+    """The multiprocessing context of the merger's children: a fork server (the merger has
+    threads, which a fork would not copy) that imported :data:`PRELOAD` once."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(PRELOAD)  # read when the fork server starts
+    return context
 
 
 class _Cancellation:
@@ -213,8 +222,7 @@ class SolveProcess:
             self._start()
 
     def _start(self) -> None:
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(PRELOAD)  # read when the fork server starts
+        context = forkserver_context()
         mine, theirs = context.Pipe()
         cancelled = context.Value("q", 0, lock=False)
         process = context.Process(

@@ -501,12 +501,13 @@ class RunSummary:
             scenario=None if scenario is None else _string(scenario, "scenario"),
         )
 
+    def text(self) -> str:
+        """The ``summary.json`` text of this summary."""
+        return _dumps_outline(self.to_dict(), SUMMARY_OUTLINE_DEPTH) + "\n"
+
     def write(self, path: Path) -> None:
-        """Write ``summary.json`` to ``path`` by a rename (a reader never sees half of it)."""
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(_dumps_outline(self.to_dict(), SUMMARY_OUTLINE_DEPTH) + "\n")
-        os.replace(tmp, path)
+        """Write ``summary.json`` to ``path`` (:func:`write_summary_text`)."""
+        write_summary_text(path, self.text())
 
     @classmethod
     def read(cls, path: Path) -> RunSummary:
@@ -516,6 +517,14 @@ class RunSummary:
             return cls.from_dict(document)
         except (json.JSONDecodeError, SummaryError) as err:
             raise SummaryError(f"{path}: {err}") from None
+
+
+def write_summary_text(path: Path, text: str) -> None:
+    """Write a summary's text to ``path`` by a rename (a reader never sees half of it)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 # summary.json: its sections, robots and each robot's fields one a line; their values compact

@@ -17,9 +17,9 @@ map or rendezvous part changes it re-solves (at most every ``solve_period`` wall
 seconds) with the core's :func:`~csam_ros.core.csam.join_maps`, then writes
 ``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
 (transient local), ``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot
-(:func:`robot_map_transforms`) and ``/csam/status``. A robot without a new map for
-``stale_after`` seconds is reported stale there; its last map stays joined. A map delivered
-again unchanged starts no solve.
+(:func:`~csam_ros.ros.map_messages.robot_map_transforms`) and ``/csam/status``. A robot
+without a new map for ``stale_after`` seconds is reported stale there; its last map stays
+joined. A map delivered again unchanged starts no solve.
 
 Solves run off the executor: a worker thread hands each to the merger's solve process
 (:mod:`csam_ros.solve_process`), which refines each changed map to its sender's optimum and
@@ -34,14 +34,16 @@ solve is running (``solving``) and how long the last one took (``solve_seconds``
 (counted as ``solves_given_up``), since its result would be out of date when it came.
 
 A join takes seconds to minutes on large maps. When local maps arrive that no joined map
-holds, the executor publishes ``/csam/joined_map/provisional`` once ``provisional_quiet``
+holds, a thread of its own publishes ``/csam/joined_map/provisional`` once ``provisional_quiet``
 wall-clock seconds pass without another (maps that arrive together go out in one message),
 or ``provisional_period`` after the first of them, and at most every ``provisional_period``:
 the newest local maps placed by the last join, unsolved
 (:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
 nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
 the last join have NaN covariances.
-``/csam/joined_map`` stays the solved joined map.
+``/csam/joined_map`` stays the solved joined map. Joined maps, their markers and the summary
+are built and serialized by the merger's message process (:mod:`csam_ros.message_process`):
+a long run's trajectories are seconds of Python that would otherwise hold up the executor.
 
 The topic says which robot a message belongs to. Every message is checked whole when it
 arrives (``ros/map_messages.py``); a malformed one, or one naming another robot than its
@@ -76,9 +78,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
-from tf2_msgs.msg import TFMessage
 
-from csam_ros.core import se2
 from csam_ros.core.checkpoint import CheckpointError, MergerState
 from csam_ros.core.csam import CsamConfig
 from csam_ros.core.joiner import JoinRequest, MapSource
@@ -86,7 +86,7 @@ from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update
-from csam_ros.core.result import CsamResult, MergerStats, RunSummary
+from csam_ros.core.result import CsamResult, MergerStats, RunSummary, write_summary_text
 from csam_ros.core.validation import (
     CALLBACK_ERROR,
     FAILED_SOLVE,
@@ -95,6 +95,7 @@ from csam_ros.core.validation import (
     RefusedMessageError,
 )
 from csam_ros.core.warm_start import carried_forward
+from csam_ros.message_process import JoinedMapRequest, MessageProcess
 from csam_ros.nodes.common import (
     declare,
     declare_settings,
@@ -104,13 +105,11 @@ from csam_ros.nodes.common import (
     steady_clock,
     subscribe,
 )
-from csam_ros.ros.conversions import tf_message, time_to_ns
+from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
-    joined_map_message,
     map_update_from_message,
     rendezvous_log_from_message,
 )
-from csam_ros.ros.markers import joined_map_markers
 from csam_ros.ros.topics import (
     FLUSH,
     JOINED_MAP,
@@ -283,6 +282,7 @@ class Merger(Node):
         self.last_result: CsamResult | None = None
         # the solve worker's alone (and destroy_node's)
         self.solve_process = SolveProcess(niceness)
+        self.messages = MessageProcess()
         self.solves = 0
         self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
         self.solve_seconds = 0.0  # how long the last solve took
@@ -291,12 +291,16 @@ class Merger(Node):
         self._published_stamps: dict[str, int] = {}
         self._provisional_stamps: dict[str, int] = {}
         self._provisional_next = 0.0  # steady clock s from which the next one may go out
+        # the newest provisional map decided on and not yet taken by the provisional thread
+        self._provisional_due: tuple[CsamResult, list[RobotMap], dict[str, int], tuple] | None
+        self._provisional_due = None
         self._unpublished_since: float | None = None  # steady clock s a map first waited
         self.last_error = ""
         # the node's state above is read and written under _lock; one solve at a time holds
         # _solve_lock; publications of a solve hold _publish_lock (destroy_node waits on it)
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
+        self._provisional_wake = threading.Condition(self._lock)
         self._solve_lock = threading.Lock()
         self._publish_lock = threading.Lock()
         self._requested = False  # the timer asked the worker for a solve
@@ -332,8 +336,13 @@ class Merger(Node):
             )
         self.create_service(Trigger, f"~/{FLUSH}", self.on_flush)
         self.solve_process.start()  # its imports overlap the wait for the first maps
+        self.messages.start()
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
         self._worker.start()
+        self._provisional_worker = threading.Thread(
+            target=self._publish_provisionals, name="merger-provisional", daemon=True
+        )
+        self._provisional_worker.start()
 
     def destroy_node(self) -> None:
         """Stop the solve worker and the solve process (a solve running is lost: nothing of it
@@ -341,6 +350,7 @@ class Merger(Node):
         with self._lock:
             self._stopping = True
             self._wake.notify_all()
+            self._provisional_wake.notify_all()
             writing = self._writing_state
         if writing and self._worker is not threading.current_thread():
             self._worker.join(timeout=SHUTDOWN_JOIN_S)  # the last solve's state is written
@@ -349,6 +359,9 @@ class Merger(Node):
             self._worker.join(timeout=SHUTDOWN_JOIN_S)
         if self._worker.is_alive():
             self.get_logger().warning("a solve is still running; its result is not published")
+        if self._provisional_worker is not threading.current_thread():
+            self._provisional_worker.join(timeout=SHUTDOWN_JOIN_S)
+        self.messages.close()
         with self._publish_lock:  # no publication is under way, and none starts from now on
             super().destroy_node()
 
@@ -736,9 +749,9 @@ class Merger(Node):
             self.get_logger().error(written.error)
 
     def publish_provisional(self) -> bool:
-        """Publish the newest local maps placed by the last join (module docs) when neither
-        the last joined nor the last provisional map used them, and when it is time to;
-        whether one was published."""
+        """Have the provisional thread publish the newest local maps placed by the last join
+        (module docs) when neither the last joined nor the last provisional map used them,
+        and when it is time to; whether one is to go out."""
         with self._lock:
             now = time.monotonic()
             last, stamps = self.last_result, dict(self.local_map_stamps)
@@ -759,15 +772,43 @@ class Merger(Node):
             self._provisional_stamps = stamps
             self._unpublished_since = None
             self._provisional_next = now + self.provisional_period
+            self._provisional_due = (last, maps, stamps, robots)
+            self._provisional_wake.notify()
+        return True
+
+    def _publish_provisionals(self) -> None:
+        """The provisional thread: builds and publishes the newest provisional map decided
+        on (one not yet taken when a newer one is due is skipped), until the node stops."""
+        publish = guarded(self, self.drops, self._publish_provisional)
+        while True:
+            with self._lock:
+                while self._provisional_due is None and not self._stopping:
+                    self._provisional_wake.wait()
+                if self._stopping:
+                    return
+                due, self._provisional_due = self._provisional_due, None
+            publish(*due)
+
+    def _publish_provisional(
+        self,
+        last: CsamResult,
+        maps: list[RobotMap],
+        stamps: dict[str, int],
+        robots: tuple[str, ...],
+    ) -> None:
+        with self._lock:
+            if stamps == self._published_stamps:  # a solved joined map holds them already
+                return
         result = carried_forward(last, maps, self.config.stamp_tolerance)
-        message = joined_map_message(result, max(stamps.values()), stamps, robots)
+        out = self.messages.serialize(
+            JoinedMapRequest(result, max(stamps.values()), stamps, robots)
+        )
         with self._publish_lock:
             if self._stopping:
-                return False
-            self.provisional_pub.publish(message)
+                return
+            self.provisional_pub.publish(out.joined_map)
         with self._lock:
             self.provisional_maps += 1
-        return True
 
     def _publish(
         self,
@@ -777,16 +818,28 @@ class Merger(Node):
         stats: MergerStats | None = None,
     ) -> None:
         """Publish a joined map, its markers and transforms (and write the summary)."""
-        joined = joined_map_message(result, max(stamps.values()), stamps, robots)
-        markers = joined_map_markers(result, self.get_clock().now().to_msg())
+        summary = (
+            RunSummary(result, merger=stats)
+            if self.summary_path is not None and stats is not None
+            else None
+        )
+        request = JoinedMapRequest(
+            result,
+            max(stamps.values()),
+            stamps,
+            robots,
+            markers_stamp_ns=self.get_clock().now().nanoseconds,
+            summary=summary,
+        )
+        out = self.messages.serialize(request)
         with self._publish_lock:
             if self._stopping:
                 return
-            if self.summary_path is not None and stats is not None:
-                RunSummary(result, merger=stats).write(self.summary_path)
-            self.joined_pub.publish(joined)
-            self.markers_pub.publish(markers)
-            self.tf_pub.publish(robot_map_transforms(result, time_to_ns(joined.header.stamp)))
+            if self.summary_path is not None and out.summary_text is not None:
+                write_summary_text(self.summary_path, out.summary_text)
+            self.joined_pub.publish(out.joined_map)
+            self.markers_pub.publish(out.markers)
+            self.tf_pub.publish(out.transforms)
 
     def stats(self) -> MergerStats:
         """What the merger counted so far, as the summary carries it (call under the lock)."""
@@ -878,20 +931,6 @@ class Merger(Node):
             )
         )
         return array
-
-
-def robot_map_transforms(result: CsamResult, stamp_ns: int) -> TFMessage:
-    """``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot: the transform that
-    takes the robot's latest local pose to its joined pose, so that with the smoother's
-    ``<robot>/map -> <robot>/base_link`` the robot is where the joined map has it now (as
-    REP-105's ``map -> odom`` corrects odometry). At the first pose it is the base node; the
-    joint solve bends a local map slightly, so the two differ a little later on."""
-    transforms = []
-    for name, robot in result.robots.items():
-        if robot.alignment == "aligned" and robot.poses_joined is not None:
-            latest = se2.compose(robot.poses_joined[-1], se2.inverse(robot.poses_local[-1]))
-            transforms.append((result.reference_frame, f"{name}/map", latest))
-    return tf_message(transforms, stamp_ns)
 
 
 def _outside_trajectory(result: CsamResult | None) -> int:

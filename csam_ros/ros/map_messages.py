@@ -26,7 +26,9 @@ from csam_msgs.msg import (
     RobotTrajectory,
 )
 from geometry_msgs.msg import Pose2D
+from tf2_msgs.msg import TFMessage
 
+from csam_ros.core import se2
 from csam_ros.core.factors import (
     Cauchy,
     Huber,
@@ -52,6 +54,7 @@ from csam_ros.ros.conversions import (
     ns_to_time,
     rendezvous_message,
     stamp_to_ns,
+    tf_message,
     time_to_ns,
     times_from_seconds,
 )
@@ -461,3 +464,17 @@ def joined_map_message(
         Association(a=a.a, b=a.b, mahalanobis=float(a.mahalanobis)) for a in result.associations
     ]
     return msg
+
+
+def robot_map_transforms(result: CsamResult, stamp_ns: int) -> TFMessage:
+    """``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot: the transform that
+    takes the robot's latest local pose to its joined pose, so that with the smoother's
+    ``<robot>/map -> <robot>/base_link`` the robot is where the joined map has it now (as
+    REP-105's ``map -> odom`` corrects odometry). At the first pose it is the base node; the
+    joint solve bends a local map slightly, so the two differ a little later on."""
+    transforms = []
+    for name, robot in result.robots.items():
+        if robot.alignment == "aligned" and robot.poses_joined is not None:
+            latest = se2.compose(robot.poses_joined[-1], se2.inverse(robot.poses_local[-1]))
+            transforms.append((result.reference_frame, f"{name}/map", latest))
+    return tf_message(transforms, stamp_ns)

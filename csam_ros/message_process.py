@@ -1,0 +1,160 @@
+"""The merger's joined maps built and serialized in a process of their own.
+
+A joined map of a long run carries every robot's whole trajectory: on MR.CLAM Dataset 1 at
+its end 28,000 ``Pose2D`` and as many stamps, about 0.3 s of Python to build and serialize,
+the markers as much again, and the summary's JSON 0.3 s. In the merger's process all of it
+holds the interpreter lock that the executor needs to take local maps and publish. A
+:class:`MessageProcess` child builds them from the result (a pickle of numpy arrays, a few
+milliseconds) and returns serialized CDR, which the merger publishes as it is (``rclpy``
+publishes ``bytes`` without touching them). A child that fails or dies is started again at
+the next request; meanwhile the messages are built in the caller's process, so none is lost.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from typing import Any
+
+from rclpy.serialization import serialize_message
+
+from csam_ros.core.result import CsamResult, RunSummary
+from csam_ros.ros.conversions import ns_to_time
+from csam_ros.ros.map_messages import joined_map_message, robot_map_transforms
+from csam_ros.ros.markers import joined_map_markers
+from csam_ros.solve_process import forkserver_context
+
+
+@dataclass(frozen=True)
+class JoinedMapRequest:
+    """What a joined map publication is built from: the result, the message stamp and the
+    local-map stamps it used; with ``markers_stamp_ns`` also its markers and ``/tf``
+    transforms (a solved map, not a provisional one), with ``summary`` its summary text."""
+
+    result: CsamResult
+    stamp_ns: int
+    local_map_stamps: dict[str, int]
+    robots: tuple[str, ...]
+    markers_stamp_ns: int | None = None
+    summary: RunSummary | None = None
+
+
+@dataclass(frozen=True)
+class SerializedJoinedMap:
+    """The serialized messages of a :class:`JoinedMapRequest` (None where not asked for)."""
+
+    joined_map: bytes
+    markers: bytes | None = None
+    transforms: bytes | None = None
+    summary_text: str | None = None
+
+
+def serialize_joined_map(request: JoinedMapRequest) -> SerializedJoinedMap:
+    """Build and serialize what ``request`` asks for (in whichever process calls it)."""
+    result = request.result
+    joined = joined_map_message(result, request.stamp_ns, request.local_map_stamps, request.robots)
+    markers = transforms = None
+    if request.markers_stamp_ns is not None:
+        stamp = ns_to_time(request.markers_stamp_ns)
+        markers = serialize_message(joined_map_markers(result, stamp))
+        transforms = serialize_message(robot_map_transforms(result, request.stamp_ns))
+    return SerializedJoinedMap(
+        serialize_message(joined),
+        markers,
+        transforms,
+        None if request.summary is None else request.summary.text(),
+    )
+
+
+@dataclass(frozen=True)
+class _Failed:
+    error: str
+
+
+def _serve(connection: Connection) -> None:
+    """The child: one reply per request, until the parent closes its end or goes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    while True:
+        try:
+            request = connection.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            reply: SerializedJoinedMap | _Failed = serialize_joined_map(request)
+        except Exception as err:  # noqa: BLE001 - the child outlives any one request
+            reply = _Failed(f"{type(err).__name__}: {err}")
+        try:
+            connection.send(reply)
+        except (EOFError, OSError):
+            return
+
+
+@dataclass
+class MessageProcess:
+    """A child process serializing joined maps for one merger (module docstring); thread
+    safe, one request at a time. ``failures`` counts the requests the child did not answer
+    (built in the caller's process instead), ``last_error`` says why the last one failed."""
+
+    failures: int = 0
+    last_error: str = ""
+    starts: int = 0
+    _process: Any = field(default=None, repr=False)
+    _connection: Connection | None = field(default=None, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _closed: bool = False
+
+    def start(self) -> None:
+        """Start the child unless it runs (it imports while the caller goes on)."""
+        with self._lock:
+            if not self._closed:
+                self._ensure_started()
+
+    def serialize(self, request: JoinedMapRequest) -> SerializedJoinedMap:
+        """``request`` serialized by the child, or here if the child fails or is closed."""
+        with self._lock:
+            if not self._closed:
+                self._ensure_started()
+                assert self._connection is not None
+                try:
+                    self._connection.send(request)
+                    reply = self._connection.recv()
+                except (EOFError, OSError) as err:
+                    self._stop_child()
+                    reply = _Failed(f"the message process ended ({type(err).__name__})")
+                if isinstance(reply, SerializedJoinedMap):
+                    return reply
+                self.failures += 1
+                self.last_error = reply.error
+        return serialize_joined_map(request)
+
+    def close(self) -> None:
+        """Stop the child for good (a later request is built in the caller's process)."""
+        with self._lock:
+            self._closed = True
+            self._stop_child()
+
+    def _ensure_started(self) -> None:
+        if self._process is not None and self._process.is_alive():
+            return
+        self._stop_child()
+        context = forkserver_context()
+        mine, theirs = context.Pipe()
+        process = context.Process(
+            target=_serve, args=(theirs,), name="csam-merger-messages", daemon=True
+        )
+        process.start()
+        theirs.close()
+        self._process, self._connection = process, mine
+        self.starts += 1
+
+    def _stop_child(self) -> None:
+        process, connection = self._process, self._connection
+        self._process = self._connection = None
+        if process is not None and process.is_alive():
+            process.kill()
+        if process is not None:
+            process.join()
+        if connection is not None:
+            connection.close()
