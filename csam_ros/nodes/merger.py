@@ -163,6 +163,17 @@ class SharedDropCounter(DropCounter):
 
 
 @dataclass(frozen=True)
+class ProvisionalMap:
+    """A provisional joined map decided on: the newest local maps (in the join's robot order)
+    to be placed by ``last`` (:func:`~csam_ros.core.warm_start.carried_forward`)."""
+
+    last: CsamResult
+    maps: list[RobotMap]
+    stamps: dict[str, int]
+    robots: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class SolveInputs:
     """What one solve works on, taken under the merger's lock: never changed afterwards."""
 
@@ -282,7 +293,7 @@ class Merger(Node):
         self.last_result: CsamResult | None = None
         # the solve worker's alone (and destroy_node's)
         self.solve_process = SolveProcess(niceness)
-        self.messages = MessageProcess()
+        self.message_process = MessageProcess()
         self.solves = 0
         self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
         self.solve_seconds = 0.0  # how long the last solve took
@@ -292,8 +303,7 @@ class Merger(Node):
         self._provisional_stamps: dict[str, int] = {}
         self._provisional_next = 0.0  # steady clock s from which the next one may go out
         # the newest provisional map decided on and not yet taken by the provisional thread
-        self._provisional_due: tuple[CsamResult, list[RobotMap], dict[str, int], tuple] | None
-        self._provisional_due = None
+        self._provisional_due: ProvisionalMap | None = None
         self._unpublished_since: float | None = None  # steady clock s a map first waited
         self.last_error = ""
         # the node's state above is read and written under _lock; one solve at a time holds
@@ -336,7 +346,7 @@ class Merger(Node):
             )
         self.create_service(Trigger, f"~/{FLUSH}", self.on_flush)
         self.solve_process.start()  # its imports overlap the wait for the first maps
-        self.messages.start()
+        self.message_process.start()
         self._worker = threading.Thread(target=self._work, name="merger-solve", daemon=True)
         self._worker.start()
         self._provisional_worker = threading.Thread(
@@ -361,7 +371,7 @@ class Merger(Node):
             self.get_logger().warning("a solve is still running; its result is not published")
         if self._provisional_worker is not threading.current_thread():
             self._provisional_worker.join(timeout=SHUTDOWN_JOIN_S)
-        self.messages.close()
+        self.message_process.close()
         with self._publish_lock:  # no publication is under way, and none starts from now on
             super().destroy_node()
 
@@ -772,7 +782,7 @@ class Merger(Node):
             self._provisional_stamps = stamps
             self._unpublished_since = None
             self._provisional_next = now + self.provisional_period
-            self._provisional_due = (last, maps, stamps, robots)
+            self._provisional_due = ProvisionalMap(last, maps, stamps, robots)
             self._provisional_wake.notify()
         return True
 
@@ -787,24 +797,19 @@ class Merger(Node):
                 if self._stopping:
                     return
                 due, self._provisional_due = self._provisional_due, None
-            publish(*due)
+            publish(due)
 
-    def _publish_provisional(
-        self,
-        last: CsamResult,
-        maps: list[RobotMap],
-        stamps: dict[str, int],
-        robots: tuple[str, ...],
-    ) -> None:
+    def _publish_provisional(self, due: ProvisionalMap) -> None:
         with self._lock:
-            if stamps == self._published_stamps:  # a solved joined map holds them already
+            if due.stamps == self._published_stamps:  # a solved joined map holds them already
                 return
-        result = carried_forward(last, maps, self.config.stamp_tolerance)
-        out = self.messages.serialize(
-            JoinedMapRequest(result, max(stamps.values()), stamps, robots)
+        result = carried_forward(due.last, due.maps, self.config.stamp_tolerance)
+        stamps = due.stamps
+        out = self.message_process.serialize(
+            JoinedMapRequest(result, max(stamps.values()), stamps, due.robots)
         )
         with self._publish_lock:
-            if self._stopping:
+            if self._stopping or stamps == self._published_stamps:
                 return
             self.provisional_pub.publish(out.joined_map)
         with self._lock:
@@ -831,7 +836,7 @@ class Merger(Node):
             markers_stamp_ns=self.get_clock().now().nanoseconds,
             summary=summary,
         )
-        out = self.messages.serialize(request)
+        out = self.message_process.serialize(request)
         with self._publish_lock:
             if self._stopping:
                 return
