@@ -406,8 +406,8 @@ def main(argv: list[str] | None = None) -> int:
             ]
         window = f"[{args.start}, {'end' if args.duration is None else args.start + args.duration}]"
         print(
-            f"MR.CLAM Dataset 1, window {window} s; landmark error after a rigid 2D alignment "
-            "(Kabsch, no scale) of the joined map onto the truth"
+            f"MR.CLAM {args.dataset.name}, window {window} s; landmark error after a rigid 2D "
+            "alignment (Kabsch, no scale) of the joined map onto the truth"
         )
         print(RUN_HEADER, flush=True)
         records = []
