@@ -264,7 +264,7 @@ def test_real_data_settings_and_errors() -> None:
     document = load_document("mrclam")
     config = CsamConfig.from_dict(document["csam"])
     assert config.rendezvous_consistency and config.thinning().max_per_pair == 20
-    assert config.solver_options().relative_tolerance == 1e-6  # the robust cost creeps
+    assert config.solver_options().relative_tolerance == 1e-5  # the robust cost creeps
     assert CsamConfig.from_dict({"rendezvous_max_per_pair": 0}).thinning().max_per_pair is None
     with pytest.raises(ValueError, match="rendezvous_min_interval"):
         CsamConfig.from_dict({"rendezvous_min_interval": -1.0})
