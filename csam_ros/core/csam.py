@@ -30,12 +30,14 @@ are not in ``features``, which is the joined map in the reference frame.
 
 from __future__ import annotations
 
+import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -86,6 +88,8 @@ from csam_ros.core.solver import NormalEquations, SolverOptions
 from csam_ros.core.warm_start import WarmStart
 
 Array = NDArray[np.float64]
+T = TypeVar("T")
+U = TypeVar("U")
 
 
 MERGER = "merger"  # the node that takes most CsamConfig fields as parameters
@@ -272,6 +276,16 @@ def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     return LocalView(m, system, rendezvous_poses, part, cross)
 
 
+def in_threads(function: Callable[[T], U], items: Sequence[T]) -> list[U]:
+    """``[function(x) for x in items]`` in threads, one per core (for work that releases the
+    interpreter lock: sparse factorisations and solves, LAPACK)."""
+    workers = min(len(items), os.cpu_count() or 1)
+    if workers < 2:
+        return [function(x) for x in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix="csam") as pool:
+        return list(pool.map(function, items))
+
+
 class LocalViewCache:
     """:class:`LocalView` per robot, kept while its map is the same object and its rendezvous
     poses the same (a live merger replaces a map when a new one arrives, never changes it)."""
@@ -294,17 +308,30 @@ class LocalViewCache:
 
     def view(self, m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
         """The cached view of ``m`` if it is still valid, else a new one (then cached)."""
-        view = self._views.get(m.name)
-        if (
-            view is not None
-            and view.robot_map is m
-            and np.array_equal(view.rendezvous_poses, rendezvous_poses)
-        ):
-            self.reused += 1
-            return view
-        self.built += 1
-        view = self._views[m.name] = local_view(m, rendezvous_poses)
-        return view
+        return self.views([m], [rendezvous_poses])[0]
+
+    def views(
+        self, maps: Sequence[RobotMap], rendezvous_poses: Sequence[NDArray[np.int64]]
+    ) -> list[LocalView]:
+        """:meth:`view` of each map; the new ones built in threads, one per core: their
+        factorisations and solves release the interpreter lock."""
+        out: list[LocalView | None] = []
+        for m, poses in zip(maps, rendezvous_poses, strict=True):
+            view = self._views.get(m.name)
+            valid = (
+                view is not None
+                and view.robot_map is m
+                and np.array_equal(view.rendezvous_poses, poses)
+            )
+            out.append(view if valid else None)
+        todo = [i for i, view in enumerate(out) if view is None]
+        self.reused += len(out) - len(todo)
+        self.built += len(todo)
+
+        built = in_threads(lambda i: local_view(maps[i], rendezvous_poses[i]), todo)
+        for i, view in zip(todo, built, strict=True):
+            out[i] = self._views[maps[i].name] = view
+        return [view for view in out if view is not None]
 
 
 def _map_features(m: RobotMap, view: LocalView, left_out: Sequence[int] = ()) -> MapFeatures | None:
@@ -423,7 +450,7 @@ def join_maps(
         )
         for r in range(len(maps))
     ]
-    views = [cache.view(m, idx) for m, idx in zip(maps, rdv_poses, strict=True)]
+    views = cache.views(maps, rdv_poses)
     parts = [v.part for v in views]
     lap("local_rendezvous_parts")
 
@@ -460,7 +487,7 @@ def join_maps(
     lap("alignment")
 
     # the local marginals the summary reports and association uses
-    sigma_local = [v.sigma_phi for v in views]
+    sigma_local = in_threads(lambda v: v.sigma_phi, views)
     lap("local_marginals")
 
     associations = Associations([], [])
