@@ -487,7 +487,7 @@ def join_maps(
     lap("alignment")
 
     # the local marginals the summary reports and association uses
-    sigma_local = in_threads(lambda v: v.sigma_phi, views)
+    sigma_local = [v.sigma_phi for v in views]
     lap("local_marginals")
 
     associations = Associations([], [])
