@@ -34,9 +34,10 @@ solve is running (``solving``) and how long the last one took (``solve_seconds``
 (counted as ``solves_given_up``), since its result would be out of date when it came.
 
 A join takes seconds to minutes on large maps. When local maps arrive that no joined map
-holds, a thread of its own publishes ``/csam/joined_map/provisional`` once ``provisional_quiet``
-wall-clock seconds pass without another (maps that arrive together go out in one message),
-or ``provisional_period`` after the first of them, and at most every ``provisional_period``:
+holds, a thread of its own publishes ``/csam/joined_map/provisional`` once every robot's map
+is newer than the last joined and provisional maps, or ``provisional_quiet`` wall-clock
+seconds pass without another (maps that arrive together go out in one message), or
+``provisional_period`` after the first of them, and at most every ``provisional_period``:
 the newest local maps placed by the last join, unsolved
 (:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
 nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
@@ -250,7 +251,8 @@ class Merger(Node):
             "provisional_quiet",
             0.5,
             "wall-clock seconds without a new local map after which the provisional joined map "
-            "goes out (local maps that arrive together go out in one)",
+            "goes out (local maps that arrive together go out in one); it goes out at once when "
+            "every robot's map is new",
             0.0,
             3600.0,
         )
@@ -770,11 +772,21 @@ class Merger(Node):
                 return False
             waited = now - (now if self._unpublished_since is None else self._unpublished_since)
             quiet = now - max(self.map_arrival.values(), default=now)
+            # every robot's map is newer than the last joined and provisional maps: no other
+            # is to come that this one should wait for
+            complete = all(
+                stamp not in (self._published_stamps.get(r), self._provisional_stamps.get(r))
+                for r, stamp in stamps.items()
+            )
             if (
                 last is None
                 or self.provisional_period <= 0.0
                 or now < self._provisional_next
-                or (quiet < self.provisional_quiet and waited < self.provisional_period)
+                or (
+                    quiet < self.provisional_quiet
+                    and waited < self.provisional_period
+                    and not complete
+                )
             ):
                 return False
             order, robots = self._order()
