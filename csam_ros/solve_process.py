@@ -235,4 +235,5 @@ class SolveProcess:
         theirs.close()
         self._process, self._connection, self._cancelled = process, mine, cancelled
         self._sent, self._previous, self._requests = {}, None, 0
+        self._state_pending = False  # a new child writes no state it was not asked for
         self.starts += 1
