@@ -24,7 +24,7 @@ from csam_ros.core.result import CsamResult, RunSummary
 from csam_ros.ros.conversions import ns_to_time
 from csam_ros.ros.map_messages import joined_map_message, robot_map_transforms
 from csam_ros.ros.markers import joined_map_markers
-from csam_ros.solve_process import forkserver_context
+from csam_ros.solve_process import forkserver_context, stop_child
 
 
 @dataclass(frozen=True)
@@ -152,9 +152,4 @@ class MessageProcess:
     def _stop_child(self) -> None:
         process, connection = self._process, self._connection
         self._process = self._connection = None
-        if process is not None and process.is_alive():
-            process.kill()
-        if process is not None:
-            process.join()
-        if connection is not None:
-            connection.close()
+        stop_child(process, connection)

@@ -52,6 +52,16 @@ def forkserver_context() -> Any:
     return context
 
 
+def stop_child(process: Any, connection: Connection | None) -> None:
+    """Kill a child ``process`` (None: none) if it runs, reap it and close its pipe end."""
+    if process is not None and process.is_alive():
+        process.kill()
+    if process is not None:
+        process.join()
+    if connection is not None:
+        connection.close()
+
+
 class _Cancellation:
     """In the child: the requests are numbered from 1 as they come; ``cancelled`` (shared
     with the parent) holds the number of the one to give up. Entering :meth:`cancellable`
@@ -210,12 +220,7 @@ class SolveProcess:
         with self._lock:
             process, connection = self._process, self._connection
             self._process = self._connection = None
-        if process is not None and process.is_alive():
-            process.kill()
-        if process is not None:
-            process.join()
-        if connection is not None:
-            connection.close()
+        stop_child(process, connection)
 
     def _ensure_started(self) -> None:
         if self._process is None or not self._process.is_alive():

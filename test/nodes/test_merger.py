@@ -642,41 +642,12 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
     assert time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == newer
 
 
-def test_maps_arriving_together_between_solves_go_out_in_one_provisional_map(
-    ros_context, spin, growing: list[RunMessages]
-) -> None:
-    """Both robots' newer maps, arriving one after the other while no solve runs (the next
-    one is kept from starting), go out in one provisional joined map, not after a solve."""
-    harness = MergerHarness(ros_context, spin, provisional_period=10.0, provisional_quiet=1.0)
-    try:
-        middle, last = growing[1], growing[2]
-        sender = UpdateSender(11)
-        first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-        harness.start(_with_robot2(middle, first))
-        provisional: list[JoinedMap] = []
-        harness.injector.create_subscription(
-            JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
-        )
-        newer = STAMP_NS + 10**9
-        robot1 = UpdateSender(12).update(robot_map_arrays(last.robot_maps["robot1"]))
-        robot2 = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
-        with harness.merger._solve_lock:  # the worker waits here to start the next solve
-            harness.publish("robot2", local_map_update_message(robot2, "robot2", newer))
-            harness.publish("robot1", local_map_update_message(robot1, "robot1", newer))
-            harness.wait(lambda: len(provisional) > 0)
-            harness.settle(0.5)
-            assert len(provisional) == 1 and not harness.merger.solving and harness.merger.dirty
-        stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in provisional[0].base_nodes}
-        assert stamps == {"robot1": newer, "robot2": newer}
-    finally:
-        harness.close()
-
-
 def test_a_provisional_map_waits_for_quiet_unless_every_robot_has_a_new_map(
     ros_context, spin, growing: list[RunMessages]
 ) -> None:
     """With provisional_quiet and provisional_period far off, robot2's newer map alone does
-    not go out; once robot1's is in too, the provisional map goes out at once."""
+    not go out; once robot1's is in too, both go out at once in one provisional joined map,
+    while no solve runs (the next one is kept from starting)."""
     harness = MergerHarness(ros_context, spin, provisional_period=600.0, provisional_quiet=600.0)
     try:
         middle, last = growing[1], growing[2]
@@ -697,6 +668,8 @@ def test_a_provisional_map_waits_for_quiet_unless_every_robot_has_a_new_map(
             assert not provisional
             harness.publish("robot1", local_map_update_message(robot1, "robot1", newer))
             harness.wait(lambda: len(provisional) > 0)
+            harness.settle(0.5)
+            assert len(provisional) == 1 and not harness.merger.solving and harness.merger.dirty
         stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in provisional[0].base_nodes}
         assert stamps == {"robot1": newer, "robot2": newer}
     finally:
