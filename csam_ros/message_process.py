@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import signal
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
@@ -95,8 +96,10 @@ def _serve(connection: Connection) -> None:
 class MessageProcess:
     """A child process serializing joined maps for one merger (module docstring); thread
     safe, one request at a time. ``failures`` counts the requests the child did not answer
-    (built in the caller's process instead), ``last_error`` says why the last one failed."""
+    (built in the caller's process instead), ``last_error`` says why the last one failed, and
+    ``on_failure`` (when given) is told each time."""
 
+    on_failure: Callable[[str], None] | None = field(default=None, repr=False)
     failures: int = 0
     last_error: str = ""
     starts: int = 0
@@ -127,6 +130,8 @@ class MessageProcess:
                     return reply
                 self.failures += 1
                 self.last_error = reply.error
+                if self.on_failure is not None:
+                    self.on_failure(f"{reply.error}: built in this process instead")
         return serialize_joined_map(request)
 
     def close(self) -> None:

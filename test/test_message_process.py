@@ -30,6 +30,7 @@ from csam_ros.ros.markers import joined_map_markers
 
 STAMP_NS = 40_000_000_000
 MARKERS_NS = 41_500_000_000
+reported_failures: list[str] = []  # what the processes of these tests reported
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +58,8 @@ def _same(a: SerializedJoinedMap, b: SerializedJoinedMap) -> bool:
 
 @pytest.fixture
 def messages() -> MessageProcess:
-    process = MessageProcess()
+    reported_failures.clear()
+    process = MessageProcess(on_failure=reported_failures.append)
     yield process
     process.close()
 
@@ -102,6 +104,7 @@ def test_a_child_that_died_is_replaced_by_a_build_here_then_started_again(
     messages._process.is_alive = lambda: True  # type: ignore[method-assign]
     assert _same(messages.serialize(request), expected)
     assert messages.failures == 1 and "ended" in messages.last_error
+    assert reported_failures == [f"{messages.last_error}: built in this process instead"]
     assert _same(messages.serialize(request), expected)
     assert messages.starts == 3 and messages.failures == 1
 
@@ -116,6 +119,7 @@ def test_a_failed_request_is_built_here_and_reported(
     with pytest.raises(type(here.value)):
         messages.serialize(broken)  # the child's error, then the same one here
     assert messages.failures == 1 and messages.last_error.startswith(type(here.value).__name__)
+    assert reported_failures == [f"{messages.last_error}: built in this process instead"]
     request = _request(result, solved=False)
     assert _same(messages.serialize(request), serialize_joined_map(request))  # the same child
     assert messages.starts == 1

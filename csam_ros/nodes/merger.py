@@ -295,7 +295,9 @@ class Merger(Node):
         self.last_result: CsamResult | None = None
         # the solve worker's alone (and destroy_node's)
         self.solve_process = SolveProcess(niceness)
-        self.message_process = MessageProcess()
+        self.message_process = MessageProcess(
+            on_failure=lambda error: self.get_logger().warning(f"message process: {error}")
+        )
         self.solves = 0
         self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
         self.solve_seconds = 0.0  # how long the last solve took
