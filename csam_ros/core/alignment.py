@@ -661,10 +661,7 @@ def _take_warm_start(
                 f"part {(len(ids), 3)}"
             )
         warm[problem.scalar_indices(ids)] = np.asarray(poses, dtype=float).reshape(-1)
-    if np.array_equal(warm, problem.values) or not problem.cost(warm) < problem.cost():
-        return False
-    problem.values = warm
-    return True
+    return problem.take_if_cheaper(warm)
 
 
 def _factor_columns(problem: Problem, factor: Factor) -> tuple[IntArray, list[int]]:

@@ -233,16 +233,14 @@ def joint_solve(
                 observer, observed, rows.position, covariance=rows.covariance, name="rendezvous"
             )
         )
-    warm_start = bool(initial_poses or initial_features)
-    if warm_start:
+    warm_start = False
+    if initial_poses or initial_features:
         warm = problem.values.copy()
         for r in robots:
             problem.set_values(pose_ids[r], cold_poses[r])
         if members:
             problem.set_values(feature_var_ids, feature_starts(cold_xy))
-        warm_start = problem.cost(warm) < problem.cost()
-        if warm_start:
-            problem.values = warm
+        warm_start = problem.take_if_cheaper(warm)
     report = problem.solve(options or SolverOptions())
     return JointSolution(
         problem, robots, pose_ids, feature_ids, members, feature_var_ids, report, warm_start

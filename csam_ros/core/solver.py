@@ -338,6 +338,14 @@ class Problem:
             sum(f.whitened(self._blocks(f, vals), jacobians=False)[2].sum() for f in self.factors)
         )
 
+    def take_if_cheaper(self, values: Array) -> bool:
+        """Make ``values`` the estimate if they cost less than the current one (a warm start
+        against the cold one); whether they did."""
+        if np.array_equal(values, self.values) or not self.cost(values) < self.cost():
+            return False
+        self.values = values
+        return True
+
     def factor_costs(self, values: Array | None = None) -> list[Array]:
         """Per-factor costs of each factor kind instance, in :attr:`factors` order."""
         vals = self.values if values is None else values
