@@ -141,7 +141,8 @@ class CsamConfig:
     )
     associate: bool = setting(True, "false: join through rendezvous rows only", node=MERGER)
     # measured (python -m csam_ros.bench.merger_replay): no fewer iterations on simulated runs,
-    # other minima of the robust cost on MR.CLAM; a cold solve is the offline one
+    # where a cold solve is the offline one; on MR.CLAM fewer, in other minima of the robust
+    # cost within the poses' uncertainty (on in config/mrclam.yaml)
     warm_start: bool = setting(
         False, "start each live solve from the previous one (docs/METHOD.md 6.4)", node=MERGER
     )
@@ -276,6 +277,12 @@ def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     return LocalView(m, system, rendezvous_poses, part, cross)
 
 
+def _with_marginals(view: LocalView) -> LocalView:
+    """``view`` with its local marginals computed (a join reads them all)."""
+    view.sigma_phi, view.feature_covariances  # noqa: B018 - cached properties
+    return view
+
+
 def in_threads(function: Callable[[T], U], items: Sequence[T]) -> list[U]:
     """``[function(x) for x in items]`` in threads, one per core (for work that releases the
     interpreter lock: sparse factorisations and solves, LAPACK)."""
@@ -313,8 +320,8 @@ class LocalViewCache:
     def views(
         self, maps: Sequence[RobotMap], rendezvous_poses: Sequence[NDArray[np.int64]]
     ) -> list[LocalView]:
-        """:meth:`view` of each map; the new ones built in threads, one per core: their
-        factorisations and solves release the interpreter lock."""
+        """:meth:`view` of each map; the new ones built with their local marginals in threads,
+        one per core: their factorisations and solves release the interpreter lock."""
         out: list[LocalView | None] = []
         for m, poses in zip(maps, rendezvous_poses, strict=True):
             view = self._views.get(m.name)
@@ -328,7 +335,9 @@ class LocalViewCache:
         self.reused += len(out) - len(todo)
         self.built += len(todo)
 
-        built = in_threads(lambda i: local_view(maps[i], rendezvous_poses[i]), todo)
+        built = in_threads(
+            lambda i: _with_marginals(local_view(maps[i], rendezvous_poses[i])), todo
+        )
         for i, view in zip(todo, built, strict=True):
             out[i] = self._views[maps[i].name] = view
         return [view for view in out if view is not None]
