@@ -42,9 +42,12 @@ the newest local maps placed by the last join, unsolved
 (:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
 nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
 the last join have NaN covariances.
-``/csam/joined_map`` stays the solved joined map. Joined maps, their markers and the summary
-are built and serialized by the merger's message process (:mod:`csam_ros.message_process`):
-a long run's trajectories are seconds of Python that would otherwise hold up the executor.
+``/csam/joined_map`` stays the solved joined map. Solved joined maps, their markers and the
+summary are built and serialized by the merger's message process
+(:mod:`csam_ros.message_process`): a long run's markers and summary are over half a second
+of Python that would otherwise hold up the executor. A provisional map is serialized by its
+thread (its trajectories from their arrays,
+:func:`~csam_ros.ros.map_messages.serialized_joined_map`).
 
 The topic says which robot a message belongs to. Every message is checked whole when it
 arrives (``ros/map_messages.py``); a malformed one, or one naming another robot than its
@@ -96,7 +99,7 @@ from csam_ros.core.validation import (
     RefusedMessageError,
 )
 from csam_ros.core.warm_start import carried_forward
-from csam_ros.message_process import JoinedMapRequest, MessageProcess
+from csam_ros.message_process import JoinedMapRequest, MessageProcess, serialize_joined_map
 from csam_ros.nodes.common import (
     declare,
     declare_settings,
@@ -819,7 +822,8 @@ class Merger(Node):
                 return
         result = carried_forward(due.last, due.maps, self.config.stamp_tolerance)
         stamps = due.stamps
-        out = self.message_process.serialize(
+        # here, not behind a solved map's markers and summary in the message process
+        out = serialize_joined_map(
             JoinedMapRequest(result, max(stamps.values()), stamps, due.robots)
         )
         with self._publish_lock:

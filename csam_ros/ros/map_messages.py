@@ -26,6 +26,7 @@ from csam_msgs.msg import (
     RobotTrajectory,
 )
 from geometry_msgs.msg import Pose2D
+from rclpy.serialization import serialize_message
 from tf2_msgs.msg import TFMessage
 
 from csam_ros.core import se2
@@ -420,6 +421,111 @@ def joined_map_message(
     result: CsamResult, stamp_ns: int, local_map_stamps: dict[str, int], robots: Sequence[str]
 ) -> JoinedMap:
     """The joined map message of a C-SAM result."""
+    msg = _joined_map_without_trajectories(result, stamp_ns, local_map_stamps, robots)
+    msg.trajectories = [
+        RobotTrajectory(
+            robot=name,
+            stamps=times_from_seconds(stamps),
+            poses=[Pose2D(x=x, y=y, theta=phi) for x, y, phi in poses.tolist()],
+            sigma_phi=sigma.tolist(),
+        )
+        for name, stamps, poses, sigma in joined_trajectories(result, robots)
+    ]
+    return msg
+
+
+def serialized_joined_map(
+    result: CsamResult, stamp_ns: int, local_map_stamps: dict[str, int], robots: Sequence[str]
+) -> bytes:
+    """:func:`joined_map_message` serialized as rclpy does (CDR, little-endian), in a
+    fraction of the time: the message without its trajectories, the last field, is serialized
+    by rclpy, and the trajectories (most of the message: every pose of every robot) are
+    appended from their arrays."""
+    head = serialize_message(
+        _joined_map_without_trajectories(result, stamp_ns, local_map_stamps, robots)
+    )
+    if head[:4] != CDR_LITTLE_ENDIAN or head[-4:] != bytes(4):
+        raise ValueError("serialized JoinedMap does not end in its empty trajectories")
+    out = _CdrTail(head[:-4])
+    trajectories = joined_trajectories(result, robots)
+    out.uint32(len(trajectories))
+    for name, stamps, poses, sigma in trajectories:
+        out.string(name)
+        ns = np.rint(stamps * 1e9).astype(np.int64)  # as times_from_seconds
+        times = np.empty(len(ns), dtype=[("sec", "<i4"), ("nanosec", "<u4")])
+        times["sec"], times["nanosec"] = np.divmod(ns, 1_000_000_000)
+        out.sequence(times, 4)
+        out.sequence(poses.astype("<f8"), 8)
+        out.sequence(sigma.astype("<f8"), 8)
+    return out.bytes()
+
+
+CDR_LITTLE_ENDIAN = b"\x00\x01\x00\x00"  # the encapsulation header rclpy writes
+
+
+class _CdrTail:
+    """Appends CDR fields to a serialized message: each primitive aligned to its size from
+    the start of the payload (after the 4-byte encapsulation header)."""
+
+    def __init__(self, head: bytes) -> None:
+        self.parts = [head]
+        self.size = len(head) - 4
+
+    def _align(self, size: int) -> None:
+        pad = -self.size % size
+        if pad:
+            self.parts.append(bytes(pad))
+            self.size += pad
+
+    def _raw(self, data: bytes) -> None:
+        self.parts.append(data)
+        self.size += len(data)
+
+    def uint32(self, value: int) -> None:
+        self._align(4)
+        self._raw(np.uint32(value).astype("<u4").tobytes())
+
+    def string(self, text: str) -> None:
+        data = text.encode() + b"\x00"
+        self.uint32(len(data))
+        self._raw(data)
+
+    def sequence(self, items: np.ndarray, alignment: int) -> None:
+        """A sequence of fixed-size items whose fields all align to ``alignment``."""
+        self.uint32(len(items))
+        if len(items):
+            self._align(alignment)
+            self._raw(np.ascontiguousarray(items).tobytes())
+
+    def bytes(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def joined_trajectories(
+    result: CsamResult, robots: Sequence[str]
+) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """``(robot, stamps [s], joined poses (N, 3), heading sigmas (N,) or none)`` of each of
+    ``robots`` joined with poses, in that order: the joined map's trajectories."""
+    out = []
+    for name in robots:
+        r = result.robots.get(name)
+        if r is None or r.poses_joined is None or not len(r.poses_joined):
+            continue
+        sigma = r.sigma_phi_joined if r.sigma_phi_joined is not None else []
+        out.append(
+            (
+                name,
+                np.asarray(r.stamps, dtype=float).reshape(-1),
+                np.asarray(r.poses_joined, dtype=float).reshape(-1, 3),
+                np.asarray(sigma, dtype=float).reshape(-1),
+            )
+        )
+    return out
+
+
+def _joined_map_without_trajectories(
+    result: CsamResult, stamp_ns: int, local_map_stamps: dict[str, int], robots: Sequence[str]
+) -> JoinedMap:
     msg = JoinedMap()
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.header.frame_id = result.reference_frame
@@ -438,19 +544,6 @@ def joined_map_message(
         if r.base_node_cov is not None:
             node.covariance = np.asarray(r.base_node_cov, dtype=float).reshape(-1).tolist()
         msg.base_nodes.append(node)
-        if r.poses_joined is not None and len(r.poses_joined):
-            sigma = r.sigma_phi_joined if r.sigma_phi_joined is not None else []
-            msg.trajectories.append(
-                RobotTrajectory(
-                    robot=name,
-                    stamps=times_from_seconds(r.stamps),
-                    poses=[
-                        Pose2D(x=x, y=y, theta=phi)
-                        for x, y, phi in np.asarray(r.poses_joined, dtype=float).tolist()
-                    ],
-                    sigma_phi=np.asarray(sigma, dtype=float).tolist(),
-                )
-            )
     msg.features = [
         FeatureEstimate(
             members=list(f.members),
