@@ -278,8 +278,8 @@ def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
 
 
 def _with_marginals(view: LocalView) -> LocalView:
-    """``view`` with its local marginals computed (a join reads them all)."""
-    view.sigma_phi, view.feature_covariances  # noqa: B018 - cached properties
+    """``view`` with its local marginals computed (cached properties)."""
+    view.sigma_phi, view.feature_covariances  # noqa: B018
     return view
 
 
@@ -320,8 +320,8 @@ class LocalViewCache:
     def views(
         self, maps: Sequence[RobotMap], rendezvous_poses: Sequence[NDArray[np.int64]]
     ) -> list[LocalView]:
-        """:meth:`view` of each map; the new ones built with their local marginals in threads,
-        one per core: their factorisations and solves release the interpreter lock."""
+        """:meth:`view` of each map; the new ones built in threads, one per core: their
+        factorisations and solves release the interpreter lock."""
         out: list[LocalView | None] = []
         for m, poses in zip(maps, rendezvous_poses, strict=True):
             view = self._views.get(m.name)
@@ -335,9 +335,7 @@ class LocalViewCache:
         self.reused += len(out) - len(todo)
         self.built += len(todo)
 
-        built = in_threads(
-            lambda i: _with_marginals(local_view(maps[i], rendezvous_poses[i])), todo
-        )
+        built = in_threads(lambda i: local_view(maps[i], rendezvous_poses[i]), todo)
         for i, view in zip(todo, built, strict=True):
             out[i] = self._views[maps[i].name] = view
         return [view for view in out if view is not None]
@@ -495,7 +493,8 @@ def join_maps(
     aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
     lap("alignment")
 
-    # the local marginals the summary reports and association uses
+    # the local marginals the summary reports and association uses (in threads, as the views)
+    in_threads(_with_marginals, views)
     sigma_local = [v.sigma_phi for v in views]
     lap("local_marginals")
 
