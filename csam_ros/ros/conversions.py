@@ -31,7 +31,7 @@ from csam_msgs.msg import (
 )
 from geometry_msgs.msg import Quaternion, TransformStamped
 from nav_msgs.msg import Odometry
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from tf2_msgs.msg import TFMessage
 
 from csam_ros.core.log import (
@@ -77,9 +77,15 @@ def ns_to_time(ns: int) -> Time:
 
 def times_from_seconds(seconds: ArrayLike) -> list[Time]:
     """Stamps of many times in seconds, each as :func:`ns_to_time` of :func:`stamp_to_ns`."""
-    ns = np.rint(np.asarray(seconds, dtype=float).reshape(-1) * 1e9).astype(np.int64)
-    sec, nanosec = np.divmod(ns, 1_000_000_000)
+    sec, nanosec = stamp_fields(seconds)
     return [Time(sec=s, nanosec=n) for s, n in zip(sec.tolist(), nanosec.tolist(), strict=True)]
+
+
+def stamp_fields(seconds: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The ``sec`` and ``nanosec`` fields of the stamps of many times in seconds
+    (:func:`times_from_seconds` as arrays)."""
+    ns = np.rint(np.asarray(seconds, dtype=float).reshape(-1) * 1e9).astype(np.int64)
+    return np.divmod(ns, 1_000_000_000)
 
 
 def time_to_ns(stamp: Time) -> int:

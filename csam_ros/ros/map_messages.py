@@ -10,6 +10,7 @@ computes in-process.
 from __future__ import annotations
 
 import array
+import struct
 from collections.abc import Sequence
 
 import numpy as np
@@ -54,6 +55,7 @@ from csam_ros.core.validation import (
 from csam_ros.ros.conversions import (
     ns_to_time,
     rendezvous_message,
+    stamp_fields,
     stamp_to_ns,
     tf_message,
     time_to_ns,
@@ -434,6 +436,9 @@ def joined_map_message(
     return msg
 
 
+CDR_LITTLE_ENDIAN = b"\x00\x01\x00\x00"  # the encapsulation header rclpy writes
+
+
 def serialized_joined_map(
     result: CsamResult, stamp_ns: int, local_map_stamps: dict[str, int], robots: Sequence[str]
 ) -> bytes:
@@ -451,16 +456,12 @@ def serialized_joined_map(
     out.uint32(len(trajectories))
     for name, stamps, poses, sigma in trajectories:
         out.string(name)
-        ns = np.rint(stamps * 1e9).astype(np.int64)  # as times_from_seconds
-        times = np.empty(len(ns), dtype=[("sec", "<i4"), ("nanosec", "<u4")])
-        times["sec"], times["nanosec"] = np.divmod(ns, 1_000_000_000)
+        times = np.empty(len(stamps), dtype=[("sec", "<i4"), ("nanosec", "<u4")])
+        times["sec"], times["nanosec"] = stamp_fields(stamps)
         out.sequence(times, 4)
         out.sequence(poses.astype("<f8"), 8)
         out.sequence(sigma.astype("<f8"), 8)
-    return out.bytes()
-
-
-CDR_LITTLE_ENDIAN = b"\x00\x01\x00\x00"  # the encapsulation header rclpy writes
+    return out.data()
 
 
 class _CdrTail:
@@ -483,7 +484,7 @@ class _CdrTail:
 
     def uint32(self, value: int) -> None:
         self._align(4)
-        self._raw(np.uint32(value).astype("<u4").tobytes())
+        self._raw(struct.pack("<I", value))
 
     def string(self, text: str) -> None:
         data = text.encode() + b"\x00"
@@ -497,7 +498,7 @@ class _CdrTail:
             self._align(alignment)
             self._raw(np.ascontiguousarray(items).tobytes())
 
-    def bytes(self) -> bytes:
+    def data(self) -> bytes:
         return b"".join(self.parts)
 
 

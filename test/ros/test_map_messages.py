@@ -132,7 +132,8 @@ def test_the_serialized_joined_map_is_the_message_rclpy_serializes(
     result = join_maps(maps, logs)
     if provisional:  # no heading sigmas, NaN covariances of the features first seen
         result = carried_forward(result, maps, 1e-6)
-    # names of every length modulo 8 move the trajectories' doubles off and on alignment
+    # robots heard of without a map lengthen the base nodes before the trajectories: their
+    # doubles start at other offsets modulo 8
     for robots in (
         ["robot1", "robot2", "robot3"],
         ["robot2", "r", "robot1", "robot10x"],
