@@ -1,4 +1,4 @@
-"""The merger's joined maps built and serialized in a process of their own.
+"""The merger's solved joined maps built and serialized in a process of their own.
 
 A joined map of a long run carries every robot's whole trajectory: on MR.CLAM Dataset 1 at
 its end 28,000 poses and as many stamps. Its message is written from arrays in milliseconds

@@ -99,7 +99,7 @@ from csam_ros.core.validation import (
     RefusedMessageError,
 )
 from csam_ros.core.warm_start import carried_forward
-from csam_ros.message_process import JoinedMapRequest, MessageProcess, serialize_joined_map
+from csam_ros.message_process import JoinedMapRequest, MessageProcess
 from csam_ros.nodes.common import (
     declare,
     declare_settings,
@@ -113,6 +113,7 @@ from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
     map_update_from_message,
     rendezvous_log_from_message,
+    serialized_joined_map,
 )
 from csam_ros.ros.topics import (
     FLUSH,
@@ -823,13 +824,11 @@ class Merger(Node):
         result = carried_forward(due.last, due.maps, self.config.stamp_tolerance)
         stamps = due.stamps
         # here, not behind a solved map's markers and summary in the message process
-        out = serialize_joined_map(
-            JoinedMapRequest(result, max(stamps.values()), stamps, due.robots)
-        )
+        joined_map = serialized_joined_map(result, max(stamps.values()), stamps, due.robots)
         with self._publish_lock:
             if self._stopping or stamps == self._published_stamps:
                 return
-            self.provisional_pub.publish(out.joined_map)
+            self.provisional_pub.publish(joined_map)
         with self._lock:
             self.provisional_maps += 1
 
