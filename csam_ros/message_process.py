@@ -1,14 +1,15 @@
-"""The merger's solved joined maps built and serialized in a process of their own.
+"""The markers and summary of the merger's solved joined maps built in a process of their own.
 
 A joined map of a long run carries every robot's whole trajectory: on MR.CLAM Dataset 1 at
 its end 28,000 poses and as many stamps. Its message is written from arrays in milliseconds
-(:func:`~csam_ros.ros.map_messages.serialized_joined_map`), but its markers take 0.26 s of
-Python to build and serialize and the summary's JSON 0.36 s. In the merger's process all of
-it holds the interpreter lock that the executor needs to take local maps and publish. A
-:class:`MessageProcess` child builds them from the result (a pickle of numpy arrays, a few
-milliseconds) and returns serialized CDR, which the merger publishes as it is (``rclpy``
-publishes ``bytes`` without touching them). A child that fails or dies is started again at
-the next request; meanwhile the messages are built in the caller's process, so none is lost.
+(:func:`~csam_ros.ros.map_messages.serialized_joined_map`) and goes out first, but its markers
+take 0.26 s of Python to build and serialize and the summary's JSON 0.36 s. In the merger's
+process that would hold the interpreter lock that the executor needs to take local maps and
+publish. A :class:`MessageProcess` child builds them from the result (a pickle of numpy
+arrays, a few milliseconds) and returns serialized CDR, which the merger publishes as it is
+(``rclpy`` publishes ``bytes`` without touching them). A child that fails or dies is started
+again at the next request; meanwhile the messages are built in the caller's process, so none
+is lost.
 """
 
 from __future__ import annotations
@@ -24,47 +25,34 @@ from rclpy.serialization import serialize_message
 
 from csam_ros.core.result import CsamResult, RunSummary
 from csam_ros.ros.conversions import ns_to_time
-from csam_ros.ros.map_messages import robot_map_transforms, serialized_joined_map
 from csam_ros.ros.markers import joined_map_markers
 from csam_ros.solve_process import forkserver_context, stop_child
 
 
 @dataclass(frozen=True)
-class JoinedMapRequest:
-    """What a joined map publication is built from: the result, the message stamp and the
-    local-map stamps it used; with ``markers_stamp_ns`` also its markers and ``/tf``
-    transforms (a solved map, not a provisional one), with ``summary`` its summary text."""
+class MarkersRequest:
+    """What a solved joined map's markers (stamped ``stamp_ns``) and, with ``summary``, its
+    summary text are built from."""
 
     result: CsamResult
     stamp_ns: int
-    local_map_stamps: dict[str, int]
-    robots: tuple[str, ...]
-    markers_stamp_ns: int | None = None
     summary: RunSummary | None = None
 
 
 @dataclass(frozen=True)
-class SerializedJoinedMap:
-    """The serialized messages of a :class:`JoinedMapRequest` (None where not asked for)."""
+class MarkersAndSummary:
+    """The serialized markers of a :class:`MarkersRequest` and its summary text (None when
+    not asked for)."""
 
-    joined_map: bytes
-    markers: bytes | None = None
-    transforms: bytes | None = None
+    markers: bytes
     summary_text: str | None = None
 
 
-def serialize_joined_map(request: JoinedMapRequest) -> SerializedJoinedMap:
+def build_markers(request: MarkersRequest) -> MarkersAndSummary:
     """Build and serialize what ``request`` asks for (in whichever process calls it)."""
-    result = request.result
-    markers = transforms = None
-    if request.markers_stamp_ns is not None:
-        stamp = ns_to_time(request.markers_stamp_ns)
-        markers = serialize_message(joined_map_markers(result, stamp))
-        transforms = serialize_message(robot_map_transforms(result, request.stamp_ns))
-    return SerializedJoinedMap(
-        serialized_joined_map(result, request.stamp_ns, request.local_map_stamps, request.robots),
-        markers,
-        transforms,
+    markers = joined_map_markers(request.result, ns_to_time(request.stamp_ns))
+    return MarkersAndSummary(
+        serialize_message(markers),
         None if request.summary is None else request.summary.text(),
     )
 
@@ -83,7 +71,7 @@ def _serve(connection: Connection) -> None:
         except (EOFError, OSError):
             return
         try:
-            reply: SerializedJoinedMap | _Failed = serialize_joined_map(request)
+            reply: MarkersAndSummary | _Failed = build_markers(request)
         except Exception as err:  # noqa: BLE001 - the child outlives any one request
             reply = _Failed(f"{type(err).__name__}: {err}")
         try:
@@ -94,10 +82,10 @@ def _serve(connection: Connection) -> None:
 
 @dataclass
 class MessageProcess:
-    """A child process serializing joined maps for one merger (module docstring); thread
-    safe, one request at a time. ``failures`` counts the requests the child did not answer
-    (built in the caller's process instead), ``last_error`` says why the last one failed, and
-    ``on_failure`` (when given) is told each time."""
+    """A child process building the markers and summaries of one merger's solved joined maps
+    (module docstring); thread safe, one request at a time. ``failures`` counts the requests
+    the child did not answer (built in the caller's process instead), ``last_error`` says why
+    the last one failed, and ``on_failure`` (when given) is told each time."""
 
     on_failure: Callable[[str], None] | None = field(default=None, repr=False)
     failures: int = 0
@@ -114,7 +102,7 @@ class MessageProcess:
             if not self._closed:
                 self._ensure_started()
 
-    def serialize(self, request: JoinedMapRequest) -> SerializedJoinedMap:
+    def build(self, request: MarkersRequest) -> MarkersAndSummary:
         """``request`` serialized by the child, or here if the child fails or is closed."""
         with self._lock:
             if not self._closed:
@@ -126,13 +114,13 @@ class MessageProcess:
                 except (EOFError, OSError) as err:
                     self._stop_child()
                     reply = _Failed(f"the message process ended ({type(err).__name__})")
-                if isinstance(reply, SerializedJoinedMap):
+                if isinstance(reply, MarkersAndSummary):
                     return reply
                 self.failures += 1
                 self.last_error = reply.error
                 if self.on_failure is not None:
                     self.on_failure(f"{reply.error}: built in this process instead")
-        return serialize_joined_map(request)
+        return build_markers(request)
 
     def close(self) -> None:
         """Stop the child for good (a later request is built in the caller's process)."""

@@ -31,7 +31,10 @@ the newest inputs: at most one solve runs and one is pending. ``/csam/status`` s
 solve is running (``solving``) and how long the last one took (``solve_seconds``).
 ``~/flush`` (std_srvs/Trigger; called when the data has ended, after the smoothers' own
 ``~/flush``) solves the newest inputs at once: a running solve of older inputs is given up
-(counted as ``solves_given_up``), since its result would be out of date when it came.
+(counted as ``solves_given_up``), since its result would be out of date when it came. After a
+flush, each robot's next local map gives up a running solve once more (a smoother's final map
+may come after the flush that asked for it); no more than that, so a flush in the middle of a
+run does not keep solves from ending.
 
 A join takes seconds to minutes on large maps. When local maps arrive that no joined map
 holds, a thread of its own publishes ``/csam/joined_map/provisional`` once every robot's map
@@ -42,12 +45,12 @@ the newest local maps placed by the last join, unsolved
 (:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
 nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
 the last join have NaN covariances.
-``/csam/joined_map`` stays the solved joined map. Solved joined maps, their markers and the
-summary are built and serialized by the merger's message process
-(:mod:`csam_ros.message_process`): a long run's markers and summary are over half a second
-of Python that would otherwise hold up the executor. A provisional map is serialized by its
-thread (its trajectories from their arrays,
-:func:`~csam_ros.ros.map_messages.serialized_joined_map`).
+``/csam/joined_map`` stays the solved joined map. A joined map, solved or provisional, is
+serialized where it is made (its trajectories from their arrays,
+:func:`~csam_ros.ros.map_messages.serialized_joined_map`: milliseconds) and published at once;
+then a solved map's summary is written and its markers published, both built by the merger's
+message process (:mod:`csam_ros.message_process`): a long run's markers and summary are over
+half a second of Python that would otherwise hold up the executor.
 
 The topic says which robot a message belongs to. Every message is checked whole when it
 arrives (``ros/map_messages.py``); a malformed one, or one naming another robot than its
@@ -99,7 +102,7 @@ from csam_ros.core.validation import (
     RefusedMessageError,
 )
 from csam_ros.core.warm_start import carried_forward
-from csam_ros.message_process import JoinedMapRequest, MessageProcess
+from csam_ros.message_process import MarkersRequest, MessageProcess
 from csam_ros.nodes.common import (
     declare,
     declare_settings,
@@ -113,6 +116,7 @@ from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
     map_update_from_message,
     rendezvous_log_from_message,
+    robot_map_transforms,
     serialized_joined_map,
 )
 from csam_ros.ros.topics import (
@@ -322,6 +326,8 @@ class Merger(Node):
         self._solve_lock = threading.Lock()
         self._publish_lock = threading.Lock()
         self._requested = False  # the timer asked the worker for a solve
+        # robots whose next local map gives up a running solve (~/flush, module docs)
+        self._after_flush: frozenset[str] = frozenset()
         self._writing_state = False  # the worker waits for the last solve's state write
         self._stopping = False
         self._on_map = guarded(self, self.drops, self.on_local_map_update)
@@ -500,6 +506,9 @@ class Merger(Node):
             self.dirty = True
             if self._unpublished_since is None:
                 self._unpublished_since = self.map_arrival[robot]
+            if robot in self._after_flush:
+                self._after_flush -= {robot}
+                self._solve_newest()
         self.publish_provisional()
 
     def _note_restart(self, robot: str, old: RobotMap, new: RobotMap) -> None:
@@ -593,10 +602,8 @@ class Merger(Node):
         """Solve the newest inputs now (module docstring); the reply says what was done."""
         with self._lock:  # a solve running now is of older inputs, and no other starts
             newer = self.dirty
-            given_up = newer and self.solving and self.solve_process.cancel()
-            if newer:
-                self._requested = True
-                self._wake.notify()
+            given_up = newer and self._solve_newest()
+            self._after_flush = frozenset(self.heard)
         response.success = True
         if not newer:
             response.message = "the joined map (or the running solve) holds the newest inputs"
@@ -605,6 +612,14 @@ class Merger(Node):
         else:
             response.message = "solving the newest inputs"
         return response
+
+    def _solve_newest(self) -> bool:
+        """Give up a running solve (of older inputs) and have the worker solve the newest;
+        whether one was given up (call under the lock)."""
+        given_up = self.solving and self.solve_process.cancel()
+        self._requested = True
+        self._wake.notify()
+        return given_up
 
     def _work(self) -> None:
         """The solve worker: one solve per request of the timer, until the node stops."""
@@ -823,7 +838,6 @@ class Merger(Node):
                 return
         result = carried_forward(due.last, due.maps, self.config.stamp_tolerance)
         stamps = due.stamps
-        # here, not behind a solved map's markers and summary in the message process
         joined_map = serialized_joined_map(result, max(stamps.values()), stamps, due.robots)
         with self._publish_lock:
             if self._stopping or stamps == self._published_stamps:
@@ -839,29 +853,29 @@ class Merger(Node):
         robots: tuple[str, ...],
         stats: MergerStats | None = None,
     ) -> None:
-        """Publish a joined map, its markers and transforms (and write the summary)."""
+        """Publish a joined map and its transforms, then write the summary and publish the
+        markers (the summary is written even when the node stops meanwhile: the map it
+        describes is out)."""
+        stamp_ns = max(stamps.values())
+        joined_map = serialized_joined_map(result, stamp_ns, stamps, robots)
+        transforms = robot_map_transforms(result, stamp_ns)
+        with self._publish_lock:
+            if self._stopping:
+                return
+            self.joined_pub.publish(joined_map)
+            self.tf_pub.publish(transforms)
         summary = (
             RunSummary(result, merger=stats)
             if self.summary_path is not None and stats is not None
             else None
         )
-        request = JoinedMapRequest(
-            result,
-            max(stamps.values()),
-            stamps,
-            robots,
-            markers_stamp_ns=self.get_clock().now().nanoseconds,
-            summary=summary,
-        )
-        out = self.message_process.serialize(request)
+        now_ns = self.get_clock().now().nanoseconds
+        out = self.message_process.build(MarkersRequest(result, now_ns, summary))
         with self._publish_lock:
-            if self._stopping:
-                return
             if self.summary_path is not None and out.summary_text is not None:
                 write_summary_text(self.summary_path, out.summary_text)
-            self.joined_pub.publish(out.joined_map)
-            self.markers_pub.publish(out.markers)
-            self.tf_pub.publish(out.transforms)
+            if not self._stopping:
+                self.markers_pub.publish(out.markers)
 
     def stats(self) -> MergerStats:
         """What the merger counted so far, as the summary carries it (call under the lock)."""

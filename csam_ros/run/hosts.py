@@ -610,6 +610,7 @@ def monitor(
         FLUSH,
         JOINED_MAP,
         LOCAL_MAP_UPDATES,
+        MARKERS,
         merger_service,
         smoother_service,
     )
@@ -626,7 +627,17 @@ def monitor(
     executor.add_node(node)
     joined: list = []  # every joined map received
     received: list[float] = []  # when (wall clock)
-    subscribe(node, JOINED_MAP, lambda m: (joined.append(m), received.append(time.time())))
+    # markers messages received, and how many had come when each joined map came
+    markers: list[int] = [0]
+    markers_before: list[int] = []
+
+    def on_joined(message: object) -> None:
+        joined.append(message)
+        received.append(time.time())
+        markers_before.append(markers[0])
+
+    subscribe(node, JOINED_MAP, on_joined)
+    subscribe(node, MARKERS, lambda m: markers.__setitem__(0, markers[0] + 1))
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in robots}
     merger = node.create_client(Trigger, merger_service(FLUSH))
     deadline = time.monotonic() + timeout_s
@@ -666,6 +677,9 @@ def monitor(
             f"({before_end} joined maps during the run, {calls} flush calls)"
         )
 
+        until = time.monotonic() + 30  # the final map's markers go out once its summary is written
+        while markers[0] == markers_before[-1] and time.monotonic() < until:
+            spin(0.05)
         until = time.monotonic() + 15
         while not recorder_holds_results(node) and time.monotonic() < until:
             spin(0.1)

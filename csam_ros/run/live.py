@@ -152,19 +152,22 @@ def end_of_data(
     timeout_s: float,
 ) -> tuple[dict[str, int], int]:
     """End a run whose data has all been sent: flush every smoother (``smoothers``: robot ->
-    ``~/flush`` client), again until their final local maps' stamps hold still over half a
-    second (data may still wait in a smoother's queue when the source ends: best-effort
-    odometry is not acknowledged, and a service call can be served before it), then the
-    merger (``merger``: its ``~/flush`` client), so that it solves those maps at once. The
-    final stamps (ns), and the number of calls made."""
-    replies, calls = flush_all(smoothers, spin, timeout_s)
-    final, previous = {r: int(m) for r, m in replies.items()}, None
-    while final != previous or min(final.values()) < 0:
-        spin(0.5)
+    ``~/flush`` client) and then the merger (``merger``: its ``~/flush`` client), so that it
+    solves those maps at once; flush the smoothers again, and the merger after any round that
+    changed a map, until the final local maps' stamps hold still over half a second (data may
+    still wait in a smoother's queue when the source ends: best-effort odometry is not
+    acknowledged, and a service call can be served before it). The final stamps (ns), and the
+    number of calls made."""
+    final: dict[str, int] | None = None
+    calls = 0
+    while True:
         replies, more = flush_all(smoothers, spin, timeout_s)
         previous, final, calls = final, {r: int(m) for r, m in replies.items()}, calls + more
-    _, more = flush_all({"merger": merger}, spin, timeout_s)
-    return final, calls + more
+        if final == previous and min(final.values()) >= 0:
+            return final, calls
+        if min(final.values()) >= 0:
+            calls += flush_all({"merger": merger}, spin, timeout_s)[1]
+        spin(0.5)
 
 
 def recorder_holds_results(node: Any) -> bool:
@@ -206,7 +209,14 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 
     from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
-    from csam_ros.ros.topics import CLOCK, FLUSH, JOINED_MAP, merger_service, smoother_service
+    from csam_ros.ros.topics import (
+        CLOCK,
+        FLUSH,
+        JOINED_MAP,
+        MARKERS,
+        merger_service,
+        smoother_service,
+    )
 
     sim_time = _param("use_sim_time", True)
     group.start("recorder", run.recorder_argv())
@@ -218,9 +228,17 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
     node = rclpy.create_node("csam_run_monitor")
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    latest: dict[str, object] = {"clock": None, "joined": None}
+    latest: dict[str, Any] = {"clock": None, "joined": None}
+    # markers messages received, and how many had come when the latest joined map came
+    markers = {"received": 0, "before_joined": 0}
+
+    def on_joined(joined: Any) -> None:
+        latest["joined"] = joined
+        markers["before_joined"] = markers["received"]
+
     subscribe(node, CLOCK, lambda m: latest.__setitem__("clock", m))
-    subscribe(node, JOINED_MAP, lambda m: latest.__setitem__("joined", m))
+    subscribe(node, JOINED_MAP, on_joined)
+    subscribe(node, MARKERS, lambda m: markers.__setitem__("received", markers["received"] + 1))
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in run.robots}
     merger_client = node.create_client(Trigger, merger_service(FLUSH))
     try:
@@ -275,6 +293,11 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
                 raise LiveRunError(
                     f"no final joined map from the merger within 300 s:\n{group.log_tail('merger')}"
                 )
+        # its markers go out once the summary is written
+        deadline = time.monotonic() + 30
+        while markers["received"] == markers["before_joined"] and time.monotonic() < deadline:
+            _check_alive(group, ignore=run.source_name)
+            executor.spin_once(timeout_sec=0.1)
 
         deadline = time.monotonic() + 15
         while not recorder_holds_results(node) and time.monotonic() < deadline:

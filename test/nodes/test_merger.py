@@ -410,13 +410,7 @@ def test_flush_gives_up_a_solve_of_older_maps_and_solves_the_newest(
         _with_robot2(middle, _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"]))))
     )
     merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
-    client = harness.injector.create_client(Trigger, merger_service(FLUSH))
-
-    def flush() -> str:
-        future = client.call_async(Trigger.Request())
-        harness.wait(future.done)
-        return future.result().message
-
+    flush = _flush_client(harness)
     assert flush().startswith("the joined map (or the running solve) holds the newest")
     newer = STAMP_NS + 10**9
     update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
@@ -432,6 +426,46 @@ def test_flush_gives_up_a_solve_of_older_maps_and_solves_the_newest(
     assert len(harness.joined) == published + 1 and merger.drops.total == 0
     assert time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == newer
     assert status_values(harness.status[-1], "merger")["solves_given_up"] == "1"
+
+
+def test_after_a_flush_each_robots_next_map_gives_up_a_running_solve_once(
+    harness, growing: list[RunMessages]
+) -> None:
+    """After ``~/flush``, a robot's next local map arriving during a solve of older maps gives
+    that solve up as a flush would (a smoother's final map may come after the flush that
+    asked for it); the robot's map after that waits for the running solve, as during a run."""
+    sender = UpdateSender(11)
+    maps = [_message(sender.update(robot_map_arrays(g.robot_maps["robot2"]))) for g in growing]
+    harness.start(_with_robot2(growing[0], maps[0]))
+    merger, solves = harness.merger, harness.merger.solves
+    assert _flush_client(harness)().startswith("the joined map (or the running solve) holds")
+    for k, stamp in ((1, STAMP_NS + 10**9), (2, STAMP_NS + 2 * 10**9)):
+        with _held_solves(merger):
+            merger.dirty = True
+            harness.wait(lambda: _solving_newest(merger))
+            maps[k].header.stamp = ns_to_time(stamp)
+            harness.publish("robot2", maps[k])
+            harness.wait(lambda: merger.dirty)
+        harness.wait(
+            lambda stamp=stamp: (
+                time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == stamp
+            )
+        )
+        assert merger.solves_given_up == 1  # the first map given up for, not the second
+    harness.wait(lambda: not merger.solving)
+    assert merger.solves == solves + 3 and merger.drops.total == 0
+
+
+def _flush_client(harness: MergerHarness) -> Callable[[], str]:
+    """A function that calls the merger's ``~/flush`` and returns the reply's message."""
+    client = harness.injector.create_client(Trigger, merger_service(FLUSH))
+
+    def flush() -> str:
+        future = client.call_async(Trigger.Request())
+        harness.wait(future.done)
+        return future.result().message
+
+    return flush
 
 
 def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
