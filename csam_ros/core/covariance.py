@@ -24,12 +24,17 @@ from collections.abc import Hashable, Sequence
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import solve_triangular
+from scipy.linalg import cho_factor, cho_solve_banded, cholesky_banded, solve_triangular
+from scipy.linalg.lapack import dpotri
 from scipy.sparse.linalg import spsolve_triangular
 
 from csam_ros.core.solver import NormalEquations, Problem
 
 Array = NDArray[np.float64]
+
+# the widest band (scalars off the diagonal) of H_OO that covariance_by_elimination factors:
+# a chain of 3-scalar poses has 5
+BAND_LIMIT = 8
 
 
 def factorize_at_estimate(problem: Problem, backend: str = "qdldl") -> NormalEquations:
@@ -126,6 +131,64 @@ def covariance_columns(
     unit_upper = (restricted.T + sp.eye(len(backward), format="csr")).tocsr()
     z = spsolve_triangular(unit_upper, w, lower=False, unit_diagonal=True).reshape(w.shape)
     return z[np.searchsorted(backward, inverse_perm[wanted])]
+
+
+def covariance_by_elimination(
+    system: NormalEquations, selected: ArrayLike, rest: ArrayLike
+) -> Array | None:
+    """``(A^T A)^-1`` on ``S = selected`` (rows and columns in that order): the inverse of
+    the Schur complement ``H_SS - H_SO H_OO^-1 H_OS`` of ``H = A^T A``, every other scalar
+    ``O = rest`` eliminated in the order given. None when ``H_OO`` in that order is not
+    banded within :data:`BAND_LIMIT`, or not numerically positive definite (then
+    :func:`covariance_columns` serves).
+
+    Made for a robot's map with ``S`` its rendezvous poses and features and ``O`` its other
+    poses in stamp order: ``H_OO`` is then an odometry chain cut at every rendezvous pose into
+    independent segments. One banded Cholesky factor of ``H_OO``; each segment solved only for
+    the few columns of ``S`` it touches (the rendezvous poses at its ends and the features seen
+    from it). Linear in the map, where the columns of ``S`` by substitution through the whole
+    factor cost ``O(nnz(L) |S|)``.
+    """
+    s = np.asarray(selected, dtype=np.int64)
+    o = np.asarray(rest, dtype=np.int64)
+    upper = system.matrix()
+    full = (upper + sp.triu(upper, 1).T).tocsr()
+    by_rest = full[o]
+    h_oo = by_rest[:, o].tocsr()
+    h_oo.sort_indices()
+    rows = np.repeat(np.arange(len(o)), np.diff(h_oo.indptr))
+    offset = h_oo.indices - rows
+    width = int(np.max(np.abs(offset), initial=0))
+    if width > BAND_LIMIT:
+        return None
+    banded = np.zeros((width + 1, len(o)))
+    up = offset >= 0
+    banded[width - offset[up], h_oo.indices[up]] = h_oo.data[up]
+    try:
+        factor = cholesky_banded(banded, lower=False, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    # segments: no entry of H_OO couples the scalars before a boundary with those after it
+    # (every row holds its diagonal entry, so its last column is at least the row)
+    last = h_oo.indices[h_oo.indptr[1:] - 1]
+    ends = np.flatnonzero(np.maximum.accumulate(last) == np.arange(len(o))) + 1
+    h_os = by_rest[:, s].tocsr()
+    schur = full[s][:, s].toarray()
+    for lo, hi in zip(np.r_[0, ends][:-1], ends, strict=True):
+        first, stop = h_os.indptr[lo], h_os.indptr[hi]
+        if first == stop:
+            continue
+        touched, columns = np.unique(h_os.indices[first:stop], return_inverse=True)
+        rhs = np.zeros((hi - lo, len(touched)))
+        segment_rows = np.repeat(np.arange(hi - lo), np.diff(h_os.indptr[lo : hi + 1]))
+        rhs[segment_rows, columns] = h_os.data[first:stop]
+        x = cho_solve_banded((factor[:, lo:hi], False), rhs, check_finite=False)
+        schur[np.ix_(touched, touched)] -= rhs.T @ x
+    cholesky = cho_factor(schur, lower=False, check_finite=False)
+    inverse, info = dpotri(cholesky[0], lower=False, overwrite_c=True)
+    if info != 0:
+        raise np.linalg.LinAlgError("the Schur complement of the selected scalars is singular")
+    return np.triu(inverse) + np.triu(inverse, 1).T
 
 
 def _elimination_tree(strict_lower: sp.csc_matrix) -> NDArray[np.int64]:

@@ -55,6 +55,7 @@ from csam_ros.core.config_file import from_mapping, load_document, setting
 from csam_ros.core.consistency import ConsistencyOptions, check_local_map
 from csam_ros.core.covariance import (
     covariance_block,
+    covariance_by_elimination,
     covariance_columns,
     factorize_at_estimate,
     upper_sqrt_information,
@@ -261,20 +262,38 @@ class LocalView:
 
 def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     """The :class:`LocalView` of ``m`` for ``rendezvous_poses``: the rendezvous part and
-    ``P_l,rho`` both come from the covariance columns of those poses."""
+    ``P_l,rho`` both come from the joint covariance of those poses and the features, with
+    the other poses eliminated along the trajectory (:func:`covariance_by_elimination`; by
+    :func:`covariance_columns` where a map's other factors make that no band)."""
     problem = m.problem
     system = factorize_at_estimate(problem)
     if len(rendezvous_poses) == 0:
         return LocalView(m, system, rendezvous_poses, None, None)
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
-    feature_columns = problem.scalar_indices(m.feature_ids)
+    selected = np.r_[pose_columns, problem.scalar_indices(m.feature_ids)]
     k = len(pose_columns)
-    columns = covariance_columns(system, pose_columns, np.r_[pose_columns, feature_columns])
+    covariance = covariance_by_elimination(system, selected, _other_scalars(m, selected))
+    columns = (
+        covariance_columns(system, pose_columns, selected)
+        if covariance is None
+        else covariance[:, :k]
+    )
     block = columns[:k]
     root = upper_sqrt_information(0.5 * (block + block.T))
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
     cross = columns[k:].reshape(len(m.feature_ids), 2, k)
     return LocalView(m, system, rendezvous_poses, part, cross)
+
+
+def _other_scalars(m: RobotMap, selected: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Every scalar of ``m``'s problem not ``selected``: its poses' in stamp order, then any
+    other."""
+    problem = m.problem
+    poses = problem.scalar_indices(m.pose_ids)
+    order = np.r_[poses, np.setdiff1d(np.arange(problem.dim), poses)]
+    outside = np.ones(problem.dim, dtype=bool)
+    outside[selected] = False
+    return order[outside[order]]
 
 
 def _with_marginals(view: LocalView) -> LocalView:

@@ -6,6 +6,7 @@ import pytest
 from csam_ros.core.covariance import (
     _elimination_tree,
     _reach,
+    covariance_by_elimination,
     covariance_columns,
     factorize_at_estimate,
     marginal_covariance,
@@ -104,3 +105,29 @@ def test_covariance_columns_are_the_dense_inverse_columns(solved, backend):
     rows = problem.scalar_indices(problem.indices([("l", 2), ("x", 40), ("x", 3)]))
     some = covariance_columns(system, cols, rows)
     np.testing.assert_allclose(some, dense[rows], rtol=1e-8, atol=1e-10 * np.abs(dense).max())
+
+
+def test_covariance_by_elimination_is_the_dense_inverse_on_the_selected_scalars(solved):
+    """Poses and landmarks selected (in a mixed order), the other poses eliminated along the
+    trajectory: a chain cut at the selected poses, the first segment holding the gauge."""
+    problem, system, info = solved
+    keys = [("x", 40), ("l", 3), ("x", 7), ("x", 41), ("x", 119), ("l", 0), ("l", 9)]
+    selected = problem.scalar_indices(problem.indices(keys))
+    poses = problem.scalar_indices(problem.indices([("x", i) for i in range(120)]))
+    rest = poses[~np.isin(poses, selected)]
+    landmarks = np.setdiff1d(np.arange(problem.dim), np.r_[poses, selected])
+    # the landmarks not selected couple the chain widely: they are selected too
+    selected = np.r_[selected, landmarks]
+    cov = covariance_by_elimination(system, selected, rest)
+    dense = np.linalg.inv(info)[np.ix_(selected, selected)]
+    np.testing.assert_allclose(cov, dense, rtol=1e-8, atol=1e-10 * np.abs(dense).max())
+    everything = np.arange(problem.dim)  # nothing to eliminate
+    np.testing.assert_allclose(
+        covariance_by_elimination(system, everything, everything[:0]),
+        np.linalg.inv(info),
+        rtol=1e-8,
+        atol=1e-10 * np.abs(dense).max(),
+    )
+    # the rest in an order that is not a band: not eliminated this way
+    shuffled = np.random.default_rng(0).permutation(rest)
+    assert covariance_by_elimination(system, selected, shuffled) is None
