@@ -484,6 +484,7 @@ def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
         (merger,) = [s for s in h.status[-1].status if s.name == "merger"]
         assert merger.level == DiagnosticStatus.WARN
         assert "did not converge" in merger.message
+        h.wait(summary_path.exists)  # written once the joined map is out
         summary = RunSummary.read(summary_path)
         assert not summary.result.converged
         assert any(n.startswith("joint solve not converged") for n in summary.result.notes)
