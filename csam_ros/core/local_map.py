@@ -133,6 +133,16 @@ class LocalMapConfig:
         node=SMOOTHER,
     )
 
+    # SolverOptions.max_step_scale of the converged solves (a smoother's ~/flush, the end of
+    # an offline build), not of the online updates (MR.CLAM: another minimum of the robust cost)
+    max_step_scale: float = setting(
+        1.0,
+        "converged solves: stretch a robust (reweighted) step by up to this factor while the "
+        "cost falls (1: off)",
+        minimum=1.0,
+        node=SMOOTHER,
+    )
+
     update_tolerance_m: float = setting(
         0.02,
         "m a pose moves before a smoother sends it again (0: every change)",
@@ -162,7 +172,11 @@ class LocalMapConfig:
         robust = None
         if kernel is not None:
             robust = kernel(self.robust_threshold) if self.robust_threshold > 0 else kernel()
-        return LocalMapOptions(key_interval=self.key_interval or None, robust=robust)
+        return LocalMapOptions(
+            key_interval=self.key_interval or None,
+            robust=robust,
+            solver=SolverOptions(max_step_scale=self.max_step_scale),
+        )
 
     @property
     def window(self) -> float | None:
