@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from csam_ros.core.checkpoint import MergerState
-from csam_ros.core.csam import CsamConfig, LocalViewCache, join_maps
+from csam_ros.core.csam import CsamConfig, LocalViewCache, in_threads, join_maps
 from csam_ros.core.joining import RobotMap
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.map_arrays import checked_robot_map, held_robot_map
@@ -106,7 +106,9 @@ class Joiner:
         self._state = None
         if request.previous is not None:
             self.previous = request.previous
-        refused = tuple(r for robot, source in request.maps if (r := self._take(robot, source)))
+        # refined in threads, one per core (their factorisations release the interpreter lock)
+        taken = in_threads(lambda item: self._take(*item), request.maps)
+        refused = tuple(r for r in taken if r is not None)
         order = [robot for robot, _ in request.maps]
         config = request.config
         try:
@@ -155,7 +157,8 @@ class Joiner:
     def _take(self, robot: str, source: MapSource | None) -> Refusal | None:
         """Hold ``robot``'s map of ``source`` (None: keep the last); a refusal if it is not
         usable (the robot's last map stays, else a map built from updates is held as it
-        came). Never raises: every source of a request is taken, whatever one of them is."""
+        came). Never raises: every source of a request is taken, whatever one of them is.
+        Called for several robots at once (each thread holds its own robot's map)."""
         if source is None:
             return None
         try:
