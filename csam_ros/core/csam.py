@@ -262,9 +262,12 @@ class LocalView:
 
 def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     """The :class:`LocalView` of ``m`` for ``rendezvous_poses``: the rendezvous part and
-    ``P_l,rho`` both come from the joint covariance of those poses and the features, with
-    the other poses eliminated along the trajectory (:func:`covariance_by_elimination`; by
-    :func:`covariance_columns` where a map's other factors make that no band)."""
+    ``P_l,rho`` both come from the covariance of the features and those poses. With no more
+    feature than pose scalars (the dense work then a few times that of the rendezvous part
+    itself), it is their joint covariance with the other poses eliminated
+    along the trajectory (:func:`covariance_by_elimination`); otherwise, or where a map's
+    other factors make that no band, the covariance columns of the poses
+    (:func:`covariance_columns`)."""
     problem = m.problem
     system = factorize_at_estimate(problem)
     if len(rendezvous_poses) == 0:
@@ -272,7 +275,11 @@ def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
     selected = np.r_[pose_columns, problem.scalar_indices(m.feature_ids)]
     k = len(pose_columns)
-    covariance = covariance_by_elimination(system, selected, _other_scalars(m, selected))
+    covariance = (
+        covariance_by_elimination(system, selected, _other_scalars(m, selected))
+        if len(selected) <= 2 * k
+        else None
+    )
     columns = (
         covariance_columns(system, pose_columns, selected)
         if covariance is None

@@ -11,10 +11,17 @@ import pytest
 from scipy.stats import chi2
 
 from csam_ros.core import se2
-from csam_ros.core.csam import CsamConfig, CsamResult, run_csam
+from csam_ros.core.covariance import factorize_at_estimate
+from csam_ros.core.csam import (
+    CsamConfig,
+    CsamResult,
+    local_view,
+    robot_map_from_local_map,
+    run_csam,
+)
 from csam_ros.core.evaluation import evaluate
 from csam_ros.core.factors import Cauchy
-from csam_ros.core.local_map import LocalMapConfig
+from csam_ros.core.local_map import LocalMapConfig, build_local_map
 from csam_ros.core.log import RendezvousLog
 from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_document, load_scenario, scenario_from_dict
@@ -332,3 +339,28 @@ def test_one_robot_alone_has_the_marginals_of_its_dense_information(map_joining)
     xy = m.problem.scalar_indices(m.feature_ids).reshape(-1, 2)
     expected = covariance[xy[:, :, None], xy[:, None, :]]
     np.testing.assert_allclose(np.array([f.cov for f in features]), expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("kept", [4, 8])
+def test_a_local_view_is_the_dense_covariance_of_its_rendezvous_poses_and_features(
+    kept: int,
+) -> None:
+    """The rendezvous part (``R^T R`` = the poses' marginal information) and ``P_l,rho``
+    against the dense inverse: with three poses of four rendezvous poses (the others
+    eliminated along the trajectory) and with one of eight (more feature than pose scalars:
+    the covariance columns)."""
+    log = simulate(load_scenario("map_joining"), seed=1)
+    m = robot_map_from_local_map(build_local_map(log.robots["robot1"]))
+    index = np.arange(len(m.pose_ids))
+    poses = index[index % 4 != 0] if kept == 4 else index[index % 8 == 1]
+    view = local_view(m, poses)
+    upper = factorize_at_estimate(m.problem).matrix().toarray()
+    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    pose_columns = m.problem.scalar_indices(m.pose_ids[poses])
+    feature_columns = m.problem.scalar_indices(m.feature_ids)
+    assert (len(feature_columns) <= len(pose_columns)) == (kept == 4)  # which way
+    root = view.part.sqrt_information
+    block = dense[np.ix_(pose_columns, pose_columns)]
+    np.testing.assert_allclose(np.linalg.inv(root.T @ root), block, rtol=1e-6, atol=1e-9)
+    cross = dense[np.ix_(feature_columns, pose_columns)].reshape(len(m.feature_ids), 2, -1)
+    np.testing.assert_allclose(view.cross, cross, rtol=1e-6, atol=1e-10)
