@@ -135,7 +135,7 @@ class LocalMapConfig:
 
     # SolverOptions.max_step_scale of the converged solves (a smoother's ~/flush, the end of
     # an offline build), not of the online updates (MR.CLAM: another minimum of the robust cost)
-    max_step_scale: float = setting(
+    converged_step_scale: float = setting(
         1.0,
         "converged solves: stretch a robust (reweighted) step by up to this factor while the "
         "cost falls (1: off)",
@@ -175,7 +175,7 @@ class LocalMapConfig:
         return LocalMapOptions(
             key_interval=self.key_interval or None,
             robust=robust,
-            solver=SolverOptions(max_step_scale=self.max_step_scale),
+            solver=SolverOptions(max_step_scale=self.converged_step_scale),
         )
 
     @property
