@@ -56,6 +56,7 @@ from csam_ros.run.launch import ProcessGroup
 from csam_ros.run.live import (
     LiveRun,
     LiveRunError,
+    MarkersAfterJoined,
     end_of_data,
     joined_map_is_final,
     recorder_holds_results,
@@ -627,17 +628,15 @@ def monitor(
     executor.add_node(node)
     joined: list = []  # every joined map received
     received: list[float] = []  # when (wall clock)
-    # markers messages received, and how many had come when each joined map came
-    markers: list[int] = [0]
-    markers_before: list[int] = []
+    markers = MarkersAfterJoined()
 
     def on_joined(message: object) -> None:
         joined.append(message)
         received.append(time.time())
-        markers_before.append(markers[0])
+        markers.on_joined()
 
     subscribe(node, JOINED_MAP, on_joined)
-    subscribe(node, MARKERS, lambda m: markers.__setitem__(0, markers[0] + 1))
+    subscribe(node, MARKERS, markers.on_markers)
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in robots}
     merger = node.create_client(Trigger, merger_service(FLUSH))
     deadline = time.monotonic() + timeout_s
@@ -677,8 +676,8 @@ def monitor(
             f"({before_end} joined maps during the run, {calls} flush calls)"
         )
 
-        until = time.monotonic() + 30  # the final map's markers go out once its summary is written
-        while markers[0] == markers_before[-1] and time.monotonic() < until:
+        until = time.monotonic() + 30
+        while not markers.came() and time.monotonic() < until:
             spin(0.05)
         until = time.monotonic() + 15
         while not recorder_holds_results(node) and time.monotonic() < until:

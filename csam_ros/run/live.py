@@ -170,6 +170,24 @@ def end_of_data(
         spin(0.5)
 
 
+class MarkersAfterJoined:
+    """Whether the markers of the latest joined map came: a solved map goes out first, its
+    markers once its summary is written. Feed it both topics' callbacks."""
+
+    def __init__(self) -> None:
+        self.received = 0  # markers messages
+        self.before_joined = 0  # of them when the latest joined map came
+
+    def on_markers(self, message: object) -> None:
+        self.received += 1
+
+    def on_joined(self) -> None:
+        self.before_joined = self.received
+
+    def came(self) -> bool:
+        return self.received > self.before_joined
+
+
 def recorder_holds_results(node: Any) -> bool:
     """Whether the recorder subscribes to the merger's (latched) results, as it must before
     it is stopped."""
@@ -229,16 +247,15 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     latest: dict[str, Any] = {"clock": None, "joined": None}
-    # markers messages received, and how many had come when the latest joined map came
-    markers = {"received": 0, "before_joined": 0}
+    markers = MarkersAfterJoined()
 
     def on_joined(joined: Any) -> None:
         latest["joined"] = joined
-        markers["before_joined"] = markers["received"]
+        markers.on_joined()
 
     subscribe(node, CLOCK, lambda m: latest.__setitem__("clock", m))
     subscribe(node, JOINED_MAP, on_joined)
-    subscribe(node, MARKERS, lambda m: markers.__setitem__("received", markers["received"] + 1))
+    subscribe(node, MARKERS, markers.on_markers)
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in run.robots}
     merger_client = node.create_client(Trigger, merger_service(FLUSH))
     try:
@@ -293,9 +310,8 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
                 raise LiveRunError(
                     f"no final joined map from the merger within 300 s:\n{group.log_tail('merger')}"
                 )
-        # its markers go out once the summary is written
         deadline = time.monotonic() + 30
-        while markers["received"] == markers["before_joined"] and time.monotonic() < deadline:
+        while not markers.came() and time.monotonic() < deadline:
             _check_alive(group, ignore=run.source_name)
             executor.spin_once(timeout_sec=0.1)
 
