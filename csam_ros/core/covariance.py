@@ -139,8 +139,8 @@ def covariance_by_elimination(
     """``(A^T A)^-1`` on ``S = selected`` (rows and columns in that order): the inverse of
     the Schur complement ``H_SS - H_SO H_OO^-1 H_OS`` of ``H = A^T A``, every other scalar
     ``O = rest`` eliminated in the order given. None when ``H_OO`` in that order is not
-    banded within :data:`BAND_LIMIT`, or not numerically positive definite (then
-    :func:`covariance_columns` serves).
+    banded within :data:`BAND_LIMIT`, or it or the Schur complement is not numerically
+    positive definite (then :func:`covariance_columns` serves).
 
     Made for a robot's map with ``S`` its rendezvous poses and features and ``O`` its other
     poses in stamp order: ``H_OO`` is then an odometry chain cut at every rendezvous pose into
@@ -184,11 +184,12 @@ def covariance_by_elimination(
         rhs[segment_rows, columns] = h_os.data[first:stop]
         x = cho_solve_banded((factor[:, lo:hi], False), rhs, check_finite=False)
         schur[np.ix_(touched, touched)] -= rhs.T @ x
-    cholesky = cho_factor(schur, lower=False, check_finite=False)
+    try:
+        cholesky = cho_factor(schur, lower=False, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
     inverse, info = dpotri(cholesky[0], lower=False, overwrite_c=True)
-    if info != 0:
-        raise np.linalg.LinAlgError("the Schur complement of the selected scalars is singular")
-    return np.triu(inverse) + np.triu(inverse, 1).T
+    return None if info != 0 else np.triu(inverse) + np.triu(inverse, 1).T
 
 
 def _elimination_tree(strict_lower: sp.csc_matrix) -> NDArray[np.int64]:

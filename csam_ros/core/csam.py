@@ -264,10 +264,9 @@ def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     """The :class:`LocalView` of ``m`` for ``rendezvous_poses``: the rendezvous part and
     ``P_l,rho`` both come from the covariance of the features and those poses. With no more
     feature than pose scalars (the dense work then a few times that of the rendezvous part
-    itself), it is their joint covariance with the other poses eliminated
-    along the trajectory (:func:`covariance_by_elimination`); otherwise, or where a map's
-    other factors make that no band, the covariance columns of the poses
-    (:func:`covariance_columns`)."""
+    itself), it is their joint covariance with the other poses eliminated along the
+    trajectory (:func:`covariance_by_elimination`); otherwise, or where a map's other factors
+    make that no band, the covariance columns of the poses (:func:`covariance_columns`)."""
     problem = m.problem
     system = factorize_at_estimate(problem)
     if len(rendezvous_poses) == 0:
