@@ -641,9 +641,8 @@ def localise(
     # the pose block of the information matrix (conditional on the landmarks) is block
     # tridiagonal: its selected inverse comes from one forward and one backward recursion.
     system = factorize_at_estimate(problem)
-    upper = system.matrix()
     n_pose = 3 * keys.size
-    information = (upper + sp.triu(upper, 1).T).tocsr()[:n_pose, :n_pose]
+    information = system.full_matrix()[:n_pose, :n_pose]
     pose_cov, pair_cov = chain_covariances(information, keys.size)
     landmarks = truth.feature_positions[obs_subject_row]
     pose_of = poses[key_of]

@@ -151,8 +151,7 @@ def covariance_by_elimination(
     """
     s = np.asarray(selected, dtype=np.int64)
     o = np.asarray(rest, dtype=np.int64)
-    upper = system.matrix()
-    full = (upper + sp.triu(upper, 1).T).tocsr()
+    full = system.full_matrix()
     by_rest = full[o]
     h_oo = by_rest[:, o].tocsr()
     h_oo.sort_indices()

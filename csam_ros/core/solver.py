@@ -584,6 +584,11 @@ class NormalEquations:
             data[self.diagonal_positions] *= 1.0 + damping
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
+    def full_matrix(self) -> sp.csr_matrix:
+        """``A^T A`` as CSR, both triangles."""
+        upper = self.matrix()
+        return (upper + sp.triu(upper, 1).T).tocsr()
+
     def check_blocks(self) -> None:
         """Raise if a variable's own information block is singular (it is under-constrained)."""
         problem = self.problem
