@@ -12,15 +12,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from csam_ros.figure_worker import FigureWorker, figure_worker
+from csam_ros.figures.worker import FigureWorker, figure_worker
 from csam_ros.forked import Forked
 from csam_ros.run.launch import executable
 from csam_ros.run.live import LiveRunError
 
 if TYPE_CHECKING:
-    from csam_ros.core.log import GroundTruth, MultiRobotLog
-    from csam_ros.core.result import RunSummary
-    from csam_ros.core.validation import MeasurementFilter
+    from csam_ros.core.exchange.validation import MeasurementFilter
+    from csam_ros.core.joining.result import RunSummary
+    from csam_ros.core.model.log import GroundTruth, MultiRobotLog
     from csam_ros.run.live import LiveRun
 
 RUNS_DIR = Path("runs")
@@ -69,7 +69,7 @@ MERGER_KEYS = {"solve_period", "stale_after", "provisional_period", "provisional
 def _node_params(document: dict, section: str, cls: type, node: str) -> dict:
     """The keys given in a file section that ``node`` takes as parameters (the dataclass
     fields whose Setting names it), checked and typed as declared, before any node starts."""
-    from csam_ros.core.config_file import settings
+    from csam_ros.core.model.config_file import settings
 
     given = document.get(section)
     try:
@@ -87,7 +87,7 @@ def _csam_params(document: dict) -> dict:
     """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
     section's ``solve_period``, ``stale_after``, ``provisional_period`` and
     ``provisional_quiet`` (seconds)."""
-    from csam_ros.core.csam import MERGER, CsamConfig
+    from csam_ros.core.joining.csam import MERGER, CsamConfig
 
     csam = _node_params(document, "csam", CsamConfig, MERGER)
     merger = document.get("merger") or {}
@@ -105,9 +105,9 @@ def _smoother_params(document: dict) -> dict:
     """The smoothers' parameters: their fields of the ``local_map:`` section (all but the
     offline-only ``batch_window``), of the ``csam:`` section (the rendezvous thinning) and the
     ``input:`` section (bounds on sensor messages)."""
-    from csam_ros.core.csam import CsamConfig
-    from csam_ros.core.local_map import SMOOTHER, LocalMapConfig
-    from csam_ros.core.validation import InputBounds
+    from csam_ros.core.exchange.validation import InputBounds
+    from csam_ros.core.joining.csam import CsamConfig
+    from csam_ros.core.smoothing.local_map import SMOOTHER, LocalMapConfig
 
     return {
         **_node_params(document, "local_map", LocalMapConfig, SMOOTHER),
@@ -124,7 +124,7 @@ def _finish(out: Path, summary: RunSummary, worker: FigureWorker | None = None) 
     if worker is not None:
         figures = worker.draw(out / "summary.json", out)
     else:
-        from csam_ros.figures import draw_all
+        from csam_ros.figures.draw import draw_all
 
         figures = draw_all(result, out, scenario=summary.scenario)
     print(f"result in {out}/")
@@ -287,9 +287,9 @@ def read_offline_log(
     ``resume``: the data after the state an earlier replay saved, joined to its accepted logs
     and through its measurement filter."""
     from csam_ros.bag import read_bag_messages
-    from csam_ros.core.checkpoint import CheckpointError, OfflineState, joined_logs
-    from csam_ros.core.log import MultiRobotLog
-    from csam_ros.core.validation import InputBounds
+    from csam_ros.core.exchange.checkpoint import CheckpointError, OfflineState, joined_logs
+    from csam_ros.core.exchange.validation import InputBounds
+    from csam_ros.core.model.log import MultiRobotLog
     from csam_ros.ros.conversions import LogBuilder
     from csam_ros.ros.topics import FEATURES_TRUTH, sensor_topics
 
@@ -333,10 +333,10 @@ def offline_summary(
     measurement filter), the bag's data after them; ``save_state``: write the state of this
     replay there (a replay continued from it equals one over all the data). ``reading``: the
     :func:`read_offline_log` of the same arguments, already under way in another process."""
-    from csam_ros.core.checkpoint import FilterState, OfflineState
-    from csam_ros.core.csam import CsamConfig, run_csam
-    from csam_ros.core.local_map import LocalMapConfig
-    from csam_ros.core.result import RunSummary
+    from csam_ros.core.exchange.checkpoint import FilterState, OfflineState
+    from csam_ros.core.joining.csam import CsamConfig, run_csam
+    from csam_ros.core.joining.result import RunSummary
+    from csam_ros.core.smoothing.local_map import LocalMapConfig
 
     document = config_document or {}
     try:
@@ -374,7 +374,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         )
     document = {}
     if args.config is not None:
-        from csam_ros.core.config_file import ConfigFileError, load_document
+        from csam_ros.core.model.config_file import ConfigFileError, load_document
 
         try:
             document = load_document(args.config)
@@ -441,8 +441,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from csam_ros.core.evaluation import evaluate
-    from csam_ros.core.result import RunSummary, SummaryError
+    from csam_ros.core.joining.result import RunSummary, SummaryError
+    from csam_ros.core.truth.evaluation import evaluate
 
     run_dir = args.dir
     summary_path = run_dir / "summary.json"
@@ -479,8 +479,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         )
         print(f"  {name}: {robot['alignment']}{alone}")
     if error.get("transform") is not None:
-        from csam_ros.core import se2
-        from csam_ros.figures import draw_joined_map
+        from csam_ros.core.model import se2
+        from csam_ros.figures.draw import draw_joined_map
 
         # the truth brought into the reference frame by the inverse of the scoring alignment
         true_xy = se2.inverse_transform_point(
@@ -553,7 +553,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     if args.out.exists():
         raise CliError(f"{args.out} exists: an import never overwrites a bag")
     if args.format == "mrclam":
-        from csam_ros.core.config_file import ConfigFileError, resolve_config_path
+        from csam_ros.core.model.config_file import ConfigFileError, resolve_config_path
         from csam_ros.datasets.mrclam import (
             MrclamFormatError,
             import_mrclam,
@@ -603,7 +603,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Estimate a data set's noise model and range scales; write them as a config file."""
-    from csam_ros.core.config_file import ConfigFileError, resolve_config_path
+    from csam_ros.core.model.config_file import ConfigFileError, resolve_config_path
     from csam_ros.datasets.mrclam import MrclamFormatError, landmark_swaps_of, load_config
     from csam_ros.datasets.mrclam_calibration import (
         calibrate_mrclam,
@@ -820,8 +820,8 @@ def _input_errors() -> tuple[type[BaseException], ...]:
     missing or unreadable file, a file that is not text, a malformed config, scenario, data
     set, 2D SLAM file, summary.json or bag."""
     from csam_ros.bag import BagError
-    from csam_ros.core.config_file import ConfigFileError
-    from csam_ros.core.result import SummaryError
+    from csam_ros.core.joining.result import SummaryError
+    from csam_ros.core.model.config_file import ConfigFileError
     from csam_ros.datasets.mrclam import MrclamFormatError
     from csam_ros.datasets.slam2d import Slam2dFormatError
 

@@ -23,7 +23,7 @@ from typing import Any
 
 from rclpy.serialization import serialize_message
 
-from csam_ros.core.result import CsamResult, RunSummary
+from csam_ros.core.joining.result import CsamResult, RunSummary
 from csam_ros.ros.conversions import ns_to_time
 from csam_ros.ros.markers import joined_map_markers
 from csam_ros.solve_process import forkserver_context, stop_child

@@ -2,15 +2,15 @@
 
 A solve is seconds of Python and numpy. In a thread of the merger it shares one interpreter
 with the executor, which then takes input, publishes provisional maps and status at the pace
-the interpreter lock allows. :class:`SolveProcess` runs a :class:`~csam_ros.core.joiner.Joiner`
-in a child process started from a fork server (a clean process that imported the core once:
-the merger has threads, which a fork would not copy). The child keeps the joiner's state
-between solves, so a request carries a robot's map only when it changed, and the warm start
-only when the child does not hold it. A child that dies is started again at the next solve,
-which then sends everything. A join's state (when asked for) is written after its reply:
-:meth:`SolveProcess.state_written` waits for it. :meth:`SolveProcess.cancel` gives the running
-join up (a signal
-the child turns into :class:`~csam_ros.core.joiner.JoinCancelled` while it joins): the child
+the interpreter lock allows. :class:`SolveProcess` runs a
+:class:`~csam_ros.core.merging.joiner.Joiner` in a child process started from a fork server (a
+clean process that imported the core once: the merger has threads, which a fork would not copy).
+The child keeps the joiner's state between solves, so a request carries a robot's map only when it
+changed, and the warm start only when the child does not hold it. A child that dies is started
+again at the next solve, which then sends everything. A join's state (when asked for) is written
+after its reply: :meth:`SolveProcess.state_written` waits for it. :meth:`SolveProcess.cancel` gives
+the running join up (a signal
+the child turns into :class:`~csam_ros.core.merging.joiner.JoinCancelled` while it joins): the child
 keeps its maps and warm start, and the join's reply says it was cancelled.
 """
 
@@ -28,7 +28,8 @@ from multiprocessing.connection import Connection
 from types import FrameType
 from typing import Any
 
-from csam_ros.core.joiner import (
+from csam_ros.core.joining.result import CsamResult
+from csam_ros.core.merging.joiner import (
     JoinCancelled,
     Joiner,
     JoinReply,
@@ -36,11 +37,10 @@ from csam_ros.core.joiner import (
     MapSource,
     StateWritten,
 )
-from csam_ros.core.result import CsamResult
 
 # what the fork server imports once, so that a child starts at once (this module's and
 # csam_ros.message_process's)
-PRELOAD = ["csam_ros.core.joiner", "csam_ros.message_process"]
+PRELOAD = ["csam_ros.core.merging.joiner", "csam_ros.message_process"]
 CANCEL_SIGNAL = signal.SIGUSR1
 
 

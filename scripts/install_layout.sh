@@ -17,6 +17,6 @@ for exe in simulator smoother merger recorder player csam; do
   fi
   ln -sfn "../lib/csam_ros/$exe" "$venv/bin/$exe"
 done
-# parameter and scenario files, where csam_ros.core.config_file looks first (colcon installs
+# parameter and scenario files, where csam_ros.core.model.config_file looks first (colcon installs
 # a copy from setup.py's data_files; here a link keeps the source tree's files in use)
 ln -sfn "$root/config" "$venv/share/csam_ros/config"

@@ -8,13 +8,13 @@ from __future__ import annotations
 import numpy as np
 from log_slices import robot_log_between
 
-from csam_ros.core import se2
-from csam_ros.core.csam import robot_map_from_local_map
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.local_map import build_local_map
-from csam_ros.core.log import MultiRobotLog, RendezvousLog
-from csam_ros.core.rendezvous import required_stamps
-from csam_ros.core.result import CsamResult
+from csam_ros.core.joining.csam import robot_map_from_local_map
+from csam_ros.core.joining.result import CsamResult
+from csam_ros.core.model import se2
+from csam_ros.core.model.log import MultiRobotLog, RendezvousLog
+from csam_ros.core.model.rendezvous import required_stamps
+from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.robot_map import RobotMap
 
 
 def maps_until(log: MultiRobotLog, t: float) -> tuple[list[RobotMap], dict[str, RendezvousLog]]:

@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from csam_ros.core import se2
+from csam_ros.core.model import se2
 
 Array = NDArray[np.float64]
 EPS = 1e-6

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from csam_ros.core.log import RobotLog
+from csam_ros.core.model.log import RobotLog
 
 
 def _select(data: Any, keep: np.ndarray) -> Any:

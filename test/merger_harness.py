@@ -24,15 +24,15 @@ from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from csam_ros.core.csam import robot_map_from_local_map
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.local_map import build_local_map
-from csam_ros.core.log import RobotLog
-from csam_ros.core.map_arrays import robot_map_arrays
-from csam_ros.core.map_updates import UpdateSender
-from csam_ros.core.rendezvous import required_stamps
-from csam_ros.core.simulation import simulate
+from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.exchange.map_updates import UpdateSender
+from csam_ros.core.joining.csam import robot_map_from_local_map
+from csam_ros.core.model.log import RobotLog
+from csam_ros.core.model.rendezvous import required_stamps
+from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.ros.map_messages import local_map_update_message, rendezvous_poses_message
 
 ROBOTS = ["robot1", "robot2"]

@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import strategies as st
 from numpy.typing import ArrayLike, NDArray
 
-from csam_ros.core import se2
+from csam_ros.core.model import se2
 
 Array = NDArray[np.float64]
 

@@ -12,7 +12,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from csam_ros.bag import MessageTypes
-from csam_ros.core.result import RunSummary
+from csam_ros.core.joining.result import RunSummary
 from csam_ros.datasets.mrclam import default_dataset_dir
 
 MRCLAM = default_dataset_dir()
@@ -158,7 +158,7 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
     runs on another domain."""
     import rclpy
 
-    from csam_ros.core import se2
+    from csam_ros.core.model import se2
     from csam_ros.ros.topics import JOINED_MAP, TF
 
     node = rclpy.create_node("watcher", context=ros_context)
@@ -259,7 +259,7 @@ def test_calibrate_gives_one_line_errors(tmp_path: Path) -> None:
 def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) -> None:
     """The first 200 s of Dataset 1, two EM rounds: a config file in config/mrclam.yaml's form."""
     from csam_ros.cli import _csam_params, _smoother_params
-    from csam_ros.core.config_file import load_document
+    from csam_ros.core.model.config_file import load_document
     from csam_ros.datasets.mrclam import import_mrclam, load_config
 
     out = tmp_path / "calibrated" / "mrclam.yaml"
@@ -301,7 +301,7 @@ def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) 
 def _log_bag(path: Path, samples: dict[str, int], v: float = 0.1) -> Path:
     """A bag of sensor topics: each robot ``samples`` odometry steps at speed ``v`` and one
     feature observation per step."""
-    from csam_ros.core.log import (
+    from csam_ros.core.model.log import (
         FeatureLog,
         MultiRobotLog,
         OdometryLog,
@@ -483,8 +483,8 @@ def test_offline_run_leaves_out_a_robot_without_a_local_map() -> None:
     """run_csam (the offline replay's core) leaves out, and names in the notes, a robot with
     one odometry sample and a robot whose solve is not finite (the boundary checks of a
     replay may drop such input first; the core must not fail on it either)."""
-    from csam_ros.core.csam import run_csam
-    from csam_ros.core.log import (
+    from csam_ros.core.joining.csam import run_csam
+    from csam_ros.core.model.log import (
         FeatureLog,
         MultiRobotLog,
         OdometryLog,

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from growing_joins import largest_difference, maps_until
 
-from csam_ros.core.checkpoint import MergerState
-from csam_ros.core.csam import CsamConfig
-from csam_ros.core.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest
-from csam_ros.core.map_arrays import robot_map_arrays
-from csam_ros.core.simulation import simulate
+from csam_ros.core.exchange.checkpoint import MergerState
+from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.merging.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.solve_process import CANCEL_SIGNAL, SolveProcess, _Cancellation
 
 CONFIG = CsamConfig(skip_missing_poses=True)

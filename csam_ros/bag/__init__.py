@@ -9,8 +9,8 @@
   csam_msgs and installed packages).
 """
 
-from .qos import parse_qos_profiles, publisher_qos, qos_to_dict, subscription_qos
-from .reader import (
+from csam_ros.bag.qos import parse_qos_profiles, publisher_qos, qos_to_dict, subscription_qos
+from csam_ros.bag.reader import (
     BagInfo,
     BagMessage,
     DecodedMessage,
@@ -19,15 +19,15 @@ from .reader import (
     read_bag,
     read_bag_messages,
 )
-from .recover import RecoveryReport, recover_bag
-from .types import (
+from csam_ros.bag.recover import RecoveryReport, recover_bag
+from csam_ros.bag.types import (
     MessageDefinition,
     MessageTypes,
     UnknownMessageTypeError,
     message_class,
     msgtype_of,
 )
-from .writer import BagError, BagWriter
+from csam_ros.bag.writer import BagError, BagWriter
 
 __all__ = [
     "BagError",

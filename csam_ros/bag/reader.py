@@ -29,11 +29,11 @@ from typing import Any, Literal, NamedTuple
 import yaml
 from mcap.records import Channel
 
-from .mcapfile import MAGIC as MCAP_MAGIC
-from .mcapfile import McapScan, iter_messages, scan_file
-from .qos import QosDict, parse_qos_profiles
-from .types import MessageTypes, message_class
-from .writer import METADATA_FILE, BagError
+from csam_ros.bag.mcapfile import MAGIC as MCAP_MAGIC
+from csam_ros.bag.mcapfile import McapScan, iter_messages, scan_file
+from csam_ros.bag.qos import QosDict, parse_qos_profiles
+from csam_ros.bag.types import MessageTypes, message_class
+from csam_ros.bag.writer import METADATA_FILE, BagError
 
 LOGGER = logging.getLogger("csam_ros.bag")
 DamageHandler = Callable[[str], None]

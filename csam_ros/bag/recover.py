@@ -16,8 +16,8 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .mcapfile import McapScan
-from .reader import (
+from csam_ros.bag.mcapfile import McapScan
+from csam_ros.bag.reader import (
     _bag_files,
     _check_magic,
     _iter_scan,
@@ -28,8 +28,8 @@ from .reader import (
     file_warnings,
     inspect_bag,
 )
-from .types import MessageDefinition, normalize_msgtype
-from .writer import BagError, BagWriter
+from csam_ros.bag.types import MessageDefinition, normalize_msgtype
+from csam_ros.bag.writer import BagError, BagWriter
 
 
 @dataclass

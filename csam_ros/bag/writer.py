@@ -26,9 +26,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
 from csam_ros import __version__
-
-from .qos import QosDict, dump_qos_profiles, qos_list
-from .types import MessageDefinition, MessageTypes, msgtype_of, normalize_msgtype
+from csam_ros.bag.qos import QosDict, dump_qos_profiles, qos_list
+from csam_ros.bag.types import MessageDefinition, MessageTypes, msgtype_of, normalize_msgtype
 
 METADATA_FILE = "metadata.yaml"
 METADATA_VERSION = 9

@@ -29,17 +29,11 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map  # noqa: E402
-from csam_ros.core.evaluation import evaluate  # noqa: E402
-from csam_ros.core.local_map import build_local_map  # noqa: E402
-from csam_ros.core.rendezvous import required_stamps  # noqa: E402
-from csam_ros.core.simulation import (  # noqa: E402
-    RobotSpec,
-    Scenario,
-    Segment,
-    feature_grid,
-    simulate,
-)
+from csam_ros.core.joining.csam import CsamConfig, join_maps, robot_map_from_local_map  # noqa: E402
+from csam_ros.core.model.rendezvous import required_stamps  # noqa: E402
+from csam_ros.core.smoothing.local_map import build_local_map  # noqa: E402
+from csam_ros.core.truth.evaluation import evaluate  # noqa: E402
+from csam_ros.datasets.simulation import RobotSpec, Scenario, Segment, feature_grid, simulate
 
 LANE_GAP = 3.0  # m between the two lanes
 SPACING = 1.0  # m between features

@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from csam_ros.core import se2
-from csam_ros.core.result import CsamResult, RunSummary
-from csam_ros.core.simulation import (
+from csam_ros.core.joining.result import CsamResult, RunSummary
+from csam_ros.core.model import se2
+from csam_ros.datasets.simulation import (
     RangeBearingSensor,
     RobotSpec,
     Scenario,
@@ -261,7 +261,7 @@ class Row:
 def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int) -> Row:
     """Generate, run live, run offline and compare, for ``n`` robots under ``out``."""
     from csam_ros.cli import demo_live_run, offline_summary
-    from csam_ros.core.config_file import load_document
+    from csam_ros.core.model.config_file import load_document
     from csam_ros.run.lag import read_timeline
     from csam_ros.run.live import run_live
 

@@ -5,15 +5,15 @@
 Each robot's sensor log in the bag is fed to a local map as its smoother does (an update every
 ``publish_period`` s of data, the config's ``local_map:`` section; poses at the stamps of the
 kept rendezvous that involve it), and after every update each tolerance's
-:class:`~csam_ros.core.map_updates.UpdateSender` makes the update it would publish. Printed:
-the serialized ``LocalMapUpdate`` bytes per second of data, per robot by tenth of the run (what
-the robot sends the base station, without DDS and IP headers), and the poses per update.
+:class:`~csam_ros.core.exchange.map_updates.UpdateSender` makes the update it would publish.
+Printed: the serialized ``LocalMapUpdate`` bytes per second of data, per robot by tenth of the run
+(what the robot sends the base station, without DDS and IP headers), and the poses per update.
 
 Every ``--every`` s of data (and at the end, before the final exact update) the maps as the
 merger holds them at each tolerance, refined as it refines them
 (:func:`~csam_ros.ros.map_messages.checked_robot_map`), are joined
-(:func:`~csam_ros.core.csam.join_maps`) and compared with the join of the smoothers' own maps
-at that time: the largest difference of a joined feature and of a joined pose, and whether the
+(:func:`~csam_ros.core.joining.csam.join_maps`) and compared with the join of the smoothers' own
+maps at that time: the largest difference of a joined feature and of a joined pose, and whether the
 same robots are aligned and the same features associated.
 """
 
@@ -30,20 +30,20 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from csam_ros.core.csam import (  # noqa: E402
+from csam_ros.core.exchange.map_arrays import checked_robot_map, robot_map_arrays  # noqa: E402
+from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
+from csam_ros.core.exchange.validation import LocalMapArrays  # noqa: E402
+from csam_ros.core.joining.csam import (
     CsamConfig,
     join_maps,
     robot_map_from_local_map,
     thinned_rendezvous,
 )
-from csam_ros.core.local_map import LocalMap, LocalMapConfig  # noqa: E402
-from csam_ros.core.log import MultiRobotLog, RendezvousLog  # noqa: E402
-from csam_ros.core.map_arrays import checked_robot_map, robot_map_arrays  # noqa: E402
-from csam_ros.core.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
-from csam_ros.core.rendezvous import required_stamps  # noqa: E402
-from csam_ros.core.result import CsamResult  # noqa: E402
-from csam_ros.core.robust import select_rendezvous  # noqa: E402
-from csam_ros.core.validation import LocalMapArrays  # noqa: E402
+from csam_ros.core.joining.rendezvous_filters import select_rendezvous  # noqa: E402
+from csam_ros.core.joining.result import CsamResult  # noqa: E402
+from csam_ros.core.model.log import MultiRobotLog, RendezvousLog  # noqa: E402
+from csam_ros.core.model.rendezvous import required_stamps  # noqa: E402
+from csam_ros.core.smoothing.local_map import LocalMap, LocalMapConfig  # noqa: E402
 
 PARTS = 10
 
@@ -157,7 +157,7 @@ def main() -> None:
     )
     parser.add_argument("--every", type=float, default=300.0, help="s of data between joins")
     args = parser.parse_args()
-    from csam_ros.core.config_file import load_document
+    from csam_ros.core.model.config_file import load_document
 
     document = load_document(args.config) if args.config else {}
     local_map = LocalMapConfig.from_dict(document.get("local_map"), "local_map")

@@ -26,15 +26,16 @@ What real data needed beyond simulation (measured on the whole of Dataset 1, 1,4
 - Robots meeting often (700-2,000 rendezvous per robot): Algorithm 1 enters each local map
   through the dense marginal information of all its rendezvous poses (3 robots x 300 s took
   64 s; all five over the whole run did not finish in 15 min): thin to <= 20 per ordered
-  pair, one per 5 s at most (:func:`csam_ros.core.robust.thin_rendezvous`).
+  pair, one per 5 s at most (:func:`csam_ros.core.joining.rendezvous_filters.thin_rendezvous`).
 - Rendezvous: bearings spread 1.9x the landmark bearings (factors in the config); a RANSAC
-  consistency check (:func:`csam_ros.core.robust.consistent_rendezvous`) rejects the rest.
+  consistency check (:func:`csam_ros.core.joining.rendezvous_filters.consistent_rendezvous`)
+  rejects the rest.
 - Association: the local maps are over-confident against the truth (landmark NEES up to 15
   with the 2.38 kernel scale, up to about 1.5 with 1.0), so the 99% gate (9.21) finds only
   79% of the true pairs (half with the 2.38 scale); 30 finds 97% with precision 1.0.
 
 The noise model and the range scales (the ``noise:`` and ``range_scale`` keys of the config)
-are estimated by :mod:`csam_ros.core.calibration` (steps in its docstring) through
+are estimated by :mod:`csam_ros.core.truth.calibration` (steps in its docstring) through
 ``csam calibrate mrclam DATASET_DIR --out FILE.yaml``; ``... noise`` here prints the same
 estimation with all its diagnostics.
 """
@@ -51,14 +52,14 @@ from pathlib import Path
 
 import numpy as np
 
-from csam_ros.core.calibration import NoiseEstimate
-from csam_ros.core.config_file import load_document
-from csam_ros.core.csam import CsamConfig, join_maps, robot_map_from_local_map
-from csam_ros.core.evaluation import evaluate
-from csam_ros.core.local_map import LocalMapConfig, build_local_map
-from csam_ros.core.log import MultiRobotLog
-from csam_ros.core.rendezvous import required_stamps
-from csam_ros.core.robust import select_rendezvous, thin_rendezvous
+from csam_ros.core.joining.csam import CsamConfig, join_maps, robot_map_from_local_map
+from csam_ros.core.joining.rendezvous_filters import select_rendezvous, thin_rendezvous
+from csam_ros.core.model.config_file import load_document
+from csam_ros.core.model.log import MultiRobotLog
+from csam_ros.core.model.rendezvous import required_stamps
+from csam_ros.core.smoothing.local_map import LocalMapConfig, build_local_map
+from csam_ros.core.truth.calibration import NoiseEstimate
+from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.mrclam import (
     LandmarkSwaps,
     default_dataset_dir,

@@ -3,8 +3,8 @@
 ``python -m csam_ros.bench.range_scale DATASET_DIR... [--exponents 0,1,fit] [--max-gap 0.5]
 [--tolerance 0.05] [--truth 1:0.9927,2:0.9997,...] [--json FILE]`` imports each data set
 with raw ranges (no range scale), pairs every robot's range to another robot with that
-robot's range back at the same stamp (:func:`csam_ros.core.range_scale.mutual_pairs`) and
-solves the relative scales (:func:`csam_ros.core.range_scale.mutual_range_scales`, geometric
+robot's range back at the same stamp (:func:`csam_ros.core.truth.range_scale.mutual_pairs`) and
+solves the relative scales (:func:`csam_ros.core.truth.range_scale.mutual_range_scales`, geometric
 mean 1) for each depth exponent ``c`` (0: ranges are distances, as the importer takes them;
 1: ranges are depths ``d cos(bearing)``; fit: one ``c`` for all cameras). Per robot it prints
 the scale with its standard errors (pairs as independent; delete-one-meeting jackknife),
@@ -16,7 +16,7 @@ used. About 10 s per data set.
 
 ``--joined RUNDIR/summary.json`` (per data set, in order) adds the other truth-free route:
 each camera's landmark ranges against the joined map of a ``csam replay --offline`` run of
-that data set (:func:`csam_ros.core.range_scale.map_range_scales`), for each given
+that data set (:func:`csam_ros.core.truth.range_scale.map_range_scales`), for each given
 exponent; best from a run imported without range scales (``range_scale: {}``).
 """
 
@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from csam_ros.core.log import MultiRobotLog
-from csam_ros.core.range_scale import (
+from csam_ros.core.model.log import MultiRobotLog
+from csam_ros.core.truth.range_scale import (
     MapScale,
     MeetingJackknife,
     MutualPairs,

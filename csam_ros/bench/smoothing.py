@@ -35,7 +35,7 @@ only; problem construction listed separately), final cost on its own objective a
 project's objective, peak memory. For this project also where the time goes (structure,
 ordering with the first factorisation, and each part of an iteration) and the share of
 GTSAM's time its factorisations alone take. The problem generators and builders are shared
-with the tests: :mod:`csam_ros.core.landmark_problem` (simulated problem, this project's
+with the tests: :mod:`csam_ros.testing.landmark_problem` (simulated problem, this project's
 problem, the incremental policy) and :mod:`csam_ros.testing.gtsam_oracle` (the same in GTSAM).
 
 Online (``--no-online`` skips it): a robot log fed to a local map one second at a time, a
@@ -61,9 +61,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core import se2
-from csam_ros.core.factors import Cauchy
-from csam_ros.core.landmark_problem import (
+from csam_ros.core.model import se2
+from csam_ros.core.model.log import RobotLog
+from csam_ros.core.sam.factors import Cauchy
+from csam_ros.core.sam.solver import NormalEquations, Problem, SolverOptions
+from csam_ros.core.smoothing.local_map import LocalMap, LocalMapOptions, build_local_map
+from csam_ros.datasets.simulation import simulate_robot_log
+from csam_ros.datasets.slam2d import Slam2dData, initial_values, read_slam2d
+from csam_ros.testing.gtsam_oracle import build_gtsam, gtsam_estimate
+from csam_ros.testing.landmark_problem import (
     GraphData,
     build_problem,
     read_graph,
@@ -71,12 +77,6 @@ from csam_ros.core.landmark_problem import (
     simulate_landmark_problem,
     solve_incremental,
 )
-from csam_ros.core.local_map import LocalMap, LocalMapOptions, build_local_map
-from csam_ros.core.log import RobotLog
-from csam_ros.core.simulation import simulate_robot_log
-from csam_ros.core.solver import NormalEquations, Problem, SolverOptions
-from csam_ros.datasets.slam2d import Slam2dData, initial_values, read_slam2d
-from csam_ros.testing.gtsam_oracle import build_gtsam, gtsam_estimate
 
 Array = NDArray[np.float64]
 
@@ -536,7 +536,7 @@ def main(argv: list[str] | None = None) -> None:
         # as `csam replay --config config/mrclam.yaml` runs the smoothers: calibrated import,
         # thinned rendezvous, the local_map section, one update per publish period
         from csam_ros.bench.mrclam import CONFIG, RunOptions
-        from csam_ros.core.robust import thin_rendezvous
+        from csam_ros.core.joining.rendezvous_filters import thin_rendezvous
         from csam_ros.datasets.mrclam import import_mrclam, load_config
 
         section = load_config(CONFIG)

@@ -1,2 +1,6 @@
-"""The pure core of csam_ros: models, smoothing, alignment, association, joining and
-simulation. Nothing under this package imports ROS."""
+"""The pure core of csam_ros (no ROS imports), in layers; each imports only those before it:
+
+``model`` -> ``sam`` -> ``smoothing`` -> ``joining`` -> ``exchange`` -> ``merging``, and
+``truth`` (ground truth, calibration, evaluation) beside ``exchange`` on top of ``joining``.
+docs/ARCHITECTURE.md states the rule; test/core/test_layers.py checks it.
+"""

@@ -28,7 +28,7 @@ or ``RobotN_Measurement.dat``, that is missing, unreadable or without one valid 
   hold for zero seconds); the others are counted as duplicates.
 - Odometry convention. A file row ``(t_k, v_k, omega_k)`` is the velocity applied from ``t_k``
   until the next row, i.e. a piecewise-constant input ``u(t)``. The log's sample ``i`` holds
-  the mean input over ``(s_{i-1}, s_i]`` (:mod:`csam_ros.core.log`), so the log takes the
+  the mean input over ``(s_{i-1}, s_i]`` (:mod:`csam_ros.core.model.log`), so the log takes the
   file's stamps inside the window as its stamps and gives sample ``i`` the row active at
   ``s_{i-1}``: the input is constant over each sample, and the mean is exact. The first sample
   sits at the window start (or the robot's first row) and the last at the window end (or the
@@ -50,7 +50,7 @@ or ``RobotN_Measurement.dat``, that is missing, unreadable or without one valid 
   (``config/mrclam.yaml``) the pairs are found from the measurements themselves: the
   robots are localised snapshot by snapshot on the listed landmarks, and two subjects whose
   measurements nearly all miss their own positions and fit each other's are exchanged
-  (:func:`~csam_ros.core.calibration.detect_landmark_swaps`). Applied swaps are listed in
+  (:func:`~csam_ros.core.truth.calibration.detect_landmark_swaps`). Applied swaps are listed in
   ``ImportReport.truth_corrections``; nothing is swapped unless asked.
 - Range calibration: ``range_scale`` maps robot numbers to the ratio of measured to true
   range of that robot's camera (a per-camera scale error, estimated against the landmark
@@ -73,8 +73,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core.calibration import NoiseModel, detect_landmark_swaps, exchange_landmarks
-from csam_ros.core.log import (
+from csam_ros.core.model.log import (
     FeatureLog,
     GroundTruth,
     MultiRobotLog,
@@ -82,6 +81,7 @@ from csam_ros.core.log import (
     RendezvousLog,
     RobotLog,
 )
+from csam_ros.core.truth.calibration import NoiseModel, detect_landmark_swaps, exchange_landmarks
 
 FloatArray = NDArray[np.float64]
 
@@ -135,10 +135,10 @@ def _numbers(value: object) -> bool:
 
 def load_config(path: str | Path) -> dict:
     """Read ``config/mrclam.yaml`` (top-level key ``mrclam``) and return that section, with
-    ``noise`` turned into a :class:`~csam_ros.core.calibration.NoiseModel` (keys it leaves
+    ``noise`` turned into a :class:`~csam_ros.core.truth.calibration.NoiseModel` (keys it leaves
     out from :data:`MRCLAM_NOISE`). A file that cannot be read, or a section of the wrong
-    shape, raises :class:`~csam_ros.core.config_file.ConfigFileError` naming file and key."""
-    from csam_ros.core.config_file import ConfigFileError, load_document
+    shape, raises :class:`~csam_ros.core.model.config_file.ConfigFileError` naming file and key."""
+    from csam_ros.core.model.config_file import ConfigFileError, load_document
 
     data = load_document(path)
     if not isinstance(data.get("mrclam"), Mapping):
@@ -560,7 +560,7 @@ def import_mrclam(
     (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
     label -> subject map) and the :class:`ImportReport`. ``landmark_swaps`` lists pairs of
     landmark subjects whose true positions are exchanged, or is :data:`AUTO`: the pairs are
-    found from the measurements (:func:`~csam_ros.core.calibration.detect_landmark_swaps`).
+    found from the measurements (:func:`~csam_ros.core.truth.calibration.detect_landmark_swaps`).
     ``range_scale`` each robot's ratio of
     measured to true range (module docstring). ``occlusion`` drops landmark observations:
     :data:`STRESS` or windows ``(robot number, start, end)`` (:func:`occlude_landmarks`).

@@ -1,7 +1,7 @@
 """Noise model and camera range scales of an MR.CLAM data set, written as a config file.
 
 :func:`calibrate_mrclam` imports the data set with its landmark truth and runs the generic
-estimation of :mod:`csam_ros.core.calibration` on it; :func:`calibration_config` turns the
+estimation of :mod:`csam_ros.core.truth.calibration` on it; :func:`calibration_config` turns the
 result into the text of a parameter file in the format of ``config/mrclam.yaml`` (read by
 :func:`csam_ros.datasets.mrclam.load_config`, ``csam import mrclam`` and ``csam replay
 --config``). ``csam calibrate mrclam DATASET_DIR --out FILE.yaml`` does both.
@@ -14,7 +14,7 @@ import textwrap
 from dataclasses import asdict
 from pathlib import Path
 
-from csam_ros.core.calibration import NoiseEstimate, NoiseModel, Progress, estimate_noise
+from csam_ros.core.truth.calibration import NoiseEstimate, NoiseModel, Progress, estimate_noise
 from csam_ros.datasets.mrclam import LandmarkSwaps, import_mrclam, landmark_swaps_of, load_config
 
 _TOP_LEVEL_KEY = re.compile(r"^[A-Za-z_][\w-]*:")
@@ -65,7 +65,7 @@ def calibration_config(estimate: NoiseEstimate, base: str | Path, source: str) -
     )
     lines = [
         "# MR.CLAM noise model and camera range scales estimated by `csam calibrate mrclam`",
-        "# against the landmark ground truth (steps in csam_ros/core/calibration.py) from",
+        "# against the landmark ground truth (steps in csam_ros/core/truth/calibration.py) from",
         f"#   {source}.",
         "# The import window, label seed and truth swaps, and the sections after `mrclam:`,",
         f"# are those of {base}.",

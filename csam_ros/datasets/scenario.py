@@ -1,5 +1,5 @@
 """Scenario files: YAML under a top-level ``scenario:`` key, loaded into a
-:class:`~csam_ros.core.simulation.Scenario`.
+:class:`~csam_ros.datasets.simulation.Scenario`.
 
 Layout (see ``config/map_joining.yaml`` for a commented example)::
 
@@ -38,8 +38,14 @@ from typing import Any
 
 import numpy as np
 
-from csam_ros.core.config_file import ConfigFileError, load_document, resolve_config_path
-from csam_ros.core.simulation import RangeBearingSensor, RobotSpec, Scenario, Segment, feature_grid
+from csam_ros.core.model.config_file import ConfigFileError, load_document, resolve_config_path
+from csam_ros.datasets.simulation import (
+    RangeBearingSensor,
+    RobotSpec,
+    Scenario,
+    Segment,
+    feature_grid,
+)
 
 
 class ScenarioError(ConfigFileError):

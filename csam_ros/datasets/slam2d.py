@@ -10,7 +10,7 @@ Text format::
 - ``ODOMETRY``: the pose of ``id2`` in the frame of ``id1`` (``(-)x_id1 (+) x_id2``) and the
   covariance of the vector ``(dx, dy, dtheta)`` in the frame of ``id1``, given by its upper
   triangle row by row (``c11 = var(dx)``, ``c12 = cov(dx, dy)``, ...). This is exactly the
-  error of :class:`~csam_ros.core.factors.RelativePose`.
+  error of :class:`~csam_ros.core.sam.factors.RelativePose`.
 - ``LANDMARK``: the landmark's position in the frame of pose ``pose_id`` with the covariance
   of ``(dx, dy)`` in that frame (``c11 c12 c22``), the error of ``PointObservation``.
 
@@ -44,9 +44,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core import se2
-from csam_ros.core.factors import POINT, POSE, PointObservation, PosePrior, RelativePose
-from csam_ros.core.solver import GAUGE_SIGMA, Problem
+from csam_ros.core.model import se2
+from csam_ros.core.sam.factors import POINT, POSE, PointObservation, PosePrior, RelativePose
+from csam_ros.core.sam.solver import GAUGE_SIGMA, Problem
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -1,7 +1,7 @@
 """A single-robot 2D landmark SLAM file as a measurement log (``csam import slam2d``).
 
 A file read by :func:`csam_ros.datasets.slam2d.read_slam2d` holds relative poses and Cartesian
-landmark observations with covariances; a :class:`~csam_ros.core.log.MultiRobotLog` holds what
+landmark observations with covariances; a :class:`~csam_ros.core.model.log.MultiRobotLog` holds what
 a robot measures: odometry inputs ``u = (v, v_lat, omega)`` with their covariance and
 Cartesian feature observations with theirs. The conversion:
 
@@ -12,7 +12,7 @@ Cartesian feature observations with theirs. The conversion:
   pose ids. Pose ``p_k`` gets the stamp ``k * sample_time``; the first odometry sample (stamp
   0) only marks the start (its input is zero, its sigmas those of the first step).
 - Odometry. The relative pose ``z = (dx, dy, dtheta)`` of edge ``k`` becomes the input ``u``
-  of sample ``k + 1`` with ``U(u, T) = z`` exactly (:func:`csam_ros.core.motion.increment`,
+  of sample ``k + 1`` with ``U(u, T) = z`` exactly (:func:`csam_ros.core.model.motion.increment`,
   ``T = sample_time``): ``omega = dtheta / T`` and ``(v, v_lat)`` from the 2x2 system
   ``T [[a, -b], [b, a]] (v, v_lat) = (dx, dy)`` with ``a = sin(theta)/theta``,
   ``b = (1 - cos(theta))/theta`` evaluated as in ``motion`` (no division by a small theta).
@@ -21,10 +21,10 @@ Cartesian feature observations with theirs. The conversion:
 - Odometry covariance. ``Lambda`` of ``z`` maps to the input covariance
   ``Q = G^-1 Lambda G^-T`` (``G = dU/du`` at ``u``), so ``G Q G^T = Lambda`` exactly. The log
   carries ``Q`` whole: its sigmas ``sqrt(diag(Q))`` and the correlations of its pairs
-  (:class:`~csam_ros.core.log.OdometryLog`; in a bag, the twist covariance's off-diagonal
+  (:class:`~csam_ros.core.model.log.OdometryLog`; in a bag, the twist covariance's off-diagonal
   entries).
 - Landmarks. An observation ``d = (dx, dy)`` in the pose frame stays a Cartesian observation
-  (:class:`~csam_ros.core.log.FeaturePointLog`) with its full 2x2 covariance, stamped at its
+  (:class:`~csam_ros.core.model.log.FeaturePointLog`) with its full 2x2 covariance, stamped at its
   pose and labelled with the landmark id; in a bag it travels on ``/<robot>/feature_points``.
 - Dropped from the file: vertex values (initial estimates only) and landmark vertices never
   observed. There is no ground truth (``truth = None``).
@@ -43,8 +43,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from csam_ros.core import se2
-from csam_ros.core.log import (
+from csam_ros.core.model import se2
+from csam_ros.core.model.log import (
     FeaturePointLog,
     MultiRobotLog,
     OdometryLog,
@@ -54,7 +54,7 @@ from csam_ros.core.log import (
     empty_features,
     empty_rendezvous,
 )
-from csam_ros.core.motion import increment_and_jacobian
+from csam_ros.core.model.motion import increment_and_jacobian
 from csam_ros.datasets.slam2d import Slam2dData, Slam2dFormatError, read_slam2d
 
 Array = NDArray[np.float64]

@@ -22,8 +22,8 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
-from csam_ros.core.config_file import settings
-from csam_ros.core.validation import CALLBACK_ERROR, DropCounter
+from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter
+from csam_ros.core.model.config_file import settings
 from csam_ros.ros.topics import Topic
 
 T = TypeVar("T")
@@ -73,7 +73,7 @@ def declare(
 
 def declare_settings(node: Node, cls: type[T], defaults: T | None = None) -> T:
     """Declare as ROS parameters the fields of a parameter dataclass that this node takes
-    (their :class:`~csam_ros.core.config_file.Setting` names the node), with descriptions and
+    (their :class:`~csam_ros.core.model.config_file.Setting` names the node), with descriptions and
     ranges; return the dataclass built back from the values, checked (other fields keep
     ``defaults``)."""
     base = defaults if defaults is not None else cls()

@@ -4,9 +4,9 @@ Subscribes to ``/<robot>/local_map_updates`` and ``/<robot>/rendezvous_poses`` (
 local) of every robot found on the ROS graph publishing local map updates (checked every
 second), or only of those in ``robots`` when that allow-list is set (they are subscribed from
 the start). It holds each robot's local map by applying its updates in turn
-(:mod:`csam_ros.core.map_updates`); while it holds none of a robot, and when an update does not
-apply to the one it holds (it missed one, or it restarted), it asks that robot's smoother for
-the whole map (``/<robot>/smoother/resync``; one request at a time, see ``RESYNC_TIMEOUT_S``),
+(:mod:`csam_ros.core.exchange.map_updates`); while it holds none of a robot, and when an update
+does not apply to the one it holds (it missed one, or it restarted), it asks that robot's smoother
+for the whole map (``/<robot>/smoother/resync``; one request at a time, see ``RESYNC_TIMEOUT_S``),
 counted as ``resync_requests`` in ``/csam/status``. The
 reference is ``reference`` (else the first of ``robots``) if it has a map, else the first
 robot heard from; the choice is kept once made and named in ``/csam/status``, the joined map
@@ -14,7 +14,7 @@ and the summary. Smoothers' first maps come in any order, so the first solve wai
 ``reference_wait`` seconds after the first map for the configured reference's, and for the
 maps and rendezvous of every robot on the allow-list. When a local
 map or rendezvous part changes it re-solves (at most every ``solve_period`` wall-clock
-seconds) with the core's :func:`~csam_ros.core.csam.join_maps`, then writes
+seconds) with the core's :func:`~csam_ros.core.joining.csam.join_maps`, then writes
 ``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
 (transient local), ``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot
 (:func:`~csam_ros.ros.map_messages.robot_map_transforms`) and ``/csam/status``. A robot
@@ -42,8 +42,8 @@ is newer than the last joined and provisional maps, or ``provisional_quiet`` wal
 seconds pass without another (maps that arrive together go out in one message), or
 ``provisional_period`` after the first of them, and at most every ``provisional_period``:
 the newest local maps placed by the last join, unsolved
-(:func:`~csam_ros.core.warm_start.carried_forward`; what the next join starts from). Its base
-nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
+(:func:`~csam_ros.core.joining.warm_start.carried_forward`; what the next join starts from). Its
+base nodes name the local maps it holds; it has no heading sigmas, and the features first seen since
 the last join have NaN covariances.
 ``/csam/joined_map`` stays the solved joined map. A joined map, solved or provisional, is
 serialized where it is made (its trajectories from their arrays,
@@ -64,7 +64,7 @@ replaces the old one, and the restart and the poses lost are logged once and cou
 With ``state_path`` set, the merger writes its state there (atomically) after each solve (once
 its joined map is out; a node destroyed meanwhile lets the write end):
 every robot's last local map and rendezvous measurements, the reference, its counts and the
-joined map (:class:`~csam_ros.core.checkpoint.MergerState`). Started with such a file, it
+joined map (:class:`~csam_ros.core.exchange.checkpoint.MergerState`). Started with such a file, it
 takes that state up, publishes its joined map at once and goes on from it, also for robots
 whose smoothers are gone; a file it cannot use is one logged error, and it starts empty.
 """
@@ -86,22 +86,22 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from csam_ros.core.checkpoint import CheckpointError, MergerState
-from csam_ros.core.csam import CsamConfig
-from csam_ros.core.joiner import JoinRequest, MapSource
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.log import RendezvousLog
-from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
-from csam_ros.core.map_updates import HeldMap, MissingBaseError, apply_update
-from csam_ros.core.result import CsamResult, MergerStats, RunSummary, write_summary_text
-from csam_ros.core.validation import (
+from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
+from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
+from csam_ros.core.exchange.map_updates import HeldMap, MissingBaseError, apply_update
+from csam_ros.core.exchange.validation import (
     CALLBACK_ERROR,
     FAILED_SOLVE,
     DropCounter,
     LocalMapError,
     RefusedMessageError,
 )
-from csam_ros.core.warm_start import carried_forward
+from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary, write_summary_text
+from csam_ros.core.joining.warm_start import carried_forward
+from csam_ros.core.merging.joiner import JoinRequest, MapSource
+from csam_ros.core.model.log import RendezvousLog
+from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.message_process import MarkersRequest, MessageProcess
 from csam_ros.nodes.common import (
     declare,
@@ -174,7 +174,7 @@ class SharedDropCounter(DropCounter):
 @dataclass(frozen=True)
 class ProvisionalMap:
     """A provisional joined map decided on: the newest local maps (in the join's robot order)
-    to be placed by ``last`` (:func:`~csam_ros.core.warm_start.carried_forward`)."""
+    to be placed by ``last`` (:func:`~csam_ros.core.joining.warm_start.carried_forward`)."""
 
     last: CsamResult
     maps: list[RobotMap]

@@ -20,8 +20,8 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rosgraph_msgs.msg import Clock
 
-from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.nodes.common import declare, publisher, run_node, steady_clock
 from csam_ros.ros.conversions import log_to_messages, ns_to_time
 from csam_ros.ros.topics import (

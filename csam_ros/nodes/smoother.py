@@ -8,7 +8,7 @@ through ``~/flush`` (std_srvs/Trigger; the reply's message is the published loca
 nanoseconds), it publishes:
 
 - ``local_map_updates``: what changed in the local map since the last update
-  (:mod:`csam_ros.core.map_updates`; poses that moved beyond ``update_tolerance_m`` or
+  (:mod:`csam_ros.core.exchange.map_updates`; poses that moved beyond ``update_tolerance_m`` or
   ``update_tolerance_rad``, features and rendezvous poses beyond ``update_key_tolerance``,
   every one exactly after ``~/flush``; a flush with no new data since the last sends nothing
   again). The first update of a run is
@@ -22,12 +22,12 @@ nanoseconds), it publishes:
 - ``local_map`` (the whole map with covariances) and ``path``, only while something
   subscribes to them (they are for a look on the robot, and grow with the run).
 Every field of every sensor message is checked against the ``input:`` bounds
-(:class:`~csam_ros.core.validation.InputBounds`, the same checks as offline replay); bad input is
-dropped and counted (``/csam/status``), and every callback is guarded, so an unexpected error
-is logged and counted as ``callback_error``: the node keeps running with what it accepted.
+(:class:`~csam_ros.core.exchange.validation.InputBounds`, the same checks as offline replay); bad
+input is dropped and counted (``/csam/status``), and every callback is guarded, so an unexpected
+error is logged and counted as ``callback_error``: the node keeps running with what it accepted.
 
 With ``checkpoint_path`` set, every publication also writes a checkpoint there atomically
-(:class:`~csam_ros.core.checkpoint.SmootherCheckpoint`: what the node accepted, its solved
+(:class:`~csam_ros.core.exchange.checkpoint.SmootherCheckpoint`: what the node accepted, its solved
 local map, its filters' and thinning's state and its counts), and a smoother started with a
 checkpoint of its robot resumes from it: it publishes the same local map at once and goes on.
 What came while it was down is lost: the step of its odometry stamps across the restart is
@@ -58,7 +58,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from csam_ros.core.checkpoint import (
+from csam_ros.core.exchange.checkpoint import (
     LOST_WHILE_DOWN,
     CheckpointError,
     FilterState,
@@ -67,15 +67,15 @@ from csam_ros.core.checkpoint import (
     missed_samples,
     odometry_period,
 )
-from csam_ros.core.csam import CsamConfig, robot_map_from_local_map
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.local_map import LocalMap as CoreLocalMap
-from csam_ros.core.local_map import LocalMapConfig
-from csam_ros.core.log import RendezvousLog
-from csam_ros.core.map_arrays import robot_map_arrays
-from csam_ros.core.map_updates import UpdateSender, UpdateTolerance
-from csam_ros.core.robust import select_rendezvous
-from csam_ros.core.validation import InputBounds, MeasurementFilter
+from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance
+from csam_ros.core.exchange.validation import InputBounds, MeasurementFilter
+from csam_ros.core.joining.csam import CsamConfig, robot_map_from_local_map
+from csam_ros.core.joining.rendezvous_filters import select_rendezvous
+from csam_ros.core.model.log import RendezvousLog
+from csam_ros.core.smoothing.local_map import LocalMap as CoreLocalMap
+from csam_ros.core.smoothing.local_map import LocalMapConfig
+from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.nodes.common import (
     declare,
     declare_settings,

@@ -34,7 +34,8 @@ from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 from tf2_msgs.msg import TFMessage
 
-from csam_ros.core.log import (
+from csam_ros.core.exchange.validation import InputBounds, MeasurementFilter, OdometrySample
+from csam_ros.core.model.log import (
     CORRELATION_PAIRS,
     FeatureLog,
     FeaturePointLog,
@@ -45,7 +46,6 @@ from csam_ros.core.log import (
     RobotLog,
     empty_points,
 )
-from csam_ros.core.validation import InputBounds, MeasurementFilter, OdometrySample
 from csam_ros.ros.topics import (
     FEATURE_POINTS,
     FEATURES,

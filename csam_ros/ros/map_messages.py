@@ -1,10 +1,10 @@
 """Conversions of local maps, rendezvous poses and C-SAM results to and from messages.
 
-A smoother publishes its :class:`~csam_ros.core.joining.RobotMap` as a ``csam_msgs/LocalMap``:
-the estimate, marginal pose covariances, feature estimates, and the local problem as whitened
-factors; the merger rebuilds the same ``RobotMap`` from it (:func:`robot_map_from_message`), so
-the merger runs exactly the core's :func:`~csam_ros.core.csam.join_maps` on what offline replay
-computes in-process.
+A smoother publishes its :class:`~csam_ros.core.smoothing.robot_map.RobotMap` as a
+``csam_msgs/LocalMap``: the estimate, marginal pose covariances, feature estimates, and the local
+problem as whitened factors; the merger rebuilds the same ``RobotMap`` from it
+(:func:`robot_map_from_message`), so the merger runs exactly the core's
+:func:`~csam_ros.core.joining.csam.join_maps` on what offline replay computes in-process.
 """
 
 from __future__ import annotations
@@ -30,20 +30,9 @@ from geometry_msgs.msg import Pose2D
 from rclpy.serialization import serialize_message
 from tf2_msgs.msg import TFMessage
 
-from csam_ros.core import se2
-from csam_ros.core.factors import (
-    Cauchy,
-    Huber,
-    PointObservation,
-    RelativePose,
-    RobustKernel,
-)
-from csam_ros.core.joining import RobotMap
-from csam_ros.core.log import RendezvousLog
-from csam_ros.core.map_arrays import checked_robot_map
-from csam_ros.core.map_updates import KeyedMap, MapUpdate
-from csam_ros.core.result import CsamResult
-from csam_ros.core.validation import (
+from csam_ros.core.exchange.map_arrays import checked_robot_map
+from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate
+from csam_ros.core.exchange.validation import (
     MALFORMED_RENDEZVOUS_POSES,
     ROBOT_MISMATCH,
     DropCounter,
@@ -52,6 +41,11 @@ from csam_ros.core.validation import (
     RefusedMessageError,
     rendezvous_row_mask,
 )
+from csam_ros.core.joining.result import CsamResult
+from csam_ros.core.model import se2
+from csam_ros.core.model.log import RendezvousLog
+from csam_ros.core.sam.factors import Cauchy, Huber, PointObservation, RelativePose, RobustKernel
+from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.ros.conversions import (
     ns_to_time,
     rendezvous_message,

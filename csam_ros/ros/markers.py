@@ -8,7 +8,7 @@ from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from csam_ros.core.result import CsamResult
+from csam_ros.core.joining.result import CsamResult
 
 CHI2_2DOF_95 = 5.991  # ellipses enclose 95 % of a 2D Gaussian
 ELLIPSE_SEGMENTS = 24

@@ -103,8 +103,8 @@ GROUND_TRUTH = Topic("ground_truth", Odometry, SENSOR_DATA)
 FEATURES_TRUTH = Topic("/sim/features_truth", FeaturesTruth, LATCHED)
 # the whole local map, for a look on the robot (published only while subscribed, not recorded)
 LOCAL_MAP = Topic("local_map", LocalMap, LATCHED, recorded=False)
-# what the merger joins: the local map's changes (csam_ros/core/map_updates.py); every one is
-# kept (reliable, deep), a receiver that missed one asks the smoother for a resync
+# what the merger joins: the local map's changes (csam_ros/core/exchange/map_updates.py); every one
+# is kept (reliable, deep), a receiver that missed one asks the smoother for a resync
 LOCAL_MAP_UPDATES = Topic("local_map_updates", LocalMapUpdate, RELIABLE)
 RENDEZVOUS_POSES = Topic("rendezvous_poses", RendezvousPoses, LATCHED)
 # the local trajectory, for a look on the robot (published only while subscribed, not recorded)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from csam_ros.bag import BagWriter
 from csam_ros.bag.types import msgtype_of
-from csam_ros.core.log import MultiRobotLog
+from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.ros.conversions import log_to_messages
 from csam_ros.ros.topics import qos_of
 

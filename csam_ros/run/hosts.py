@@ -51,7 +51,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from csam_ros.core.result import RunSummary
+from csam_ros.core.joining.result import RunSummary
 from csam_ros.run.launch import ProcessGroup
 from csam_ros.run.live import (
     LiveRun,

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from csam_ros.core.result import RunSummary
+from csam_ros.core.joining.result import RunSummary
 from csam_ros.run.launch import ProcessGroup, executable
 from csam_ros.run.ros_env import (
     isolate_this_process,
@@ -334,7 +334,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 def smoother_drops(robots: list[str], folder: Path) -> dict[str, dict[str, int]]:
     """What each smoother dropped of its robot's input, by reason (data lost while it was
     down among them), from its last checkpoint in ``folder`` (robots without one left out)."""
-    from csam_ros.core.checkpoint import CheckpointError, SmootherCheckpoint
+    from csam_ros.core.exchange.checkpoint import CheckpointError, SmootherCheckpoint
 
     drops = {}
     for robot in robots:

@@ -1,4 +1,4 @@
-"""The landmark problems of :mod:`csam_ros.core.landmark_problem` in GTSAM, an independent
+"""The landmark problems of :mod:`csam_ros.testing.landmark_problem` in GTSAM, an independent
 oracle for the tests and the benchmark's speed reference.
 
 ``gtsam`` is imported inside the functions only: it is a test and benchmark dependency
@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core import se2, sensor
-from csam_ros.core.landmark_problem import GraphData, LandmarkProblem, as_graph
-from csam_ros.core.solver import GAUGE_SIGMA
+from csam_ros.core.model import se2, sensor
+from csam_ros.core.sam.solver import GAUGE_SIGMA
+from csam_ros.testing.landmark_problem import GraphData, LandmarkProblem, as_graph
 
 Array = NDArray[np.float64]
 

@@ -20,7 +20,7 @@ from csam_ros.bench.many_robots import (
     neighbours,
     write_scenario,
 )
-from csam_ros.core.result import RunSummary
+from csam_ros.core.joining.result import RunSummary
 from csam_ros.datasets.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[2]

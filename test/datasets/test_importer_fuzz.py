@@ -26,7 +26,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mrclam_files import small_dataset
 
-from csam_ros.core.log import correlations_valid
+from csam_ros.core.model.log import correlations_valid
 from csam_ros.datasets.mrclam import MrclamFormatError, import_mrclam
 from csam_ros.datasets.slam2d import Slam2dFormatError
 from csam_ros.datasets.slam2d_log import read_slam2d_log

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import pytest
 
-from csam_ros.core.calibration import (
+from csam_ros.core.model.config_file import load_document
+from csam_ros.core.truth.calibration import (
     NoiseEstimate,
     NoiseModel,
     OdometryNoiseEstimate,
     SensorNoiseEstimate,
 )
-from csam_ros.core.config_file import load_document
 from csam_ros.datasets.mrclam import load_config
 from csam_ros.datasets.mrclam_calibration import calibration_config, range_scales
 

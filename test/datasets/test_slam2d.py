@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from csam_ros.core import se2
-from csam_ros.core.landmark_problem import build_problem as build_sim_problem
-from csam_ros.core.landmark_problem import simulate_landmark_problem
+from csam_ros.core.model import se2
 from csam_ros.datasets.slam2d import Slam2dFormatError, build_problem, initial_values, read_slam2d
+from csam_ros.testing.landmark_problem import build_problem as build_sim_problem
+from csam_ros.testing.landmark_problem import simulate_landmark_problem
 
 
 def upper(m):

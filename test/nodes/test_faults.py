@@ -16,16 +16,16 @@ from node_group import smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from csam_ros.core.checkpoint import (
+from csam_ros.core.exchange.checkpoint import (
     LOST_WHILE_DOWN,
     OfflineState,
     SmootherCheckpoint,
     missed_samples,
 )
-from csam_ros.core.log import MultiRobotLog
-from csam_ros.core.map_updates import HeldMap, KeyedMap, MissingBaseError, apply_update
-from csam_ros.core.simulation import simulate
+from csam_ros.core.exchange.map_updates import HeldMap, KeyedMap, MissingBaseError, apply_update
+from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.run.live import smoother_drops
 
 LOST_FROM, LOST_TO = 15.0, 18.0  # s after the start: the smoother is down in between
@@ -450,7 +450,7 @@ def _side_by_side() -> MultiRobotLog:
 
 def _errors(result: Any, truth: Any) -> tuple[float, float]:
     """Landmark RMSE and the largest trajectory position RMSE of a joined map [m]."""
-    from csam_ros.core.evaluation import evaluate
+    from csam_ros.core.truth.evaluation import evaluate
 
     e = evaluate(result, truth)
     trajectory = max(v["position_rmse_m"] for v in e["trajectory_error"].values())
@@ -466,7 +466,7 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
     equals the core's on the same data, and its error is measured."""
     import rclpy
 
-    from csam_ros.core.csam import run_csam
+    from csam_ros.core.joining.csam import run_csam
     from csam_ros.nodes.common import publisher
     from csam_ros.nodes.smoother import OUTSIDE_TRAJECTORY
     from csam_ros.ros.conversions import log_to_messages

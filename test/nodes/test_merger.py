@@ -40,11 +40,11 @@ from merger_harness import (
 from std_srvs.srv import Trigger
 
 import csam_ros.nodes.merger as merger_module
-from csam_ros.core.map_arrays import held_robot_map, robot_map_arrays
-from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
-from csam_ros.core.result import RunSummary
-from csam_ros.core.validation import FAILED_SOLVE
-from csam_ros.core.warm_start import carried_forward
+from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
+from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender
+from csam_ros.core.exchange.validation import FAILED_SOLVE
+from csam_ros.core.joining.result import RunSummary
+from csam_ros.core.joining.warm_start import carried_forward
 from csam_ros.ros.conversions import ns_to_time, time_to_ns
 from csam_ros.ros.map_messages import local_map_update_message
 from csam_ros.ros.topics import FLUSH, PROVISIONAL_MAP, merger_service

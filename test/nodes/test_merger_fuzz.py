@@ -39,7 +39,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from merger_harness import ROBOTS, MergerHarness, copied, resent, run_messages
 
-from csam_ros.core.result import CsamResult
+from csam_ros.core.joining.result import CsamResult
 from csam_ros.ros.conversions import ns_to_time
 
 EXAMPLES = int(os.environ.get("CSAM_FUZZ_EXAMPLES", "60"))

@@ -13,9 +13,9 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from csam_ros.cli import _csam_params, _smoother_params
-from csam_ros.core.config_file import load_document, settings
-from csam_ros.core.csam import CsamConfig
-from csam_ros.core.local_map import LocalMapConfig
+from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.model.config_file import load_document, settings
+from csam_ros.core.smoothing.local_map import LocalMapConfig
 
 
 @contextmanager

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 from rclpy.parameter import Parameter
 
-from csam_ros.core.log import RendezvousLog
-from csam_ros.core.robust import select_rendezvous, thin_rendezvous
+from csam_ros.core.joining.rendezvous_filters import select_rendezvous, thin_rendezvous
+from csam_ros.core.model.log import RendezvousLog
 from csam_ros.ros.conversions import rendezvous_message, stamp_to_ns
 
 ROBOTS = ["robot1", "robot2", "robot3"]
@@ -90,8 +90,8 @@ GOOD_SECONDS = 12.0
 
 def _good_messages() -> list:
     """robot1's sensor messages of the map-joining scenario's first seconds, in stamp order."""
-    from csam_ros.core.simulation import simulate
     from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.datasets.simulation import simulate
     from csam_ros.ros.conversions import log_to_messages
 
     log = simulate(load_scenario("map_joining"), seed=3)
@@ -220,7 +220,7 @@ def test_offline_replay_drops_the_same_messages(tmp_path) -> None:
     from csam_ros.bag import BagWriter
     from csam_ros.bag.types import msgtype_of
     from csam_ros.cli import main
-    from csam_ros.core.result import RunSummary
+    from csam_ros.core.joining.result import RunSummary
     from csam_ros.ros.conversions import StampedMessage
     from csam_ros.ros.topics import qos_of
 
@@ -261,9 +261,8 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
     """A 2D SLAM file's messages: Cartesian feature points with full covariances and odometry
     whose inputs are correlated (in the twist covariance). The smoother's map is the offline
     build's, which keeps both."""
-    from csam_ros.core import se2
-    from csam_ros.core.local_map import build_local_map
-    from csam_ros.core.log import (
+    from csam_ros.core.model import se2
+    from csam_ros.core.model.log import (
         FeaturePointLog,
         MultiRobotLog,
         OdometryLog,
@@ -272,7 +271,8 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
         empty_features,
         empty_rendezvous,
     )
-    from csam_ros.core.motion import dead_reckoning, increment
+    from csam_ros.core.model.motion import dead_reckoning, increment
+    from csam_ros.core.smoothing.local_map import build_local_map
     from csam_ros.ros.conversions import log_to_messages
 
     rng = np.random.default_rng(8)
@@ -348,7 +348,7 @@ def update_receiver(ros_context, spin) -> Iterator[tuple[Any, Any, list]]:
 
 def held_arrays(received: list) -> Any:
     """The map a receiver holds after applying every update in ``received``, as arrays."""
-    from csam_ros.core.map_updates import apply_update
+    from csam_ros.core.exchange.map_updates import apply_update
     from csam_ros.ros.map_messages import map_update_from_message
 
     held = None
@@ -359,8 +359,8 @@ def held_arrays(received: list) -> Any:
 
 def current_arrays(node) -> Any:
     """The smoother's own local map, as arrays."""
-    from csam_ros.core.csam import robot_map_from_local_map
-    from csam_ros.core.map_arrays import robot_map_arrays
+    from csam_ros.core.exchange.map_arrays import robot_map_arrays
+    from csam_ros.core.joining.csam import robot_map_from_local_map
 
     return robot_map_arrays(robot_map_from_local_map(node.map))
 

@@ -37,7 +37,7 @@ from nodes.test_smoother import (
     flushed_map,
 )
 
-from csam_ros.core.validation import CALLBACK_ERROR
+from csam_ros.core.exchange.validation import CALLBACK_ERROR
 
 EXAMPLES = int(os.environ.get("CSAM_FUZZ_EXAMPLES", "15"))
 MAX_OBSERVATIONS = 6  # the node's bound, so that drawn lists also exceed it

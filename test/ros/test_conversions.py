@@ -8,17 +8,7 @@ import pytest
 from csam_msgs.msg import FeaturePoint
 
 from csam_ros.bag import inspect_bag, read_bag_messages
-from csam_ros.core.log import (
-    FeaturePointLog,
-    MultiRobotLog,
-    OdometryLog,
-    RobotLog,
-    correlations_from_covariances,
-    empty_features,
-    empty_rendezvous,
-)
-from csam_ros.core.simulation import simulate
-from csam_ros.core.validation import (
+from csam_ros.core.exchange.validation import (
     DUPLICATE,
     EMPTY,
     NON_POSITIVE_RANGE,
@@ -29,7 +19,17 @@ from csam_ros.core.validation import (
     STAMP_BACKWARDS,
     UNKNOWN_ROBOT,
 )
+from csam_ros.core.model.log import (
+    FeaturePointLog,
+    MultiRobotLog,
+    OdometryLog,
+    RobotLog,
+    correlations_from_covariances,
+    empty_features,
+    empty_rendezvous,
+)
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.ros.conversions import LogBuilder, log_to_messages, yaw_quaternion
 from csam_ros.run.bag_io import write_log_bag
 

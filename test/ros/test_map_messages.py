@@ -8,16 +8,16 @@ import pytest
 from csam_msgs.msg import JoinedMap
 from visualization_msgs.msg import Marker
 
-from csam_ros.core.csam import join_maps, robot_map_from_local_map
-from csam_ros.core.factors import Cauchy, Huber
-from csam_ros.core.local_map import LocalMapOptions, build_local_map
-from csam_ros.core.map_arrays import robot_map_arrays
-from csam_ros.core.map_updates import KeyedMap, MapUpdate, UpdateSender
-from csam_ros.core.rendezvous import required_stamps
-from csam_ros.core.simulation import simulate
-from csam_ros.core.validation import LocalMapError
-from csam_ros.core.warm_start import carried_forward
+from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender
+from csam_ros.core.exchange.validation import LocalMapError
+from csam_ros.core.joining.csam import join_maps, robot_map_from_local_map
+from csam_ros.core.joining.warm_start import carried_forward
+from csam_ros.core.model.rendezvous import required_stamps
+from csam_ros.core.sam.factors import Cauchy, Huber
+from csam_ros.core.smoothing.local_map import LocalMapOptions, build_local_map
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import (
     joined_map_message,

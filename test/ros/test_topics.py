@@ -12,8 +12,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from csam_ros.bag import inspect_bag, qos_to_dict
-from csam_ros.core.simulation import simulate
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.ros.conversions import log_to_messages
 from csam_ros.ros.topics import (
     FEATURE_POINTS,

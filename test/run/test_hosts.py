@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import yaml
 
-from csam_ros.core.csam import run_csam
-from csam_ros.core.result import CsamResult, RunSummary
-from csam_ros.core.simulation import simulate
+from csam_ros.core.joining.csam import run_csam
+from csam_ros.core.joining.result import CsamResult, RunSummary
 from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
 from csam_ros.run.hosts import (
     BASE,
     LINK_SHARE,

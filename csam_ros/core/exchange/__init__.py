@@ -1,0 +1,2 @@
+"""What crosses between nodes and runs: input filters, map arrays and their updates, checkpoints.
+Imports the layers below."""

@@ -1,0 +1,579 @@
+"""Checkpoints and saved states: a smoother's accepted data, the merger's inputs, an offline run.
+
+Inside the package each is a dataclass: :class:`SmootherCheckpoint` (what a smoother accepted
+and its solved local map, so that a restarted smoother publishes the same map), :class:`MergerState`
+(the merger's inputs, reference and counts, and its last result) and :class:`OfflineState`
+(the measurement logs an offline replay accepted, with its filter's state, so that a replay
+continued from it equals one over all the data).
+
+On disk each is one ``.npz`` file (numpy arrays, never pickles) whose ``header`` entry is a JSON
+document with ``format``, ``version`` and ``kind`` and the scalar parts. Files are written
+atomically (:func:`write_npz`: a temporary file beside it, fsync, ``os.replace``, fsync of the
+folder), so a process killed while writing leaves the previous file whole. A file that is not
+one of these, of another kind or version, or damaged, raises :class:`CheckpointError` naming
+the file and the fault.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import zipfile
+from collections.abc import Mapping
+from dataclasses import MISSING, dataclass, field, fields
+from pathlib import Path
+from typing import Any, get_type_hints
+
+import numpy as np
+from numpy.typing import NDArray
+
+from csam_ros.core.exchange.map_arrays import robot_map_arrays, robot_map_from_arrays
+from csam_ros.core.exchange.validation import LocalMapArrays, MeasurementFilter
+from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
+from csam_ros.core.joining.result import CsamResult
+from csam_ros.core.model.log import RendezvousLog, RobotLog
+from csam_ros.core.smoothing.local_map import LocalMapState
+from csam_ros.core.smoothing.robot_map import RobotMap
+
+FORMAT = "csam_ros state"
+VERSION = 1
+SMOOTHER = "smoother"
+MERGER = "merger"
+OFFLINE = "offline"
+# a smoother's drop reason: odometry samples that came while it was down (after a restart
+# from a checkpoint, estimated from the step of its odometry stamps)
+LOST_WHILE_DOWN = "lost_while_down"
+
+Array = NDArray[np.float64]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint or state file that cannot be used; the message names file and fault."""
+
+
+# --------------------------------------------------------------------------- the file
+
+
+def write_npz(path: Path, kind: str, header: Mapping[str, Any], arrays: Mapping[str, Any]) -> int:
+    """Write ``header`` (JSON) and ``arrays`` to ``path`` atomically; the bytes written."""
+    path = Path(path)
+    document = {"format": FORMAT, "version": VERSION, "kind": kind, **header}
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        header=np.array(json.dumps(document)),
+        **{k: np.asarray(v) for k, v in arrays.items()},
+    )
+    data = buffer.getvalue()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as out:
+        out.write(data)
+        out.flush()
+        os.fsync(out.fileno())
+    os.replace(tmp, path)
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
+    return len(data)
+
+
+def read_npz(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The header and arrays of a file of ``kind`` written by :func:`write_npz`."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no such file") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise CheckpointError(f"{path}: not a readable .npz file ({err})") from None
+    raw = arrays.pop("header", None)
+    if raw is None or raw.shape != () or raw.dtype.kind != "U":
+        raise CheckpointError(f"{path}: not a {FORMAT} file (no header)")
+    try:
+        header = json.loads(str(raw))
+    except json.JSONDecodeError as err:
+        raise CheckpointError(f"{path}: damaged header ({err})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a {FORMAT} file")
+    if header.get("version") != VERSION:
+        raise CheckpointError(
+            f"{path}: version {header.get('version')!r}, this csam_ros reads version {VERSION}"
+        )
+    if header.get("kind") != kind:
+        raise CheckpointError(f"{path}: a {header.get('kind')!r} file, not a {kind!r} one")
+    return header, arrays
+
+
+class _Reader:
+    """Typed access to a file's header and arrays; a missing or bad entry is a
+    :class:`CheckpointError` naming it."""
+
+    def __init__(self, path: Path, header: Mapping[str, Any], arrays: Mapping[str, np.ndarray]):
+        self.path, self.header, self.arrays = path, header, arrays
+
+    def fail(self, what: str) -> CheckpointError:
+        return CheckpointError(f"{self.path}: {what}")
+
+    def value(self, key: str, kind: type | tuple[type, ...]) -> Any:
+        if key not in self.header:
+            raise self.fail(f"no {key!r} in the header")
+        value = self.header[key]
+        if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
+            raise self.fail(f"header {key!r}: unexpected value {value!r:.80}")
+        return value
+
+    def array(
+        self, key: str, dtype: Any = float, tail: tuple[int, ...] | None = None
+    ) -> np.ndarray:
+        if key not in self.arrays:
+            raise self.fail(f"no array {key!r}")
+        value = self.arrays[key]
+        if value.dtype.kind not in ("f", "i", "u", "b") or (
+            np.dtype(dtype).kind == "i" and value.dtype.kind == "f"
+        ):
+            raise self.fail(f"array {key!r} holds {value.dtype}, not numbers")
+        value = value.astype(dtype)
+        if tail is not None and (value.ndim != len(tail) + 1 or value.shape[1:] != tail):
+            raise self.fail(f"array {key!r} has shape {value.shape}, expected (n, {tail})")
+        return value
+
+
+def _stamp(value: float) -> float | None:
+    return None if not np.isfinite(value) else float(value)
+
+
+def _unstamp(value: Any) -> float:
+    return -np.inf if value is None else float(value)
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+@dataclass
+class FilterState:
+    """A :class:`~csam_ros.core.exchange.validation.MeasurementFilter`'s stream stamps (and any
+    odometry sample it holds back) and its drop counts."""
+
+    streams: dict[tuple[str, str], tuple[float, tuple[float, Array, Array] | None]]
+    drops: dict[str, dict[str, int]]
+
+    @classmethod
+    def of(cls, checks: MeasurementFilter) -> FilterState:
+        return cls(checks.stream_state(), {r: c.as_dict() for r, c in checks.drops.items()})
+
+    def restore(self, checks: MeasurementFilter) -> None:
+        """Put this state into ``checks`` (a new filter with the same robots and bounds)."""
+        checks.restore_streams(self.streams)
+        for robot, counts in self.drops.items():  # into its own counters: callers hold them
+            counter = checks.counter(robot)
+            counter.counts.clear()
+            for reason, n in counts.items():
+                counter.add(reason, n)
+
+    def to_header(self) -> dict[str, Any]:
+        return {
+            "streams": [
+                [robot, stream, _stamp(last)]
+                + ([] if held is None else [held[0], *(a.tolist() for a in held[1:])])
+                for (robot, stream), (last, held) in self.streams.items()
+            ],
+            "drops": self.drops,
+        }
+
+    @classmethod
+    def from_header(cls, node: Any, r: _Reader) -> FilterState:
+        try:
+            streams = {}
+            for row in node["streams"]:
+                held = None
+                if len(row) == 7:  # stamp, input, sigmas, correlations
+                    held = (float(row[3]), *(np.array(v, float) for v in row[4:]))
+                    if any(a.shape != (3,) for a in held[1:]):
+                        raise ValueError("a held odometry sample is not 3 + 3 + 3 numbers")
+                elif len(row) != 3:
+                    raise ValueError(f"stream entry of {len(row)} items")
+                streams[(str(row[0]), str(row[1]))] = (_unstamp(row[2]), held)
+            drops = {
+                str(robot): {str(k): int(v) for k, v in counts.items()}
+                for robot, counts in node["drops"].items()
+            }
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            raise r.fail(f"filter state: {err}") from None
+        return cls(streams, drops)
+
+
+@dataclass
+class ThinningState:
+    """A :class:`~csam_ros.core.joining.rendezvous_filters.RendezvousThinning`'s kept stamps and
+    intervals."""
+
+    kept: dict[tuple[str, str], list[float]]
+    interval: dict[tuple[str, str], float]
+
+    @classmethod
+    def of(cls, thinning: RendezvousThinning) -> ThinningState:
+        return cls(*thinning.state())
+
+    def restore(self, thinning: RendezvousThinning) -> None:
+        thinning.restore(self.kept, self.interval)
+
+    def to_header(self) -> dict[str, Any]:
+        return {
+            "kept": [[a, b, stamps] for (a, b), stamps in self.kept.items()],
+            "interval": [[a, b, v] for (a, b), v in self.interval.items()],
+        }
+
+    @classmethod
+    def from_header(cls, node: Any, r: _Reader) -> ThinningState:
+        try:
+            kept = {(str(a), str(b)): [float(t) for t in s] for a, b, s in node["kept"]}
+            interval = {(str(a), str(b)): float(v) for a, b, v in node["interval"]}
+        except (KeyError, TypeError, ValueError) as err:
+            raise r.fail(f"thinning state: {err}") from None
+        return cls(kept, interval)
+
+
+def _rendezvous_arrays(prefix: str, log: RendezvousLog) -> dict[str, np.ndarray]:
+    return {
+        f"{prefix}/stamps": log.stamps,
+        f"{prefix}/ranges": log.ranges,
+        f"{prefix}/bearings": log.bearings,
+        f"{prefix}/sigma_range": log.sigma_range,
+        f"{prefix}/sigma_bearing": log.sigma_bearing,
+    }
+
+
+def _rendezvous_log(prefix: str, observed: Any, r: _Reader) -> RendezvousLog:
+    stamps = r.array(f"{prefix}/stamps")
+    if not isinstance(observed, list) or len(observed) != len(stamps):
+        raise r.fail(f"{prefix}: {len(stamps)} stamps without as many observed robot names")
+    parts = [
+        r.array(f"{prefix}/{k}") for k in ("ranges", "bearings", "sigma_range", "sigma_bearing")
+    ]
+    if any(p.shape != stamps.shape for p in parts):
+        raise r.fail(f"{prefix}: arrays of different lengths")
+    return RendezvousLog(stamps, [str(o) for o in observed], *parts)
+
+
+# --------------------------------------------------------------------------- the smoother
+
+
+@dataclass
+class SmootherCheckpoint:
+    """What a smoother accepted and its solved local map (see the module docstring)."""
+
+    robot: str
+    local_map: LocalMapState
+    filter: FilterState  # the smoother's own checks (drops per robot)
+    peer_filter: FilterState  # the checks repeated on its peers' rendezvous streams
+    thinning: ThinningState
+    own_rendezvous: RendezvousLog  # its kept measurements of other robots
+    rendezvous_stamps: Array  # every stamp a pose was requested at
+    last_odometry_ns: int
+    published_ns: int
+    errors: int
+    restarts: int = 0  # restarts from a checkpoint so far
+    lost_seconds: float = 0.0  # odometry time lost while the smoother was down
+
+    def write(self, path: Path) -> int:
+        """Write atomically; the bytes written."""
+        arrays = {f"map/{f.name}": getattr(self.local_map, f.name) for f in _ARRAY_FIELDS}
+        arrays.update(_rendezvous_arrays("own_rendezvous", self.own_rendezvous))
+        arrays["rendezvous_stamps"] = self.rendezvous_stamps
+        header = {
+            "robot": self.robot,
+            "map": {f.name: getattr(self.local_map, f.name) for f in _SCALAR_FIELDS},
+            "filter": self.filter.to_header(),
+            "peer_filter": self.peer_filter.to_header(),
+            "thinning": self.thinning.to_header(),
+            "own_rendezvous_observed": list(self.own_rendezvous.observed),
+            "last_odometry_ns": self.last_odometry_ns,
+            "published_ns": self.published_ns,
+            "errors": self.errors,
+            "restarts": self.restarts,
+            "lost_seconds": self.lost_seconds,
+        }
+        header["map"]["last_solved_odometry"] = _stamp(self.local_map.last_solved_odometry)
+        return write_npz(path, SMOOTHER, header, arrays)
+
+    @classmethod
+    def read(cls, path: Path, robot: str | None = None) -> SmootherCheckpoint:
+        """Read a smoother checkpoint (of ``robot`` when given: another robot's is an error)."""
+        r = _Reader(path, *read_npz(path, SMOOTHER))
+        name = r.value("robot", str)
+        if robot is not None and name != robot:
+            raise r.fail(f"the checkpoint of {name!r}, not of {robot!r}")
+        scalars = r.value("map", dict)
+        try:
+            local_map = LocalMapState(
+                **{
+                    f.name: r.array(f"map/{f.name}", _DTYPES.get(f.name, float))
+                    for f in _ARRAY_FIELDS
+                },
+                integrated_features=int(scalars["integrated_features"]),
+                dropped_features=int(scalars["dropped_features"]),
+                last_solved_odometry=_unstamp(scalars["last_solved_odometry"]),
+                solved=bool(scalars["solved"]),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            raise r.fail(f"local map: {err}") from None
+        return cls(
+            robot=name,
+            local_map=local_map,
+            filter=FilterState.from_header(r.value("filter", dict), r),
+            peer_filter=FilterState.from_header(r.value("peer_filter", dict), r),
+            thinning=ThinningState.from_header(r.value("thinning", dict), r),
+            own_rendezvous=_rendezvous_log(
+                "own_rendezvous", r.value("own_rendezvous_observed", list), r
+            ),
+            rendezvous_stamps=r.array("rendezvous_stamps"),
+            last_odometry_ns=r.value("last_odometry_ns", int),
+            published_ns=r.value("published_ns", int),
+            errors=r.value("errors", int),
+            restarts=r.value("restarts", int),
+            lost_seconds=float(r.value("lost_seconds", (int, float))),
+        )
+
+
+_SCALARS = ("integrated_features", "dropped_features", "last_solved_odometry", "solved")
+_ARRAY_FIELDS = [f for f in fields(LocalMapState) if f.name not in _SCALARS]
+_SCALAR_FIELDS = [f for f in fields(LocalMapState) if f.name in _SCALARS]
+_DTYPES = {"feature_labels": np.int64, "landmark_labels": np.int64}
+
+
+def odometry_period(stamps: Array, last: int = 50) -> float | None:
+    """The usual step of the latest odometry stamps (their median), None with fewer than two."""
+    steps = np.diff(np.asarray(stamps, dtype=float)[-(last + 1) :])
+    steps = steps[steps > 0]
+    return float(np.median(steps)) if len(steps) else None
+
+
+def missed_samples(gap: float, period: float | None) -> int:
+    """How many samples a stream of ``period`` missed in a step of ``gap`` seconds."""
+    if period is None or not period > 0 or not gap > 0:
+        return 0
+    return max(int(round(gap / period)) - 1, 0)
+
+
+# --------------------------------------------------------------------------- the merger
+
+
+_MAP_ARRAYS = [
+    f.name
+    for f in fields(LocalMapArrays)
+    if f.name not in ("robust_kernel", "robust_parameter", "cost")
+]
+_MAP_INTS = ("feature_labels", "odometry_ends", "observation_pose", "observation_label")
+
+
+@dataclass
+class MergerState:
+    """What the merger holds between solves (see the module docstring)."""
+
+    reference: str
+    heard: list[str]  # robots in the order their first local map arrived
+    robots: list[str]  # robots subscribed to, in the order found
+    maps: dict[str, RobotMap]
+    map_stamps: dict[str, int]  # each local map message's stamp, ns
+    rendezvous: dict[str, RendezvousLog]
+    solves: int
+    dropped: dict[str, int]
+    restarts: dict[str, int] = field(default_factory=dict)
+    restart_poses_lost: dict[str, int] = field(default_factory=dict)
+    result: CsamResult | None = None
+
+    def write(self, path: Path) -> int:
+        """Write atomically; the bytes written."""
+        arrays: dict[str, Any] = {}
+        kernels = {}
+        for robot, m in self.maps.items():
+            a = robot_map_arrays(m)
+            arrays.update({f"maps/{robot}/{k}": getattr(a, k) for k in _MAP_ARRAYS})
+            kernels[robot] = [a.robust_kernel, a.robust_parameter]
+        for robot, log in self.rendezvous.items():
+            arrays.update(_rendezvous_arrays(f"rendezvous/{robot}", log))
+        header = {
+            "reference": self.reference,
+            "heard": self.heard,
+            "robots": self.robots,
+            "maps": kernels,
+            "map_stamps": self.map_stamps,
+            "rendezvous_observed": {r: list(log.observed) for r, log in self.rendezvous.items()},
+            "solves": self.solves,
+            "dropped": self.dropped,
+            "restarts": self.restarts,
+            "restart_poses_lost": self.restart_poses_lost,
+            "result": None if self.result is None else self.result.to_dict(),
+        }
+        return write_npz(path, MERGER, header, arrays)
+
+    @classmethod
+    def read(cls, path: Path) -> MergerState:
+        r = _Reader(path, *read_npz(path, MERGER))
+        maps = {}
+        for robot, (kernel, parameter) in _pairs(r.value("maps", dict), r, "maps"):
+            values = {
+                k: r.array(f"maps/{robot}/{k}", np.int64 if k in _MAP_INTS else float)
+                for k in _MAP_ARRAYS
+            }
+            if not isinstance(kernel, str) or not isinstance(parameter, int | float):
+                raise r.fail(f"maps/{robot}: bad robust kernel entry")
+            try:
+                maps[robot] = robot_map_from_arrays(
+                    robot,
+                    LocalMapArrays(
+                        **values, robust_kernel=kernel, robust_parameter=float(parameter), cost=0.0
+                    ),
+                )
+            except ValueError as err:
+                raise r.fail(f"local map {err}") from None
+        observed = r.value("rendezvous_observed", dict)
+        rendezvous = {
+            robot: _rendezvous_log(f"rendezvous/{robot}", names, r)
+            for robot, names in observed.items()
+        }
+        stamps = r.value("map_stamps", dict)
+        if set(stamps) != set(maps) or not all(isinstance(v, int) for v in stamps.values()):
+            raise r.fail("map_stamps: not one integer stamp per local map")
+        result = r.value("result", (dict, type(None)))
+        try:
+            parsed = None if result is None else CsamResult.from_dict(result)
+        except ValueError as err:
+            raise r.fail(f"result: {err}") from None
+        reference = r.value("reference", str)
+        heard = [str(h) for h in r.value("heard", list)]
+        if reference and reference not in heard or not set(heard) <= set(maps):
+            raise r.fail(f"reference {reference!r} or robots heard {heard} without a local map")
+        return cls(
+            reference=reference,
+            heard=heard,
+            robots=[str(x) for x in r.value("robots", list)],
+            maps=maps,
+            map_stamps=dict(stamps),
+            rendezvous=rendezvous,
+            solves=r.value("solves", int),
+            dropped=_counts(r.value("dropped", dict), r, "dropped"),
+            restarts=_counts(r.value("restarts", dict), r, "restarts"),
+            restart_poses_lost=_counts(
+                r.value("restart_poses_lost", dict), r, "restart_poses_lost"
+            ),
+            result=parsed,
+        )
+
+
+def _pairs(node: Mapping[str, Any], r: _Reader, where: str) -> list[tuple[str, Any]]:
+    out = []
+    for k, v in node.items():
+        if not isinstance(v, list) or len(v) != 2:
+            raise r.fail(f"{where}/{k}: expected a pair")
+        out.append((k, v))
+    return out
+
+
+def _counts(node: Mapping[str, Any], r: _Reader, where: str) -> dict[str, int]:
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in node.values()):
+        raise r.fail(f"{where}: expected counts")
+    return {str(k): int(v) for k, v in node.items()}
+
+
+# --------------------------------------------------------------------------- offline replay
+
+
+def _log_parts() -> dict[str, type]:
+    """The parts of a :class:`~csam_ros.core.model.log.RobotLog` (odometry, features, ...) and
+    their dataclasses."""
+    hints = get_type_hints(RobotLog)
+    return {f.name: hints[f.name] for f in fields(RobotLog) if f.name != "name"}
+
+
+@dataclass
+class OfflineState:
+    """What an offline replay accepted: each robot's measurement log (in the order of the
+    robots), the measurement filter's state, and the result on them."""
+
+    logs: dict[str, RobotLog]
+    filter: FilterState
+    result: CsamResult | None = None
+
+    def write(self, path: Path) -> int:
+        """Write atomically (every field of every part of each log, by name); the bytes."""
+        arrays: dict[str, Any] = {}
+        lists: dict[str, list[str]] = {}
+        for name, log in self.logs.items():
+            for part in _log_parts():
+                data = getattr(log, part)
+                for f in fields(data):
+                    value, key = getattr(data, f.name), f"logs/{name}/{part}/{f.name}"
+                    if isinstance(value, list):
+                        lists[key] = [str(v) for v in value]
+                    elif value is not None:
+                        arrays[key] = np.asarray(value)
+        header = {
+            "robots": list(self.logs),
+            "lists": lists,
+            "filter": self.filter.to_header(),
+            "result": None if self.result is None else self.result.to_dict(),
+        }
+        return write_npz(path, OFFLINE, header, arrays)
+
+    @classmethod
+    def read(cls, path: Path) -> OfflineState:
+        r = _Reader(path, *read_npz(path, OFFLINE))
+        lists = r.value("lists", dict)
+        logs = {}
+        for name in r.value("robots", list):
+            parts: dict[str, Any] = {}
+            for part, kind in _log_parts().items():
+                values: dict[str, Any] = {}
+                for f in fields(kind):
+                    key = f"logs/{name}/{part}/{f.name}"
+                    if key in lists:
+                        values[f.name] = [str(v) for v in lists[key]]
+                    elif key in r.arrays:
+                        values[f.name] = r.array(key, r.arrays[key].dtype)
+                    elif f.default is MISSING and f.default_factory is MISSING:
+                        raise r.fail(f"no array {key!r}")
+                lengths = {len(v) for v in values.values()}
+                if len(lengths) > 1:
+                    raise r.fail(f"logs/{name}/{part}: fields of different lengths")
+                parts[part] = kind(**values)
+            logs[str(name)] = RobotLog(str(name), **parts)
+        result = r.value("result", (dict, type(None)))
+        try:
+            parsed = None if result is None else CsamResult.from_dict(result)
+        except ValueError as err:
+            raise r.fail(f"result: {err}") from None
+        return cls(logs, FilterState.from_header(r.value("filter", dict), r), parsed)
+
+
+def joined_logs(first: Mapping[str, RobotLog], then: Mapping[str, RobotLog]) -> dict[str, RobotLog]:
+    """Each robot's log of ``first`` followed by its log of ``then`` (robots of ``first``
+    first, in order, then new ones). ValueError when a field is given in one and not the
+    other (e.g. odometry correlations)."""
+    out = dict(first)
+    for name, log in then.items():
+        if name not in out:
+            out[name] = log
+            continue
+        parts = {}
+        for part in _log_parts():
+            a, b = getattr(out[name], part), getattr(log, part)
+            values = {}
+            for f in fields(a):
+                x, y = getattr(a, f.name), getattr(b, f.name)
+                if x is None and y is None:
+                    values[f.name] = None
+                elif x is None or y is None:
+                    raise ValueError(f"{name}: {part}.{f.name} is given in one log only")
+                elif isinstance(x, list):
+                    values[f.name] = [*x, *y]
+                else:
+                    values[f.name] = np.concatenate([x, y])
+            parts[part] = type(a)(**values)
+        out[name] = RobotLog(name, **parts)
+    return out

@@ -1,0 +1,182 @@
+"""A solved local map as plain arrays (:class:`~csam_ros.core.exchange.validation.LocalMapArrays`)
+and back: what a LocalMap message carries and a saved merger state holds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from csam_ros.core.exchange.map_updates import HeldMap
+from csam_ros.core.exchange.validation import LocalMapArrays, LocalMapError, local_map_fault
+from csam_ros.core.sam.factors import (
+    POINT,
+    POSE,
+    Cauchy,
+    Huber,
+    PointObservation,
+    PosePrior,
+    RelativePose,
+    RobustKernel,
+)
+from csam_ros.core.sam.solver import Problem, SingularProblemError
+from csam_ros.core.smoothing.local_map import LocalMapOptions
+from csam_ros.core.smoothing.robot_map import RobotMap
+
+# how a map built from updates is taken back to its sender's optimum (checked_robot_map)
+REFINE = LocalMapOptions().online_solver
+
+
+def robot_map_arrays(m: RobotMap) -> LocalMapArrays:
+    """The numbers of a local map as the merger holds it (a gauge prior, relative poses and
+    point observations), in its factors' order: :func:`robot_map_from_arrays` rebuilds it."""
+    problem = m.problem
+    pose_index = np.full(problem.num_variables, -1, dtype=np.int64)
+    pose_index[m.pose_ids] = np.arange(len(m.pose_ids))
+    label_of = np.zeros(problem.num_variables, dtype=np.int64)
+    label_of[m.feature_ids] = m.feature_labels
+    prior = np.zeros(9)
+    odo_ends, odo_delta, odo_w = (
+        [np.zeros((0, 2), np.int64)],
+        [np.zeros((0, 3))],
+        [np.zeros((0, 9))],
+    )
+    obs_pose, obs_label = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    obs_xy, obs_w = [np.zeros((0, 2))], [np.zeros((0, 4))]
+    kernel = ""
+    parameter = 0.0
+    for i, f in enumerate(problem.factors):
+        if i == m.gauge_factor:
+            prior = f.sqrt_information[0].reshape(-1)
+        elif isinstance(f, RelativePose):
+            odo_ends.append(pose_index[f.variables])
+            odo_delta.append(f.measured)
+            odo_w.append(f.sqrt_information.reshape(-1, 9))
+        elif isinstance(f, PointObservation):
+            obs_pose.append(pose_index[f.variables[:, 0]])
+            obs_label.append(label_of[f.variables[:, 1]])
+            obs_xy.append(f.measured)
+            obs_w.append(f.sqrt_information.reshape(-1, 4))
+            if isinstance(f.robust, Huber):
+                kernel, parameter = "huber", float(f.robust.threshold)
+            elif isinstance(f.robust, Cauchy):
+                kernel, parameter = "cauchy", float(f.robust.scale)
+            elif f.robust is not None:
+                raise ValueError(f"{m.name}: robust kernel {type(f.robust).__name__} not saved")
+        else:
+            raise ValueError(f"{m.name}: factor kind {type(f).__name__} is not saved")
+    n_features = len(m.feature_ids)
+    return LocalMapArrays(
+        stamps=np.asarray(m.stamps, dtype=float),
+        poses=m.poses,
+        pose_covariances=np.zeros(0),
+        feature_labels=np.asarray(m.feature_labels, dtype=np.int64),
+        feature_xy=m.feature_positions,
+        feature_cov=np.zeros((n_features, 3)),
+        prior_sqrt_information=np.asarray(prior, dtype=float),
+        odometry_ends=np.concatenate(odo_ends).astype(np.int64),
+        odometry_delta=np.concatenate(odo_delta),
+        odometry_sqrt_information=np.concatenate(odo_w),
+        observation_pose=np.concatenate(obs_pose).astype(np.int64),
+        observation_label=np.concatenate(obs_label).astype(np.int64),
+        observation_xy=np.concatenate(obs_xy),
+        observation_sqrt_information=np.concatenate(obs_w),
+        robust_kernel=kernel,
+        robust_parameter=parameter,
+        cost=float(problem.cost()),
+    )
+
+
+def robot_map_from_arrays(name: str, m: LocalMapArrays) -> RobotMap:
+    """The local problem of ``m`` at its estimate, built as the merger builds one from a
+    local map message (the same variables and factors in the same order). ValueError naming
+    the fault of arrays C-SAM could not use."""
+    fault = local_map_fault(m)
+    if fault is not None:
+        raise ValueError(f"{name}: {fault}")
+    problem = Problem()
+    n = len(m.poses)
+    pose_ids = problem.add_variables(POSE, [(name, "pose", i) for i in range(n)], m.poses)
+    feature_ids = problem.add_variables(
+        POINT, [(name, "feature", int(k)) for k in m.feature_labels], m.feature_xy
+    )
+    feature_of = dict(zip(m.feature_labels.tolist(), feature_ids.tolist(), strict=True))
+    problem.add_factor(
+        PosePrior(
+            pose_ids[:1],
+            [[0.0, 0.0, 0.0]],
+            m.prior_sqrt_information.reshape(1, 3, 3),
+            name=f"{name} gauge",
+        )
+    )
+    if len(m.odometry_ends):
+        problem.add_factor(
+            RelativePose(
+                pose_ids[m.odometry_ends[:, 0]],
+                pose_ids[m.odometry_ends[:, 1]],
+                m.odometry_delta,
+                m.odometry_sqrt_information.reshape(-1, 3, 3),
+                name=f"{name} odometry",
+            )
+        )
+    if len(m.observation_pose):
+        kernel: RobustKernel | None = None
+        if m.robust_kernel == "huber":
+            kernel = Huber(m.robust_parameter)
+        elif m.robust_kernel == "cauchy":
+            kernel = Cauchy(m.robust_parameter)
+        problem.add_factor(
+            PointObservation(
+                pose_ids[m.observation_pose],
+                np.array([feature_of[int(k)] for k in m.observation_label], dtype=np.int64),
+                m.observation_xy,
+                m.observation_sqrt_information.reshape(-1, 2, 2),
+                robust=kernel,
+                name=f"{name} observations",
+            )
+        )
+    return RobotMap(
+        name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
+    )
+
+
+def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -> RobotMap:
+    """The local problem of ``arrays``: every field is checked first
+    (:func:`~csam_ros.core.exchange.validation.local_map_fault`), then the problem is linearised and
+    factored once at the estimate (non-finite or singular information, which C-SAM would meet
+    at every solve). Raises :class:`LocalMapError` naming the fault, with the reason to count
+    it under (``malformed_local_map``).
+
+    ``refine``: the estimate is within a tolerance of the sender's optimum (a map built from
+    local map updates), so it is taken back to that optimum first by the online smoother's
+    capped Gauss-Newton (:data:`REFINE`): between a pose sent again and a neighbour held back
+    the odometry would otherwise disagree by up to the tolerance, which the local map check
+    counts as outliers and the local views linearise at."""
+    try:
+        robot_map = robot_map_from_arrays(name, arrays)
+    except ValueError as error:
+        raise LocalMapError(str(error)) from None
+    problem = robot_map.problem
+    with np.errstate(all="ignore"):  # values within bounds may still overflow together
+        try:
+            system = problem.normal_equations()
+            system.linearize(problem.values)
+            system.check_blocks()
+            if refine:  # its first step factors at the estimate
+                problem.solve(REFINE)
+            else:
+                system.factorize(0.0)
+        except (FloatingPointError, SingularProblemError, np.linalg.LinAlgError) as error:
+            raise LocalMapError(f"{name}: its factors at its estimate: {error}") from None
+    if not np.isfinite(problem.values).all():
+        raise LocalMapError(f"{name}: its estimate refined is not finite")
+    return robot_map
+
+
+def held_robot_map(name: str, held: HeldMap, refine: bool = True) -> RobotMap:
+    """The local problem of a map built from updates, with ``refine`` taken back to its
+    sender's optimum (:func:`checked_robot_map`); :class:`LocalMapError` when it is not
+    usable."""
+    try:
+        arrays = held.map.arrays()
+    except ValueError as error:  # a factor at a stamp with no pose
+        raise LocalMapError(f"{name}: {error}") from None
+    return checked_robot_map(name, arrays, refine=refine)

@@ -1,0 +1,470 @@
+"""Feature association between aligned maps (paper section IV-B, Algorithm 2; docs/METHOD.md
+section 6).
+
+The hypothesis "feature ``i`` of robot ``a`` and feature ``j`` of robot ``c`` are one" predicts
+``r = B_a (+) l_i - B_c (+) l_j = 0`` (the paper's ``l_i^p - b_pq (+) l_j^q`` when ``a`` is the
+reference). With ``H`` its Jacobian and ``P`` the joint covariance of ``(l_i, B_a, l_j, B_c)``,
+cross terms included, ``S = H P H^T`` and ``D = r^T S^-1 r`` (eq. 26).
+
+Joint covariance, recovered sparsely. Algorithm 1 gives the joint covariance ``Sigma`` of the
+rendezvous poses ``rho`` of all robots and of the base nodes (the state ``s``). Inside one
+local map a feature depends on the connector only through the rendezvous poses:
+``l = l0 + K (rho - rho0) + eps`` with the gain ``K = P_l,rho P_rho,rho^-1`` and ``eps``
+independent of everything outside that map, of covariance ``C = P_ll - K P_rho,rho K^T``
+(the local map's marginals). So a feature's global position ``g = B_a (+) l`` is, to first
+order, ``g0 + G (s - s0) + J_l eps`` (``G = [J_l K | J_B]`` on robot ``a``'s columns) and
+
+    S_ij = (G_i - G_j) Sigma (G_i - G_j)^T + J_li C_i J_li^T + J_lj C_j J_lj^T.
+
+Only the rendezvous columns of each local covariance are ever needed (``P_l,rho``), never the
+full map covariance.
+
+Candidates. Pairs are found with a k-d tree on global positions (scipy ``cKDTree``): since
+``D >= |r|^2 / lambda_max(S)`` and ``sqrt(lambda_max(S)) <= s_i + s_j`` with ``s`` the largest
+standard deviation of each global position, a pair can pass the gate only if
+``|r| <= sqrt(xi) (s_i + s_j)``: the search radius, exact, not a heuristic.
+
+Decision, in passes. (1) Pairs of still unmatched features with ``D < xi`` (chi-square,
+2 dof; default 9.21, the 99 % quantile) are made unique both ways by a global assignment that
+maximises ``sum(xi - D)`` over the gated pairs of each robot pair (``linear_sum_assignment`` on
+each connected component of the candidate graph): a conflict goes to the best-fitting set, not
+to the first pair found. (2) Joint compatibility: every accepted match is a measurement
+``r = 0`` of the state; the state is conditioned on all of them (a linear update in the small
+state space) and each match is tested against all the others by its leave-one-out distance
+``e_k^T (N_k - H_k Sigma_post H_k^T)^-1 e_k`` (``e_k`` its posterior residual); while the worst
+exceeds ``xi`` it is dropped for good and the update redone. (3) The next pass gates the
+remaining features against the conditioned state, which is now much tighter, so pairs that
+were ambiguous (or out of reach) before are decided; passes stop when nothing changes.
+With more than two robots, matches are merged into clusters (union-find) in increasing ``D``;
+a match that would put two features of one robot into one cluster is rejected and counted.
+Matches that share a feature (clusters over three or more robots) are treated as independent
+in the update, a slight overconfidence of the test only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse.csgraph import connected_components
+
+from csam_ros.core.joining.alignment import Alignment
+from csam_ros.core.model import se2
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+CHI2_2DOF_99 = 9.21
+
+
+@dataclass
+class MapFeatures:
+    """One robot's local features as Algorithm 2 needs them.
+
+    ``positions`` (F, 2) and ``covariances`` (F, 2, 2) are local estimates and marginal
+    covariances in ``G_r``; ``rendezvous_gain`` (F, 2, 3n) is ``K = P_l,rho P_rho,rho^-1``
+    with the columns of the robot's rendezvous part (:class:`~csam_ros.core.joining.alignment.
+    RendezvousPart`).
+    """
+
+    labels: IntArray
+    positions: Array
+    covariances: Array
+    rendezvous_gain: Array
+
+
+@dataclass
+class AssociationOptions:
+    """Settings of Algorithm 2."""
+
+    chi2_gate: float = CHI2_2DOF_99
+    max_passes: int = 10  # association passes, each conditioned on the matches so far
+
+
+@dataclass
+class Match:
+    """An accepted association: feature ``label_a`` of robot ``a`` is ``label_c`` of ``c``."""
+
+    robot_a: int
+    label_a: int
+    robot_c: int
+    label_c: int
+    mahalanobis: float
+
+
+@dataclass
+class Associations:
+    """The outcome of Algorithm 2."""
+
+    matches: list[Match]
+    clusters: list[list[tuple[int, int]]]  # (robot, label) members of each merged feature
+    candidates: int = 0  # pairs inside the spatial search radius
+    gated: int = 0  # pairs with D below the gate
+    rejected_conflicts: int = 0  # matches dropped for one-feature-per-robot in clusters
+    rejected_incompatible: int = 0  # matches dropped by the joint compatibility test
+
+
+@dataclass
+class _GlobalFeatures:
+    """Global positions of one robot's features, linearised on the Algorithm 1 state ``s``.
+
+    ``g = position + gain @ (s - s_bar) + J_l eps`` with ``Cov(J_l eps) = noise``.
+    """
+
+    robot: int
+    labels: IntArray
+    position: Array  # (F, 2) reference frame, at the Algorithm 1 estimate
+    gain: Array  # (F, 2, d) on the whole state
+    noise: Array  # (F, 2, 2)
+    columns: IntArray  # the state columns the gain is not zero on (the robot's rho and base)
+
+    @property
+    def compact(self) -> Array:
+        """The gain on :attr:`columns` only, (F, 2, m)."""
+        return self.gain[:, :, self.columns]
+
+    def moments(self, state: _State, idx: IntArray) -> tuple[Array, Array]:
+        """Mean (K, 2) and covariance (K, 2, 2) of global positions ``idx`` given the state."""
+        g = self.gain[idx][:, :, self.columns]
+        sub = state.block(self.columns, self.columns)
+        pos = self.position[idx] + g @ state.shift[self.columns]
+        cov = g @ sub @ g.transpose(0, 2, 1) + self.noise[idx]
+        return pos, 0.5 * (cov + cov.swapaxes(1, 2))
+
+
+def _global_features(
+    r: int, features: MapFeatures, alignment: Alignment, sigma_rho_prior: Array
+) -> _GlobalFeatures:
+    """Posterior global feature positions of robot ``r`` after Algorithm 1 (module docs)."""
+    base = alignment.base_nodes[r]
+    shift = alignment.rendezvous_shift[r].reshape(-1)
+    gain = features.rendezvous_gain
+    local = features.positions + np.einsum("fij,j->fi", gain, shift)
+    f = len(local)
+    c, s = np.cos(base[2]), np.sin(base[2])
+    rot = np.array([[c, -s], [s, c]])
+    position = se2.transform_point(np.broadcast_to(base, (f, 3)), local)
+    j_l = np.broadcast_to(rot, (f, 2, 2))
+    cond = features.covariances - gain @ sigma_rho_prior @ gain.transpose(0, 2, 1)
+    noise = j_l @ cond @ j_l.transpose(0, 2, 1)
+    full = np.zeros((f, 2, len(alignment.covariance)))
+    full[:, :, alignment.rho_columns(r)] = j_l @ gain
+    base_cols = alignment.base_columns(r)
+    if base_cols is not None:
+        j_b = np.zeros((f, 2, 3))
+        j_b[:, 0, 0] = j_b[:, 1, 1] = 1.0
+        j_b[:, 0, 2] = -s * local[:, 0] - c * local[:, 1]
+        j_b[:, 1, 2] = c * local[:, 0] - s * local[:, 1]
+        full[:, :, base_cols] = j_b
+    columns = alignment.rho_columns(r)
+    if base_cols is not None:
+        columns = np.concatenate([columns, base_cols])
+    return _GlobalFeatures(
+        r, features.labels, position, full, 0.5 * (noise + noise.swapaxes(1, 2)), columns
+    )
+
+
+class _State:
+    """The Algorithm 1 state after conditioning on a set of matches (linear update).
+
+    ``Sigma_post = P - (H P)^T S^-1 H P`` is formed only on the blocks of state columns
+    asked for (:meth:`block`): the candidates need each robot's own columns and those of
+    each pair of robots, never the whole ``d x d`` matrix.
+    """
+
+    def __init__(self, shift: Array, prior: Array, hp: Array, gain_t: Array) -> None:
+        self.shift = shift  # (d,) posterior minus Algorithm 1 estimate
+        self.prior = prior  # (d, d) P
+        self.hp = hp  # (2K, d) H P
+        self.gain_t = gain_t  # (2K, d) S^-1 H P
+        self._blocks: dict[tuple[bytes, bytes], Array] = {}
+
+    @classmethod
+    def unconditioned(cls, prior: Array) -> _State:
+        """The state before any match (``Sigma_post = P``)."""
+        none = np.zeros((0, len(prior)))
+        return cls(np.zeros(len(prior)), prior, none, none)
+
+    def block(self, rows: IntArray, cols: IntArray) -> Array:
+        """``Sigma_post[rows, cols]`` (symmetrised as the whole matrix would be), kept."""
+        key = (rows.tobytes(), cols.tobytes())
+        out = self._blocks.get(key)
+        if out is None:
+            prior = self.prior[np.ix_(rows, cols)] + self.prior[np.ix_(cols, rows)].T
+            update = self.hp[:, rows].T @ self.gain_t[:, cols]
+            update += self.gain_t[:, rows].T @ self.hp[:, cols]
+            out = self._blocks[key] = 0.5 * (prior - update)
+        return out
+
+    @property
+    def covariance(self) -> Array:
+        """The whole ``Sigma_post`` (d, d)."""
+        every = np.arange(len(self.prior))
+        return self.block(every, every)
+
+
+def _condition(
+    prior_covariance: Array,
+    glob: dict[int, _GlobalFeatures],
+    pairs: list[tuple[int, int, int, int]],
+) -> tuple[_State, Array]:
+    """Condition the state on ``r_k = 0`` for matches ``(a, i, c, j)``; returns the state and
+    the leave-one-out distance of every match (module docs).
+
+    Kalman form of the linear update, ``S = N + H P H^T`` (2K x 2K for K matches) instead of
+    the information form: the state has thousands of columns, the matches a few dozen rows.
+    The leave-one-out covariances need only ``H Sigma_post H^T = A - A S^-1 A`` with
+    ``A = H P H^T``.
+    """
+    if not pairs:
+        return _State.unconditioned(prior_covariance), np.zeros(0)
+    nu, h, noise = _stack(glob, pairs)
+    k, _, d = h.shape
+    rows = h.reshape(2 * k, d)
+    hp = rows @ prior_covariance  # (2K, d)
+    a_mat = rows @ hp.T  # H P H^T
+    innovation = a_mat.copy()
+    for m in range(k):
+        innovation[2 * m : 2 * m + 2, 2 * m : 2 * m + 2] += noise[m]
+    factor = cho_factor(0.5 * (innovation + innovation.T))
+    gain_t = cho_solve(factor, hp)  # (2K, d) = S^-1 H P
+    shift = -gain_t.T @ nu.reshape(-1)
+    resid = nu + h @ shift
+    explained = a_mat @ cho_solve(factor, a_mat)  # A S^-1 A
+    posterior = a_mat - 0.5 * (explained + explained.T)  # H Sigma_post H^T
+    pick = np.arange(k)
+    v = noise - posterior.reshape(k, 2, k, 2)[pick, :, pick, :]
+    loo = np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])
+    return _State(shift, prior_covariance, hp, gain_t), loo
+
+
+def _stack(
+    glob: dict[int, _GlobalFeatures], pairs: list[tuple[int, int, int, int]]
+) -> tuple[Array, Array, Array]:
+    """Residuals (K, 2), state Jacobians (K, 2, d) and noise (K, 2, 2) of matches."""
+    arr = np.array(pairs, dtype=np.int64).reshape(-1, 4)
+    nu = np.empty((len(arr), 2))
+    h = np.empty((len(arr), 2, glob[arr[0, 0]].gain.shape[2]))
+    noise = np.empty((len(arr), 2, 2))
+    for a in np.unique(arr[:, 0]):
+        for c in np.unique(arr[:, 2]):
+            sel = (arr[:, 0] == a) & (arr[:, 2] == c)
+            if not sel.any():
+                continue
+            i, j = arr[sel, 1], arr[sel, 3]
+            ga, gc = glob[int(a)], glob[int(c)]
+            nu[sel] = ga.position[i] - gc.position[j]
+            h[sel] = ga.gain[i] - gc.gain[j]
+            noise[sel] = ga.noise[i] + gc.noise[j]
+    return nu, h, noise
+
+
+def _pair_distances(
+    ga: _GlobalFeatures,
+    gc: _GlobalFeatures,
+    ia: IntArray,
+    ic: IntArray,
+    state: _State,
+    chunk: int = 20000,
+) -> Array:
+    """Mahalanobis distances of candidate pairs ``(ia, ic)`` given the state (eq. 26).
+
+    ``S = V_i + V_j - X_ij - X_ij^T`` with ``V`` each global position's covariance and
+    ``X_ij = G_i Sigma G_j^T`` the cross term, computed on each robot's own state columns.
+    """
+    out = np.empty(len(ia))
+    if len(ia) == 0:
+        return out
+    ua, inv_a = np.unique(ia, return_inverse=True)
+    uc, inv_c = np.unique(ic, return_inverse=True)
+    pa, va = ga.moments(state, ua)
+    pc, vc = gc.moments(state, uc)
+    sigma_ac = state.block(ga.columns, gc.columns)
+    left = ga.gain[ua][:, :, ga.columns] @ sigma_ac  # (A, 2, m_c)
+    right = gc.gain[uc][:, :, gc.columns]  # (C, 2, m_c)
+    for lo in range(0, len(ia), chunk):
+        a, c = inv_a[lo : lo + chunk], inv_c[lo : lo + chunk]
+        cross = left[a] @ right[c].transpose(0, 2, 1)
+        s_mat = va[a] + vc[c] - cross - cross.transpose(0, 2, 1)
+        r = pa[a] - pc[c]
+        out[lo : lo + chunk] = np.einsum(
+            "ki,ki->k", r, np.linalg.solve(s_mat, r[:, :, None])[:, :, 0]
+        )
+    return out
+
+
+def _candidates(
+    ga: _GlobalFeatures,
+    gc: _GlobalFeatures,
+    free_a: IntArray,
+    free_c: IntArray,
+    state: _State,
+    root_gate: float,
+) -> tuple[IntArray, IntArray]:
+    """Pairs of free features whose distance can pass the gate (k-d tree, exact bound)."""
+    from scipy.spatial import cKDTree  # on use: scipy.spatial loads slowly
+
+    if len(free_a) == 0 or len(free_c) == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty
+
+    def spread(g: _GlobalFeatures, idx: IntArray) -> tuple[Array, Array]:
+        pos, cov = g.moments(state, idx)
+        return pos, np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
+
+    pa, sa = spread(ga, free_a)
+    pc, sc = spread(gc, free_c)
+    lists = cKDTree(pc).query_ball_point(pa, root_gate * (sa + sc.max()))
+    ia = np.repeat(np.arange(len(lists)), [len(x) for x in lists])
+    ic = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=len(ia))
+    near = np.hypot(*(pa[ia] - pc[ic]).T) <= root_gate * (sa[ia] + sc[ic])
+    return free_a[ia[near]], free_c[ic[near]]
+
+
+def _assign(ia: IntArray, ic: IntArray, d: Array, gate: float) -> NDArray[np.bool_]:
+    """Unique matches maximising ``sum(gate - D)``, per connected component of candidates."""
+    from scipy.optimize import linear_sum_assignment  # on use: scipy.optimize loads slowly
+
+    keep = np.zeros(len(d), dtype=bool)
+    if len(d) == 0:
+        return keep
+    ua, ra = np.unique(ia, return_inverse=True)
+    uc, rc = np.unique(ic, return_inverse=True)
+    graph = sp.coo_matrix((np.ones(len(d)), (ra, len(ua) + rc)), shape=(len(ua) + len(uc),) * 2)
+    _, comp = connected_components(graph, directed=False)
+    pair_comp = comp[ra]
+    order = np.argsort(pair_comp, kind="stable")
+    bounds = np.flatnonzero(np.diff(np.concatenate([[-1], pair_comp[order], [-2]])))
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        idx = order[lo:hi]
+        if len(idx) == 1:
+            keep[idx] = True
+            continue
+        rows, row_of = np.unique(ra[idx], return_inverse=True)
+        cols, col_of = np.unique(rc[idx], return_inverse=True)
+        benefit = np.zeros((len(rows), len(cols)))
+        benefit[row_of, col_of] = gate - d[idx]
+        pick_r, pick_c = linear_sum_assignment(benefit, maximize=True)
+        lookup = {(int(a), int(b)): int(k) for k, a, b in zip(idx, row_of, col_of, strict=True)}
+        for a, b in zip(pick_r, pick_c, strict=True):
+            k = lookup.get((int(a), int(b)))
+            if k is not None:
+                keep[k] = True
+    return keep
+
+
+def associate(
+    features: Sequence[MapFeatures | None],
+    alignment: Alignment,
+    parts_sqrt_information: Sequence[Array | None],
+    options: AssociationOptions | None = None,
+) -> Associations:
+    """Algorithm 2 over every pair of aligned robots (index ``r`` follows the alignment).
+
+    ``parts_sqrt_information[r]`` is robot ``r``'s rendezvous square-root information (the
+    ``R`` of its :class:`~csam_ros.core.joining.alignment.RendezvousPart`), which gives the local
+    covariance of its rendezvous poses ``P_rho,rho = R^-1 R^-T``.
+    """
+    options = options or AssociationOptions()
+    gate = float(options.chi2_gate)
+    if not gate > 0:
+        raise ValueError(f"chi2_gate must be positive, got {gate}")
+    glob: dict[int, _GlobalFeatures] = {}
+    for r, feats in enumerate(features):
+        if feats is None or not alignment.aligned(r) or len(feats.labels) == 0:
+            continue
+        if r not in alignment.rendezvous_shift:
+            continue
+        root = parts_sqrt_information[r]
+        if root is None:
+            raise ValueError(f"robot {alignment.robots[r]!r}: aligned but no rendezvous part")
+        inv_root = np.linalg.inv(root)
+        glob[r] = _global_features(r, feats, alignment, inv_root @ inv_root.T)
+    robots = sorted(glob)
+    robot_pairs = [(a, c) for k, a in enumerate(robots) for c in robots[k + 1 :]]
+    if not robot_pairs:
+        return Associations([], [])
+    root_gate = float(np.sqrt(gate))
+    accepted: dict[tuple[int, int, int, int], float] = {}
+    rejected: set[tuple[int, int, int, int]] = set()
+    state, _ = _condition(alignment.covariance, glob, [])
+    candidates = gated = 0
+    for _ in range(options.max_passes):
+        used = {(a, i) for a, i, _, _ in accepted} | {(c, j) for _, _, c, j in accepted}
+        new: dict[tuple[int, int, int, int], float] = {}
+        for a, c in robot_pairs:
+            ga, gc = glob[a], glob[c]
+            free_a = np.array([i for i in range(len(ga.labels)) if (a, i) not in used], int)
+            free_c = np.array([j for j in range(len(gc.labels)) if (c, j) not in used], int)
+            ia, ic = _candidates(ga, gc, free_a, free_c, state, root_gate)
+            keep = np.array(
+                [(a, i, c, j) not in rejected for i, j in zip(ia, ic, strict=True)], dtype=bool
+            )
+            ia, ic = ia[keep].astype(np.int64), ic[keep].astype(np.int64)
+            candidates += len(ia)
+            d = _pair_distances(ga, gc, ia, ic, state)
+            inside = d < gate
+            ia, ic, d = ia[inside], ic[inside], d[inside]
+            gated += len(d)
+            pick = _assign(ia, ic, d, gate)
+            new.update(
+                ((a, int(i), c, int(j)), float(dd))
+                for i, j, dd in zip(ia[pick], ic[pick], d[pick], strict=True)
+            )
+        if not new:
+            break
+        accepted.update(new)
+        while True:  # joint compatibility: drop the match least compatible with the others
+            pairs = list(accepted)
+            state, loo = _condition(alignment.covariance, glob, pairs)
+            worst = int(np.argmax(loo)) if len(loo) else -1
+            if worst < 0 or loo[worst] < gate:
+                break
+            rejected.add(pairs[worst])
+            del accepted[pairs[worst]]
+    found = [
+        (d, a, int(glob[a].labels[i]), c, int(glob[c].labels[j]))
+        for (a, i, c, j), d in accepted.items()
+    ]
+    result = _cluster(found, gated, candidates)
+    result.rejected_incompatible = len(rejected)
+    return result
+
+
+def _cluster(
+    found: list[tuple[float, int, int, int, int]], gated: int, candidates: int
+) -> Associations:
+    """Merge matches into clusters in increasing ``D``, one feature per robot per cluster."""
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+    members: dict[tuple[int, int], set[int]] = {}
+
+    def root(x: tuple[int, int]) -> tuple[int, int]:
+        parent.setdefault(x, x)
+        members.setdefault(x, {x[0]})
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    matches: list[Match] = []
+    rejected = 0
+    for d, a, la, c, lc in sorted(found):
+        ra, rc = root((a, la)), root((c, lc))
+        if ra == rc:
+            continue
+        if members[ra] & members[rc]:
+            rejected += 1
+            continue
+        parent[rc] = ra
+        members[ra] |= members.pop(rc)
+        matches.append(Match(a, la, c, lc, d))
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for x in parent:
+        groups.setdefault(root(x), []).append(x)
+    clusters = [sorted(g) for g in groups.values() if len(g) > 1]
+    clusters.sort()
+    return Associations(matches, clusters, candidates, gated, rejected)

@@ -1,0 +1,315 @@
+"""Figures of a C-SAM result: geometry helpers, and drawing synthetic and real results."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from csam_ros.core.joining.result import (
+    AssociationRecord,
+    CsamResult,
+    FeatureResult,
+    RobotResult,
+    RunSummary,
+    SummaryError,
+)
+from csam_ros.core.model import se2
+from csam_ros.figures import draw
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def synthetic_summary(
+    poses_per_robot: int = 80, feature_spacing: float = 1.0, seed: int = 0
+) -> CsamResult:
+    """A map-joining-like result: robot1 (reference) and robot2 (aligned) cross between two
+    feature areas, robot3 is pending. Local quantities are in each robot's first-pose frame."""
+    rng = np.random.default_rng(seed)
+    sample_time = 0.5
+    stamps = sample_time * np.arange(poses_per_robot)
+    travel = 0.5 * stamps
+    starts = {"robot1": np.array([-10.5, -1.0, 0.0]), "robot2": np.array([10.5, 1.0, np.pi])}
+    true_poses = {
+        name: se2.compose(start, np.column_stack((travel, 0 * travel, 0 * travel)))
+        for name, start in starts.items()
+    }
+    grid = np.arange(-2.5, 2.5 + 1e-9, feature_spacing)
+    gx, gy = np.meshgrid(grid, grid)
+    area = np.column_stack((gx.ravel(), gy.ravel()))
+    world = np.concatenate((area + [-9.0, 0.0], area + [9.0, 0.0]))
+    world += rng.uniform(-0.2, 0.2, world.shape)
+
+    distance = np.linalg.norm(true_poses["robot1"][:, :2] - true_poses["robot2"][:, :2], axis=1)
+    rendezvous = stamps[distance < 4.0]
+    robots: dict[str, RobotResult] = {}
+    seen_by: dict[int, list[str]] = {}
+    for name, poses in true_poses.items():
+        base = starts[name]
+        near = np.linalg.norm(world[None] - poses[::10, None, :2], axis=2).min(axis=0) < 4.0
+        ids = np.flatnonzero(near)
+        steps = np.cumsum(
+            rng.uniform(0.0, 0.01, poses_per_robot) + (np.arange(poses_per_robot) > 40) * 0.02
+        )
+        sigma_local = np.radians(0.05) + steps * np.radians(1.0)
+        sigma_local[0] = 0.0 if name == "robot1" else sigma_local[0]
+        for index, feature in enumerate(ids):
+            seen_by.setdefault(int(feature), []).append(f"{name}/{index}")
+        robots[name] = RobotResult(
+            name=name,
+            alignment="reference" if name == "robot1" else "aligned",
+            stamps=stamps,
+            poses_local=se2.between(base, poses),
+            sigma_phi_local=sigma_local,
+            base_node=se2.between(starts["robot1"], base),
+            base_node_cov=np.diag([0.01, 0.02, 1e-4]) if name == "robot2" else np.zeros((3, 3)),
+            poses_joined=se2.between(starts["robot1"], poses),
+            sigma_phi_joined=0.6 * sigma_local,
+            rendezvous_stamps=rendezvous,
+            feature_labels_local=np.arange(len(ids)),
+            features_local=se2.inverse_transform_point(base, world[ids]),
+            feature_covariances_local=np.array([_feature_cov(rng, 1e-4) for _ in ids]),
+        )
+    robots["robot3"] = RobotResult(
+        name="robot3",
+        alignment="pending: no rendezvous yet",
+        stamps=stamps[:20],
+        poses_local=np.column_stack((0.3 * stamps[:20], 0 * stamps[:20], 0 * stamps[:20])),
+        sigma_phi_local=np.radians(0.1 * np.arange(20)),
+    )
+    reference = starts["robot1"]
+    features = [
+        FeatureResult(
+            members,
+            se2.inverse_transform_point(reference, world[feature]),
+            _feature_cov(rng, 4e-4 if len(members) == 1 else 2e-4),
+        )
+        for feature, members in sorted(seen_by.items())
+    ]
+    associations = [
+        AssociationRecord(m[0], m[1], float(rng.uniform(0, 5)))
+        for m in seen_by.values()
+        if len(m) > 1
+    ]
+    return CsamResult(
+        reference_frame="robot1/map",
+        robots=robots,
+        features=features,
+        associations=associations,
+        timing_s={"joint_solve": 0.1},
+    )
+
+
+def _feature_cov(rng: np.random.Generator, variance: float) -> np.ndarray:
+    root = rng.normal(0.0, math.sqrt(variance), (2, 2))
+    return root @ root.T + 1e-6 * np.eye(2)
+
+
+def assert_png(path: Path, min_bytes: int = 15_000) -> None:
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE, path
+    assert len(data) > min_bytes, (path, len(data))
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_chi2_quantile_matches_table_value() -> None:
+    assert draw.chi2_2dof_quantile(0.95) == pytest.approx(5.991, abs=5e-4)
+    assert draw.chi2_2dof_quantile(0.99) == pytest.approx(9.210, abs=5e-4)
+    scipy_stats = pytest.importorskip("scipy.stats")
+    assert draw.chi2_2dof_quantile(0.9) == pytest.approx(scipy_stats.chi2.ppf(0.9, 2))
+
+
+def test_ellipse_axes_of_rotated_covariance() -> None:
+    sigma_major, sigma_minor, angle = 0.3, 0.1, np.radians(30.0)
+    rotation = se2.rotation(angle)
+    cov = rotation @ np.diag([sigma_major**2, sigma_minor**2]) @ rotation.T
+    widths, heights, angles = draw.ellipse_axes(np.stack([cov, np.diag([0.04, 0.09])]))
+    k = math.sqrt(5.991464547107979)
+    np.testing.assert_allclose(widths, [2 * k * 0.3, 2 * k * 0.3])
+    np.testing.assert_allclose(heights, [2 * k * 0.1, 2 * k * 0.2])
+    # an axis has no sign: compare the direction modulo 180 degrees
+    np.testing.assert_allclose(np.mod(angles, 180.0), [30.0, 90.0], atol=1e-9)
+
+
+def test_ellipse_axes_boundary_point_is_on_the_chi2_contour() -> None:
+    cov = np.array([[0.5, 0.2], [0.2, 0.3]])
+    width, height, angle = draw.ellipse_axes(cov, confidence=0.9)
+    theta = np.radians(angle[0])
+    ends = np.array(
+        [
+            0.5 * width[0] * np.array([np.cos(theta), np.sin(theta)]),
+            0.5 * height[0] * np.array([-np.sin(theta), np.cos(theta)]),
+        ]
+    )
+    distances = np.einsum("ni,ij,nj->n", ends, np.linalg.inv(cov), ends)
+    np.testing.assert_allclose(distances, draw.chi2_2dof_quantile(0.9))
+
+
+def test_ellipse_axes_rejects_indefinite_and_asymmetric() -> None:
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        draw.ellipse_axes(np.array([[1.0, 0.0], [0.0, -1.0]]))
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        draw.ellipse_axes(np.array([[1.0, 0.5], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="shape"):
+        draw.ellipse_axes(np.eye(3))
+
+
+def test_group_stamps_splits_at_gaps() -> None:
+    stamps = [10.5, 10.0, 11.0, 11.5, 30.0, 30.5, 50.0, 10.0]
+    intervals = draw.group_stamps(stamps, max_gap=1.0)
+    np.testing.assert_array_equal(intervals, [[10.0, 11.5], [30.0, 30.5], [50.0, 50.0]])
+    assert draw.group_stamps([], max_gap=1.0).shape == (0, 2)
+    np.testing.assert_array_equal(draw.group_stamps(stamps, max_gap=100.0), [[10.0, 50.0]])
+    with pytest.raises(ValueError, match="max_gap"):
+        draw.group_stamps(stamps, max_gap=-1.0)
+
+
+def test_magnification_makes_small_ellipses_visible_but_not_huge() -> None:
+    assert draw.ellipse_magnification([1.0, 1.0], extent=20.0) == 1
+    factor = draw.ellipse_magnification([0.01, 0.012], extent=20.0)
+    assert factor > 1 and 0.012 * factor <= 0.08 * 20.0 and 0.01 * factor >= 0.006 * 20.0
+    assert draw.ellipse_magnification([], extent=20.0) == 1
+
+
+def test_value_axis_scale_goes_log_beyond_two_decades() -> None:
+    assert draw.value_axis_scale([0.1, 0.5, 2.0]) == ("linear", (0.0, 2.0 * 1.08))
+    scale, limits = draw.value_axis_scale(np.geomspace(0.01, 5.0, 50))
+    assert scale == "log" and limits is not None and limits[0] < 0.02 and limits[1] > 5.0
+    # one anchored pose at zero or near zero does not force a log axis
+    assert draw.value_axis_scale([0.0, 1e-9, *np.linspace(0.1, 2.0, 200)])[0] == "linear"
+    assert draw.value_axis_scale([np.nan, 0.0]) == ("linear", None)
+
+
+def test_robot_colours_are_stable_and_distinct() -> None:
+    colours = draw.robot_colours(["robot1", "robot2", "robot3"])
+    assert len(set(colours.values())) == 3
+    assert draw.robot_colours(["robot1", "robot2"])["robot2"] == colours["robot2"]
+
+
+# --------------------------------------------------------------------------- drawing
+
+
+def test_draw_all_writes_three_pngs(tmp_path: Path) -> None:
+    result = synthetic_summary()
+    truth = np.array([f.xy for f in result.features])
+    paths = draw.draw_all(result, tmp_path / "out", truth=truth, scenario="map_joining")
+    assert [p.name for p in paths] == ["local_maps.png", "heading_sigma.png", "joined_map.png"]
+    for path in paths:
+        assert_png(path)
+
+
+def test_main_draws_a_summary_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "summary.json"
+    RunSummary(synthetic_summary(poses_per_robot=30), scenario="map_joining").write(path)
+    assert draw.main([str(path)]) == 0
+    printed = capsys.readouterr().out.split()
+    assert [Path(p).name for p in printed] == [
+        "local_maps.png",
+        "heading_sigma.png",
+        "joined_map.png",
+    ]
+    for png in printed:
+        assert_png(Path(png))
+
+
+def _without_features(result: CsamResult) -> CsamResult:
+    return replace(result, features=[], associations=[])
+
+
+def _without_local_features_or_rendezvous(result: CsamResult) -> CsamResult:
+    robots = {
+        name: replace(
+            r,
+            rendezvous_stamps=np.zeros(0),
+            feature_labels_local=np.zeros(0, dtype=np.int64),
+            features_local=np.zeros((0, 2)),
+            feature_covariances_local=np.zeros((0, 2, 2)),
+        )
+        for name, r in result.robots.items()
+    }
+    return replace(result, robots=robots)
+
+
+def _all_pending(result: CsamResult) -> CsamResult:
+    robots = {
+        name: RobotResult(name, "pending: lost", r.stamps, r.poses_local, r.sigma_phi_local)
+        for name, r in result.robots.items()
+    }
+    return replace(result, robots=robots, features=[], associations=[])
+
+
+def _only_the_pending_robot(result: CsamResult) -> CsamResult:
+    return replace(result, robots={"robot3": result.robots["robot3"]}, features=[])
+
+
+def _no_robots(result: CsamResult) -> CsamResult:
+    return replace(result, robots={}, features=[], associations=[])
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        _without_features,
+        _without_local_features_or_rendezvous,
+        _all_pending,
+        _only_the_pending_robot,
+        _no_robots,
+    ],
+)
+def test_what_a_result_lacks_is_left_out(tmp_path: Path, change) -> None:
+    for png in draw.draw_all(change(synthetic_summary(poses_per_robot=30)), tmp_path):
+        assert_png(png, min_bytes=5_000)
+
+
+def test_bad_covariance_and_truth_are_named(tmp_path: Path) -> None:
+    result = synthetic_summary(poses_per_robot=30)
+    bad = result.features[3]
+    result.features[3] = replace(bad, cov=np.array([[1.0, 0.0], [0.0, -2.0]]))
+    label = "+".join(bad.members)
+    with pytest.raises(SummaryError, match=rf"features: covariance of '{label}'"):
+        draw.draw_joined_map(result, tmp_path / "c.png")
+
+    result = synthetic_summary(poses_per_robot=30)
+    result.robots["robot2"].feature_covariances_local[1] = [[1.0, 0.5], [0.0, 1.0]]
+    with pytest.raises(SummaryError, match=r"robots\.robot2\.features_local: .*'robot2/1'"):
+        draw.draw_local_maps(result, tmp_path / "a.png")
+
+    with pytest.raises(ValueError, match="truth"):
+        draw.draw_joined_map(synthetic_summary(30), tmp_path / "d.png", truth=np.zeros(4))
+
+
+def test_large_summary_draws(tmp_path: Path) -> None:
+    """A few thousand poses and features go through the collections (speed is printed)."""
+    import time
+
+    result = synthetic_summary(poses_per_robot=2000, feature_spacing=0.12)
+    count = len(result.features)
+    start = time.perf_counter()
+    draw.draw_joined_map(result, tmp_path / "joined.png")
+    elapsed = time.perf_counter() - start
+    print(f"joined map with {count} features and 2 x 2000 poses: {elapsed:.2f} s")
+    assert count > 2000
+    assert_png(tmp_path / "joined.png")
+
+
+@pytest.mark.parametrize("scenario", ["map_joining", "sensor_extension"])
+def test_draw_from_a_real_csam_run(tmp_path: Path, scenario: str) -> None:
+    """The result C-SAM writes to summary.json and reads back draws, truth included."""
+    from csam_ros.core.joining.csam import run_csam
+    from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.datasets.simulation import simulate
+
+    log = simulate(load_scenario(scenario), seed=1)
+    result = CsamResult.from_dict(json.loads(json.dumps(run_csam(log).to_dict())))
+    reference = result.reference
+    truth = se2.inverse_transform_point(
+        log.truth.trajectories[reference][0], log.truth.feature_positions
+    )
+    for png in draw.draw_all(result, tmp_path, truth=truth, scenario=scenario):
+        assert_png(png)
