@@ -2,5 +2,5 @@
 
 ``model`` -> ``sam`` -> ``smoothing`` -> ``joining`` -> ``exchange`` -> ``merging``, and
 ``truth`` (ground truth, calibration, evaluation) beside ``exchange`` on top of ``joining``.
-docs/ARCHITECTURE.md states the rule; test/core/test_layers.py checks it.
+docs/ARCHITECTURE.md states the rule; test/test_layers.py checks it.
 """
