@@ -258,9 +258,9 @@ def test_calibrate_gives_one_line_errors(tmp_path: Path) -> None:
 @pytest.mark.skipif(MRCLAM is None or not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
 def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) -> None:
     """The first 200 s of Dataset 1, two EM rounds: a config file in config/mrclam.yaml's form."""
-    from csam_ros.cli import _csam_params, _smoother_params
     from csam_ros.core.model.config_file import load_document
     from csam_ros.datasets.mrclam import import_mrclam, load_config
+    from csam_ros.run.params import merger_params, smoother_params
 
     out = tmp_path / "calibrated" / "mrclam.yaml"
     base = REPO / "config" / "mrclam.yaml"
@@ -278,8 +278,8 @@ def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) 
     document, base_document = load_document(out), load_document(base)
     for section in ("local_map", "merger", "csam"):
         assert document[section] == base_document[section]
-    assert _csam_params(document) == _csam_params(base_document)
-    assert _smoother_params(document) == _smoother_params(base_document)
+    assert merger_params(document) == merger_params(base_document)
+    assert smoother_params(document) == smoother_params(base_document)
     log, report = import_mrclam(
         MRCLAM, duration=10.0, noise=config["noise"], range_scale=config["range_scale"]
     )
