@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import re
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +122,43 @@ def test_recorded_bags_replay_to_their_recorded_joined_map(scenario: str, tmp_pa
             summary.result.robots[trajectory.robot].poses_joined, poses, atol=1e-6
         )
     assert len(summary.result.associations) == len(recorded.associations)
+
+
+REST_MARKUP = re.compile(r"``|:[a-z]+:`|`[^`]+`_")  # ``literal``, :func:`x`, `link`_
+
+
+def _commands(parser: argparse.ArgumentParser) -> Iterator[list[str]]:
+    """The words of every command below ``parser`` (``[]``: the parser itself)."""
+    yield []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from ([name, *words] for words in _commands(child))
+
+
+def test_every_help_says_what_each_argument_does_in_plain_text(capsys) -> None:
+    """``csam [COMMAND...] --help``: a help string for every option, argument and
+    subcommand, and no reST markup (double backticks, roles such as :func:)."""
+    from csam_ros.cli import main, parser
+
+    commands = list(_commands(parser()))
+    assert ["replay"] in commands and ["bag", "recover"] in commands
+    for words in commands:
+        command = parser()
+        for word in words:
+            sub = next(a for a in command._actions if isinstance(a, argparse._SubParsersAction))
+            command = sub.choices[word]
+        for action in command._actions:
+            assert action.help and action.help.strip(), (words, action.dest)
+            if isinstance(action, argparse._SubParsersAction):
+                for choice in action._choices_actions:
+                    assert choice.help and choice.help.strip(), (words, choice.dest)
+        with pytest.raises(SystemExit) as done:
+            main([*words, "--help"])
+        assert done.value.code == 0
+        text = capsys.readouterr().out
+        assert text.startswith(f"usage: csam {' '.join(words)}".rstrip()), text
+        assert REST_MARKUP.search(text) is None, (words, REST_MARKUP.search(text))
 
 
 def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
