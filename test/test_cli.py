@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import re
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +122,43 @@ def test_recorded_bags_replay_to_their_recorded_joined_map(scenario: str, tmp_pa
             summary.result.robots[trajectory.robot].poses_joined, poses, atol=1e-6
         )
     assert len(summary.result.associations) == len(recorded.associations)
+
+
+REST_MARKUP = re.compile(r"``|:[a-z]+:`|`[^`]+`_")  # ``literal``, :func:`x`, `link`_
+
+
+def _commands(parser: argparse.ArgumentParser) -> Iterator[list[str]]:
+    """The words of every command below ``parser`` (``[]``: the parser itself)."""
+    yield []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from ([name, *words] for words in _commands(child))
+
+
+def test_every_help_says_what_each_argument_does_in_plain_text(capsys) -> None:
+    """``csam [COMMAND...] --help``: a help string for every option, argument and
+    subcommand, and no reST markup (double backticks, roles such as :func:)."""
+    from csam_ros.cli import main, parser
+
+    commands = list(_commands(parser()))
+    assert ["replay"] in commands and ["bag", "recover"] in commands
+    for words in commands:
+        command = parser()
+        for word in words:
+            sub = next(a for a in command._actions if isinstance(a, argparse._SubParsersAction))
+            command = sub.choices[word]
+        for action in command._actions:
+            assert action.help and action.help.strip(), (words, action.dest)
+            if isinstance(action, argparse._SubParsersAction):
+                for choice in action._choices_actions:
+                    assert choice.help and choice.help.strip(), (words, choice.dest)
+        with pytest.raises(SystemExit) as done:
+            main([*words, "--help"])
+        assert done.value.code == 0
+        text = capsys.readouterr().out
+        assert text.startswith(f"usage: csam {' '.join(words)}".rstrip()), text
+        assert REST_MARKUP.search(text) is None, (words, REST_MARKUP.search(text))
 
 
 def test_bad_arguments_give_one_line_errors(tmp_path: Path) -> None:
@@ -258,9 +298,9 @@ def test_calibrate_gives_one_line_errors(tmp_path: Path) -> None:
 @pytest.mark.skipif(MRCLAM is None or not MRCLAM.is_dir(), reason="MR.CLAM Dataset 1 not present")
 def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) -> None:
     """The first 200 s of Dataset 1, two EM rounds: a config file in config/mrclam.yaml's form."""
-    from csam_ros.cli import _csam_params, _smoother_params
     from csam_ros.core.model.config_file import load_document
     from csam_ros.datasets.mrclam import import_mrclam, load_config
+    from csam_ros.run.params import merger_params, smoother_params
 
     out = tmp_path / "calibrated" / "mrclam.yaml"
     base = REPO / "config" / "mrclam.yaml"
@@ -278,8 +318,8 @@ def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) 
     document, base_document = load_document(out), load_document(base)
     for section in ("local_map", "merger", "csam"):
         assert document[section] == base_document[section]
-    assert _csam_params(document) == _csam_params(base_document)
-    assert _smoother_params(document) == _smoother_params(base_document)
+    assert merger_params(document) == merger_params(base_document)
+    assert smoother_params(document) == smoother_params(base_document)
     log, report = import_mrclam(
         MRCLAM, duration=10.0, noise=config["noise"], range_scale=config["range_scale"]
     )

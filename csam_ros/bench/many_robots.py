@@ -260,10 +260,11 @@ class Row:
 
 def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int) -> Row:
     """Generate, run live, run offline and compare, for ``n`` robots under ``out``."""
-    from csam_ros.cli import demo_live_run, offline_summary
     from csam_ros.core.model.config_file import load_document
+    from csam_ros.run.demo import demo_live_run
     from csam_ros.run.lag import read_timeline
     from csam_ros.run.live import run_live
+    from csam_ros.run.offline import offline_summary
 
     scenario = many_robot_scenario(n, layout, duration, seed)
     met = meetings(scenario)

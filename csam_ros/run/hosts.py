@@ -265,7 +265,7 @@ def network(hosts: list[str], links: Links = Links()) -> Iterator[Network]:
 def run_hosts(
     run: LiveRun, links: Links = Links(), progress: Callable[[str], None] = print
 ) -> RunSummary:
-    """``run`` (as :func:`csam_ros.cli.demo_live_run` makes it) with every robot and the
+    """``run`` (as :func:`csam_ros.run.demo.demo_live_run` makes it) with every robot and the
     base station on a host of its own; returns the merger's summary. ``hosts.json`` in
     ``run.out_dir`` holds the monitor's figures (joined maps during the run, seconds from
     the end of the data to the final joined map)."""

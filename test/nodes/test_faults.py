@@ -565,7 +565,8 @@ def test_an_offline_replay_continued_from_its_saved_state_equals_the_whole_repla
     """csam replay --offline of a recorded run's first half with --save-state, then of its
     second half with --resume: the same summary as one replay of the whole bag. A state file
     that cannot be used, or the options without --offline, are one-line errors."""
-    from csam_ros.cli import main, offline_summary
+    from csam_ros.cli import main
+    from csam_ros.run.offline import offline_summary
 
     bag = Path(__file__).resolve().parents[2] / "bags" / "map_joining"
     first, then, state = tmp_path / "first", tmp_path / "then", tmp_path / "state.npz"

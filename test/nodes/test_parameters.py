@@ -12,10 +12,10 @@ from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from csam_ros.cli import _csam_params, _smoother_params
 from csam_ros.core.joining.csam import CsamConfig
 from csam_ros.core.model.config_file import load_document, settings
 from csam_ros.core.smoothing.local_map import LocalMapConfig
+from csam_ros.run.params import merger_params, smoother_params
 
 
 @contextmanager
@@ -61,7 +61,7 @@ def test_a_yaml_config_reaches_the_nodes_parameters(ros_context: Any) -> None:
     document = load_document("mrclam")
     csam = CsamConfig.from_dict(document["csam"])
     local_map = LocalMapConfig.from_dict(document["local_map"])
-    with _nodes(ros_context, _csam_params(document), _smoother_params(document)) as nodes:
+    with _nodes(ros_context, merger_params(document), smoother_params(document)) as nodes:
         merger, smoother = nodes["merger"], nodes["smoother"]
         for section, config in (("csam", csam), ("local_map", local_map)):
             for name, (rule, _) in settings(type(config)).items():
