@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import tokenize
 import zipfile
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields
@@ -85,12 +86,29 @@ def read_npz(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, np.ndarra
     """The header and arrays of a file of ``kind`` written by :func:`write_npz`."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        data = path.read_bytes()
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
+        # np.load stops at the rows an .npy header names: a damaged header would read
+        # short arrays without reaching their CRC, so every entry is checked whole
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            damaged = archive.testzip()
     except FileNotFoundError:
         raise CheckpointError(f"{path}: no such file") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+    # zipfile raises NotImplementedError and RuntimeError for damaged flags and methods,
+    # numpy's .npy header parser TokenError
+    except (
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        EOFError,
+        NotImplementedError,
+        RuntimeError,
+        tokenize.TokenError,
+    ) as err:
         raise CheckpointError(f"{path}: not a readable .npz file ({err})") from None
+    if damaged is not None:
+        raise CheckpointError(f"{path}: damaged entry {damaged!r} (its CRC does not match)")
     raw = arrays.pop("header", None)
     if raw is None or raw.shape != () or raw.dtype.kind != "U":
         raise CheckpointError(f"{path}: not a {FORMAT} file (no header)")

@@ -4,7 +4,11 @@ bad files refused with one clear error."""
 from __future__ import annotations
 
 import json
+import re
 import zipfile
+from dataclasses import fields, is_dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -203,29 +207,130 @@ def test_missed_samples_from_the_odometry_period() -> None:
     assert odometry_period(np.zeros(1)) is None
 
 
-def test_damaged_checkpoints_raise_only_checkpoint_errors(run, tmp_path) -> None:
-    """Bytes flipped or cut anywhere in a checkpoint: reading it either works or raises
-    CheckpointError, never anything else (a node would die of that at start)."""
+def _assert_same(read: Any, written: Any, where: str = "checkpoint") -> None:
+    """``read`` equals ``written`` field by field; arrays in dtype, shape and every value."""
+    if is_dataclass(written):
+        assert type(read) is type(written), where
+        for f in fields(written):
+            _assert_same(getattr(read, f.name), getattr(written, f.name), f"{where}.{f.name}")
+    elif isinstance(written, dict):
+        assert isinstance(read, dict) and list(read) == list(written), where
+        for key, value in written.items():
+            _assert_same(read[key], value, f"{where}[{key!r}]")
+    elif isinstance(written, list | tuple):
+        assert isinstance(read, list | tuple) and len(read) == len(written), where
+        for i, (x, y) in enumerate(zip(read, written, strict=True)):
+            _assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(written, np.ndarray):
+        assert isinstance(read, np.ndarray), where
+        assert (read.dtype, read.shape) == (written.dtype, written.shape), where
+        np.testing.assert_array_equal(read, written, err_msg=where)
+    else:
+        assert type(read) is type(written) and read == written, (where, read, written)
+
+
+@pytest.fixture(scope="module")
+def written_checkpoint(run, tmp_path_factory) -> tuple[SmootherCheckpoint, bytes]:
+    """A smoother checkpoint with something in every part, and the bytes of its file."""
     local = LocalMap("robot1")
-    local.add_log(robot_log_between(run.robots["robot1"], end=10.0))
+    _feed(local, run.robots["robot1"], 0.0, 10.0)
     local.update()
     checks = MeasurementFilter(["robot1", "robot2"])
-    good = tmp_path / "good.npz"
-    SmootherCheckpoint(
+    checks.odometry("robot1", 5.0, [0.1, 0.0, 0.0], [0.1, 0.1, 0.1])  # held back
+    checks.features("robot1", -1.0, [1.0], [0.0], [-1.0], [0.1])  # counted
+    thinning = RendezvousThinning(1.0, 4)
+    for t in np.arange(0.0, 10.0, 0.5):
+        thinning.offer("robot1", "robot2", t)
+    own = run.robots["robot1"].rendezvous
+    checkpoint = SmootherCheckpoint(
         "robot1",
         local.state(),
         FilterState.of(checks),
-        FilterState.of(checks),
-        ThinningState({}, {}),
-        run.robots["robot1"].rendezvous,
-        np.zeros(0),
-        1,
-        1,
-        0,
-    ).write(good)
-    data = good.read_bytes()
-    rng = np.random.default_rng(5)
+        FilterState.of(MeasurementFilter(["robot1", "robot2"])),
+        ThinningState.of(thinning),
+        own,
+        np.unique(own.stamps),
+        123,
+        100,
+        2,
+        restarts=1,
+        lost_seconds=1.5,
+    )
+    path = tmp_path_factory.mktemp("checkpoint") / "good.npz"
+    checkpoint.write(path)
+    _assert_same(SmootherCheckpoint.read(path, "robot1"), checkpoint)  # undamaged: all of it
+    return checkpoint, path.read_bytes()
+
+
+def _read_damaged(path: Path, data: bytes, written: SmootherCheckpoint) -> bool:
+    """Write ``data`` to ``path`` and read it: True when it reads back exactly ``written``,
+    False when it raises CheckpointError. Anything else - another exception, or a checkpoint
+    that differs in any array or value - fails the test."""
+    path.write_bytes(data)
+    try:
+        back = SmootherCheckpoint.read(path, "robot1")
+    except CheckpointError as err:
+        assert str(path) in str(err)
+        return False
+    _assert_same(back, written)
+    return True
+
+
+def _central_entry(data: bytes, member: str) -> int:
+    """Where ``member``'s entry in the zip central directory starts."""
+    end = data.rfind(b"PK\x05\x06")  # the end of central directory record
+    at = int.from_bytes(data[end + 16 : end + 20], "little")
+    while data[at : at + 4] == b"PK\x01\x02":
+        name_length, extra, comment = (
+            int.from_bytes(data[at + k : at + k + 2], "little") for k in (28, 30, 32)
+        )
+        if data[at + 46 : at + 46 + name_length] == member.encode():
+            return at
+        at += 46 + name_length + extra + comment
+    raise AssertionError(f"no {member} in the central directory")
+
+
+def _npy_header(data: bytes, member: str) -> tuple[int, int]:
+    """The byte range of ``member``'s .npy header (its magic, dtype and shape)."""
+    entry = _central_entry(data, member)
+    local = int.from_bytes(data[entry + 42 : entry + 46], "little")
+    name_length, extra = (
+        int.from_bytes(data[local + k : local + k + 2], "little") for k in (26, 28)
+    )
+    start = local + 30 + name_length + extra
+    assert data[start : start + 6] == b"\x93NUMPY" and data[start + 6] == 1
+    return start, start + 10 + int.from_bytes(data[start + 8 : start + 10], "little")
+
+
+def _fewer_rows(data: bytes, member: str) -> bytes:
+    """``data`` with ``member``'s .npy header claiming one row fewer than it holds (the
+    header's text stays as long, its CRC is not recomputed)."""
+    start, end = _npy_header(data, member)
+    header = data[start:end].decode("latin1")
+    rows = re.search(r"'shape': \((\d+),", header)
+    assert rows is not None and int(rows[1]) > 1, header
+    fewer = f"{int(rows[1]) - 1:>{len(rows[1])}}"
+    return (
+        data[:start]
+        + (header[: rows.start(1)] + fewer + header[rows.end(1) :]).encode("latin1")
+        + data[end:]
+    )
+
+
+def _patched(data: bytes, at: int, value: bytes) -> bytes:
+    return data[:at] + value + data[at + len(value) :]
+
+
+def test_damaged_checkpoints_read_back_whole_or_raise_checkpoint_errors(
+    written_checkpoint, tmp_path
+) -> None:
+    """Bytes flipped or cut anywhere in a checkpoint: reading it either raises CheckpointError
+    or gives back exactly the checkpoint written, never a damaged one and never another
+    exception (a node would die of that at start, or go on from a wrong state)."""
+    written, data = written_checkpoint
     bad = tmp_path / "bad.npz"
+    rng = np.random.default_rng(5)
+    outcomes = []
     for i in range(150):
         damaged = bytearray(data)
         if i % 3 == 0:
@@ -233,11 +338,50 @@ def test_damaged_checkpoints_raise_only_checkpoint_errors(run, tmp_path) -> None
         else:
             for at in rng.integers(0, len(data), size=int(rng.integers(1, 8))):
                 damaged[at] = int(rng.integers(0, 256))
-        bad.write_bytes(bytes(damaged))
-        try:
-            restored = SmootherCheckpoint.read(bad, "robot1")
-            LocalMap.from_state("robot1", restored.local_map)
-        except CheckpointError:
-            pass
-        except ValueError as err:  # from_state: arrays that do not fit together
-            assert "robot1" in str(err)
+        outcomes.append(_read_damaged(bad, bytes(damaged), written))
+    assert not all(outcomes)  # the damage is seen
+
+
+def test_damage_to_the_zip_and_npy_headers_is_seen(written_checkpoint, tmp_path) -> None:
+    """Every byte of two members' headers (local, .npy and central directory entry) and of the
+    end record flipped (the array data is under the zip's CRCs): read back whole or
+    CheckpointError. Some flips (dates, attributes) change nothing read, most are errors."""
+    written, data = written_checkpoint
+    bad = tmp_path / "bad.npz"
+    offsets = list(range(data.rfind(b"PK\x05\x06"), len(data)))
+    for member in ("header.npy", "map/feature_sqrt_information.npy"):
+        entry = _central_entry(data, member)
+        local = int.from_bytes(data[entry + 42 : entry + 46], "little")
+        offsets += range(entry, entry + 46 + len(member))
+        offsets += range(local, _npy_header(data, member)[1])
+    read = errors = 0
+    for at in offsets:
+        for pattern in (0x01, 0xFF):
+            if _read_damaged(bad, _patched(data, at, bytes([data[at] ^ pattern])), written):
+                read += 1
+            else:
+                errors += 1
+    assert read > 0 and errors > read
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        "fewer rows",  # the array stops early: its CRC is never reached
+        "encrypted",  # zipfile: RuntimeError, password required
+        "compression",  # zipfile: NotImplementedError, unsupported method
+        "zip version",  # zipfile: NotImplementedError, version needed to extract
+    ],
+)
+def test_named_damage_raises_checkpoint_error(written_checkpoint, tmp_path, damage: str) -> None:
+    written, data = written_checkpoint
+    member = "map/feature_sqrt_information.npy"
+    entry = _central_entry(data, member)
+    damaged = {
+        "fewer rows": lambda: _fewer_rows(data, member),
+        "encrypted": lambda: _patched(data, entry + 8, bytes([data[entry + 8] | 0x01])),
+        "compression": lambda: _patched(data, entry + 10, (99).to_bytes(2, "little")),
+        "zip version": lambda: _patched(data, entry + 6, (99).to_bytes(2, "little")),
+    }[damage]()
+    assert damaged != data and len(damaged) == len(data)
+    assert not _read_damaged(tmp_path / "bad.npz", damaged, written)
