@@ -25,6 +25,24 @@ LAYERS: dict[str, set[str]] = {
     "merging": {"model", "sam", "smoothing", "joining", "exchange", "merging"},
     "truth": {"model", "sam", "smoothing", "joining", "truth"},
 }
+# the package's parts outside the core's layers, in order: each imports only parts before it
+# (or itself); ``csam_ros`` is the package's own __init__
+PARTS = [
+    "csam_ros",
+    "forked",
+    "core",
+    "bag",
+    "datasets",
+    "testing",
+    "ros",
+    "figures",
+    "solve_process",
+    "message_process",
+    "nodes",
+    "run",
+    "cli",
+    "bench",
+]
 ROS_MODULES = ("rclpy", "rosidl", "rosbags", "csam_msgs", "builtin_interfaces", "std_msgs")
 
 
@@ -92,6 +110,25 @@ def test_the_core_imports_only_its_own_layers_and_no_ros(path: Path) -> None:
         assert imported.startswith("csam_ros.core."), f"{where}: outside the core"
         if layer is not None:
             assert layer_of(imported) in LAYERS[layer], f"{where}: above layer {layer!r}"
+
+
+def part_of(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def test_every_part_of_the_package_is_in_the_order() -> None:
+    assert {part_of(m) for m in import_graph()} <= set(PARTS)
+
+
+def test_each_part_imports_only_the_parts_before_it() -> None:
+    upward = [
+        f"{a} imports {b}"
+        for a, imported in import_graph().items()
+        for b in imported
+        if PARTS.index(part_of(b)) > PARTS.index(part_of(a))
+    ]
+    assert not upward, "\n".join(sorted(upward))
 
 
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
