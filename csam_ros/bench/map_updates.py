@@ -33,12 +33,9 @@ import numpy as np  # noqa: E402
 from csam_ros.core.exchange.map_arrays import checked_robot_map, robot_map_arrays  # noqa: E402
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
 from csam_ros.core.exchange.validation import LocalMapArrays  # noqa: E402
-from csam_ros.core.joining.csam import (
-    CsamConfig,
-    join_maps,
-    robot_map_from_local_map,
-    thinned_rendezvous,
-)
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import robot_map_from_local_map, thinned_rendezvous
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous  # noqa: E402
 from csam_ros.core.joining.result import CsamResult  # noqa: E402
 from csam_ros.core.model.log import MultiRobotLog, RendezvousLog  # noqa: E402

@@ -27,7 +27,9 @@ import numpy as np  # noqa: E402
 from csam_ros.bag.reader import inspect_bag, read_bag_messages  # noqa: E402
 from csam_ros.core.exchange.map_arrays import held_robot_map  # noqa: E402
 from csam_ros.core.exchange.map_updates import HeldMap, MissingBaseError, apply_update  # noqa: E402
-from csam_ros.core.joining.csam import CsamConfig, LocalViewCache, join_maps  # noqa: E402
+from csam_ros.core.joining.config import CsamConfig  # noqa: E402
+from csam_ros.core.joining.join import join_maps  # noqa: E402
+from csam_ros.core.joining.local_views import LocalViewCache  # noqa: E402
 from csam_ros.core.joining.result import CsamResult  # noqa: E402
 from csam_ros.core.smoothing.robot_map import RobotMap  # noqa: E402
 from csam_ros.ros.map_messages import (  # noqa: E402

@@ -96,7 +96,7 @@ from csam_ros.core.exchange.validation import (
     LocalMapError,
     RefusedMessageError,
 )
-from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary, write_summary_text
 from csam_ros.core.joining.warm_start import carried_forward
 from csam_ros.core.merging.joiner import JoinRequest, MapSource
@@ -762,8 +762,8 @@ class Merger(Node):
         result.timing_s["merger_solve"] = seconds
         if not result.converged:
             for note in result.notes:
-                if " not converged: " in note:
-                    self.get_logger().warning(note)
+                if note.not_converged:
+                    self.get_logger().warning(note.text)
         with self._lock:
             self.last_error = ""
             self.solve_seconds = seconds

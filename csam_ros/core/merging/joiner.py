@@ -28,7 +28,9 @@ from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map
 from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import LocalMapArrays, LocalMapError
-from csam_ros.core.joining.csam import CsamConfig, LocalViewCache, in_threads, join_maps
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.local_views import LocalViewCache, in_threads
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.robot_map import RobotMap
