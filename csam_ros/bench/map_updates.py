@@ -12,7 +12,7 @@ Printed: the serialized ``LocalMapUpdate`` bytes per second of data, per robot b
 Every ``--every`` s of data (and at the end, before the final exact update) the maps as the
 merger holds them at each tolerance, refined as it refines them
 (:func:`~csam_ros.ros.map_messages.checked_robot_map`), are joined
-(:func:`~csam_ros.core.joining.csam.join_maps`) and compared with the join of the smoothers' own
+(:func:`~csam_ros.core.joining.join.join_maps`) and compared with the join of the smoothers' own
 maps at that time: the largest difference of a joined feature and of a joined pose, and whether the
 same robots are aligned and the same features associated.
 """

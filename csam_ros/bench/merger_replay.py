@@ -4,7 +4,7 @@
 A live run's bag holds every local map update and rendezvous poses message the merger
 received (``/<robot>/local_map_updates``, ``/<robot>/rendezvous_poses``). Read in log-time
 order, the inputs are taken every ``--every`` seconds of log time (and at the end), and each
-is joined twice by the core: cold (:func:`~csam_ros.core.joining.csam.join_maps` from scratch) and
+is joined twice by the core: cold (:func:`~csam_ros.core.joining.join.join_maps` from scratch) and
 warm (from the previous warm result, with the local views kept between solves, as the merger
 does). The table gives each solve's time and iterations and the largest difference between
 the warm and the cold joined map (poses and features); the last line the distribution of the

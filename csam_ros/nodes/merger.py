@@ -14,7 +14,7 @@ and the summary. Smoothers' first maps come in any order, so the first solve wai
 ``reference_wait`` seconds after the first map for the configured reference's, and for the
 maps and rendezvous of every robot on the allow-list. When a local
 map or rendezvous part changes it re-solves (at most every ``solve_period`` wall-clock
-seconds) with the core's :func:`~csam_ros.core.joining.csam.join_maps`, then writes
+seconds) with the core's :func:`~csam_ros.core.joining.join.join_maps`, then writes
 ``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
 (transient local), ``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot
 (:func:`~csam_ros.ros.map_messages.robot_map_transforms`) and ``/csam/status``. A robot
