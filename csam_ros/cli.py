@@ -29,6 +29,7 @@ def _print_lines(lines: list[str], indent: str = "") -> None:
 
 def _finish(out: Path, summary: RunSummary, worker: FigureWorker | None = None) -> None:
     """Write the run's summary.json and figures into ``out``; say what the run gave."""
+    from csam_ros.core.joining.notes import NoteKind
     from csam_ros.run.results import write_results
 
     figures = write_results(out, summary, worker)
@@ -37,7 +38,7 @@ def _finish(out: Path, summary: RunSummary, worker: FigureWorker | None = None) 
     for name, r in result.robots.items():
         print(f"  {name}: {r.alignment}, {len(r.stamps)} poses")
     for note in result.notes:
-        if ": no local map: " in note or " not converged: " in note:  # from core.csam
+        if note.kind is NoteKind.NO_LOCAL_MAP or note.not_converged:
             print(f"  {note}")
     print(f"  {len(result.features)} features, {len(result.associations)} associations")
     print("  summary.json, " + ", ".join(p.name for p in figures))

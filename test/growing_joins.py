@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from log_slices import robot_log_between
 
-from csam_ros.core.joining.csam import robot_map_from_local_map
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import MultiRobotLog, RendezvousLog

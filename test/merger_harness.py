@@ -26,7 +26,7 @@ from rclpy.parameter import Parameter
 
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import UpdateSender
-from csam_ros.core.joining.csam import robot_map_from_local_map
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.log import RobotLog
 from csam_ros.core.model.rendezvous import required_stamps
 from csam_ros.core.smoothing.local_map import build_local_map

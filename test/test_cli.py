@@ -523,7 +523,7 @@ def test_offline_run_leaves_out_a_robot_without_a_local_map() -> None:
     """run_csam (the offline replay's core) leaves out, and names in the notes, a robot with
     one odometry sample and a robot whose solve is not finite (the boundary checks of a
     replay may drop such input first; the core must not fail on it either)."""
-    from csam_ros.core.joining.csam import run_csam
+    from csam_ros.core.joining.pipeline import run_csam
     from csam_ros.core.model.log import (
         FeatureLog,
         MultiRobotLog,

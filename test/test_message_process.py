@@ -12,7 +12,7 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from visualization_msgs.msg import MarkerArray
 
-from csam_ros.core.joining.csam import run_csam
+from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

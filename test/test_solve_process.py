@@ -16,7 +16,7 @@ from growing_joins import largest_difference, maps_until
 
 from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
-from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.merging.joiner import JoinCancelled, Joiner, JoinReply, JoinRequest
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

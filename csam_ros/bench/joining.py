@@ -29,7 +29,9 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from csam_ros.core.joining.csam import CsamConfig, join_maps, robot_map_from_local_map  # noqa: E402
+from csam_ros.core.joining.config import CsamConfig  # noqa: E402
+from csam_ros.core.joining.join import join_maps  # noqa: E402
+from csam_ros.core.joining.pipeline import robot_map_from_local_map  # noqa: E402
 from csam_ros.core.model.rendezvous import required_stamps  # noqa: E402
 from csam_ros.core.smoothing.local_map import build_local_map  # noqa: E402
 from csam_ros.core.truth.evaluation import evaluate  # noqa: E402

@@ -12,7 +12,7 @@ Printed: the serialized ``LocalMapUpdate`` bytes per second of data, per robot b
 Every ``--every`` s of data (and at the end, before the final exact update) the maps as the
 merger holds them at each tolerance, refined as it refines them
 (:func:`~csam_ros.ros.map_messages.checked_robot_map`), are joined
-(:func:`~csam_ros.core.joining.csam.join_maps`) and compared with the join of the smoothers' own
+(:func:`~csam_ros.core.joining.join.join_maps`) and compared with the join of the smoothers' own
 maps at that time: the largest difference of a joined feature and of a joined pose, and whether the
 same robots are aligned and the same features associated.
 """
@@ -33,12 +33,9 @@ import numpy as np  # noqa: E402
 from csam_ros.core.exchange.map_arrays import checked_robot_map, robot_map_arrays  # noqa: E402
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
 from csam_ros.core.exchange.validation import LocalMapArrays  # noqa: E402
-from csam_ros.core.joining.csam import (
-    CsamConfig,
-    join_maps,
-    robot_map_from_local_map,
-    thinned_rendezvous,
-)
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import robot_map_from_local_map, thinned_rendezvous
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous  # noqa: E402
 from csam_ros.core.joining.result import CsamResult  # noqa: E402
 from csam_ros.core.model.log import MultiRobotLog, RendezvousLog  # noqa: E402

@@ -4,7 +4,7 @@
 A live run's bag holds every local map update and rendezvous poses message the merger
 received (``/<robot>/local_map_updates``, ``/<robot>/rendezvous_poses``). Read in log-time
 order, the inputs are taken every ``--every`` seconds of log time (and at the end), and each
-is joined twice by the core: cold (:func:`~csam_ros.core.joining.csam.join_maps` from scratch) and
+is joined twice by the core: cold (:func:`~csam_ros.core.joining.join.join_maps` from scratch) and
 warm (from the previous warm result, with the local views kept between solves, as the merger
 does). The table gives each solve's time and iterations and the largest difference between
 the warm and the cold joined map (poses and features); the last line the distribution of the
@@ -27,7 +27,9 @@ import numpy as np  # noqa: E402
 from csam_ros.bag.reader import inspect_bag, read_bag_messages  # noqa: E402
 from csam_ros.core.exchange.map_arrays import held_robot_map  # noqa: E402
 from csam_ros.core.exchange.map_updates import HeldMap, MissingBaseError, apply_update  # noqa: E402
-from csam_ros.core.joining.csam import CsamConfig, LocalViewCache, join_maps  # noqa: E402
+from csam_ros.core.joining.config import CsamConfig  # noqa: E402
+from csam_ros.core.joining.join import join_maps  # noqa: E402
+from csam_ros.core.joining.local_views import LocalViewCache  # noqa: E402
 from csam_ros.core.joining.result import CsamResult  # noqa: E402
 from csam_ros.core.smoothing.robot_map import RobotMap  # noqa: E402
 from csam_ros.ros.map_messages import (  # noqa: E402

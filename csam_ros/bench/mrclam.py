@@ -52,7 +52,9 @@ from pathlib import Path
 
 import numpy as np
 
-from csam_ros.core.joining.csam import CsamConfig, join_maps, robot_map_from_local_map
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous, thin_rendezvous
 from csam_ros.core.model.config_file import load_document
 from csam_ros.core.model.log import MultiRobotLog

@@ -14,7 +14,7 @@ and the summary. Smoothers' first maps come in any order, so the first solve wai
 ``reference_wait`` seconds after the first map for the configured reference's, and for the
 maps and rendezvous of every robot on the allow-list. When a local
 map or rendezvous part changes it re-solves (at most every ``solve_period`` wall-clock
-seconds) with the core's :func:`~csam_ros.core.joining.csam.join_maps`, then writes
+seconds) with the core's :func:`~csam_ros.core.joining.join.join_maps`, then writes
 ``summary_path`` (when set) and publishes ``/csam/joined_map`` and ``/csam/markers``
 (transient local), ``/tf`` ``<reference>/map -> <robot>/map`` of each aligned robot
 (:func:`~csam_ros.ros.map_messages.robot_map_transforms`) and ``/csam/status``. A robot
@@ -96,7 +96,7 @@ from csam_ros.core.exchange.validation import (
     LocalMapError,
     RefusedMessageError,
 )
-from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary, write_summary_text
 from csam_ros.core.joining.warm_start import carried_forward
 from csam_ros.core.merging.joiner import JoinRequest, MapSource
@@ -762,8 +762,8 @@ class Merger(Node):
         result.timing_s["merger_solve"] = seconds
         if not result.converged:
             for note in result.notes:
-                if " not converged: " in note:
-                    self.get_logger().warning(note)
+                if note.not_converged:
+                    self.get_logger().warning(note.text)
         with self._lock:
             self.last_error = ""
             self.solve_seconds = seconds

@@ -70,7 +70,8 @@ from csam_ros.core.exchange.checkpoint import (
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance
 from csam_ros.core.exchange.validation import InputBounds, MeasurementFilter
-from csam_ros.core.joining.csam import CsamConfig, robot_map_from_local_map
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.local_map import LocalMap as CoreLocalMap

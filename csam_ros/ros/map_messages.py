@@ -4,7 +4,7 @@ A smoother publishes its :class:`~csam_ros.core.smoothing.robot_map.RobotMap` as
 ``csam_msgs/LocalMap``: the estimate, marginal pose covariances, feature estimates, and the local
 problem as whitened factors; the merger rebuilds the same ``RobotMap`` from it
 (:func:`robot_map_from_message`), so the merger runs exactly the core's
-:func:`~csam_ros.core.joining.csam.join_maps` on what offline replay computes in-process.
+:func:`~csam_ros.core.joining.join.join_maps` on what offline replay computes in-process.
 """
 
 from __future__ import annotations

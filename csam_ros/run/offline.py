@@ -90,7 +90,8 @@ def offline_summary(
     ``progress``. ``reading``: the :func:`read_offline_log` of the same arguments, already
     under way in another process."""
     from csam_ros.core.exchange.checkpoint import FilterState, OfflineState
-    from csam_ros.core.joining.csam import CsamConfig, run_csam
+    from csam_ros.core.joining.config import CsamConfig
+    from csam_ros.core.joining.pipeline import run_csam
     from csam_ros.core.joining.result import RunSummary
     from csam_ros.core.smoothing.local_map import LocalMapConfig
 

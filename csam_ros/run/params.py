@@ -42,7 +42,7 @@ def merger_params(document: dict) -> dict:
     """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
     section's ``solve_period``, ``stale_after``, ``provisional_period`` and
     ``provisional_quiet`` (seconds)."""
-    from csam_ros.core.joining.csam import MERGER, CsamConfig
+    from csam_ros.core.joining.config import MERGER, CsamConfig
 
     csam = node_params(document, "csam", CsamConfig, MERGER)
     merger = document.get("merger") or {}
@@ -61,7 +61,7 @@ def smoother_params(document: dict) -> dict:
     offline-only ``batch_window``), of the ``csam:`` section (the rendezvous thinning) and the
     ``input:`` section (bounds on sensor messages)."""
     from csam_ros.core.exchange.validation import InputBounds
-    from csam_ros.core.joining.csam import CsamConfig
+    from csam_ros.core.joining.config import CsamConfig
     from csam_ros.core.smoothing.local_map import SMOOTHER, LocalMapConfig
 
     return {

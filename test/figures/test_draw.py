@@ -540,7 +540,7 @@ def test_large_summary_draws(tmp_path: Path, drawn) -> None:
 @pytest.mark.parametrize("scenario", ["map_joining", "sensor_extension"])
 def test_draw_from_a_real_csam_run(tmp_path: Path, drawn, scenario: str) -> None:
     """The result C-SAM writes to summary.json and reads back draws, truth included."""
-    from csam_ros.core.joining.csam import run_csam
+    from csam_ros.core.joining.pipeline import run_csam
     from csam_ros.datasets.scenario import load_scenario
     from csam_ros.datasets.simulation import simulate
 

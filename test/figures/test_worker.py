@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from csam_ros.core.joining.csam import run_csam
+from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.joining.result import RunSummary
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

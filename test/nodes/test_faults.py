@@ -466,7 +466,7 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
     equals the core's on the same data, and its error is measured."""
     import rclpy
 
-    from csam_ros.core.joining.csam import run_csam
+    from csam_ros.core.joining.pipeline import run_csam
     from csam_ros.nodes.common import publisher
     from csam_ros.nodes.smoother import OUTSIDE_TRAJECTORY
     from csam_ros.ros.conversions import log_to_messages

@@ -12,7 +12,7 @@ from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.model.config_file import load_document, settings
 from csam_ros.core.smoothing.local_map import LocalMapConfig
 from csam_ros.run.params import merger_params, smoother_params

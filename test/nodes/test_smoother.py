@@ -360,7 +360,7 @@ def held_arrays(received: list) -> Any:
 def current_arrays(node) -> Any:
     """The smoother's own local map, as arrays."""
     from csam_ros.core.exchange.map_arrays import robot_map_arrays
-    from csam_ros.core.joining.csam import robot_map_from_local_map
+    from csam_ros.core.joining.pipeline import robot_map_from_local_map
 
     return robot_map_arrays(robot_map_from_local_map(node.map))
 

@@ -19,7 +19,7 @@ from node_group import smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from csam_ros.core.joining.csam import run_csam
+from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

@@ -11,7 +11,8 @@ from visualization_msgs.msg import Marker
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.exchange.validation import LocalMapError
-from csam_ros.core.joining.csam import join_maps, robot_map_from_local_map
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.warm_start import carried_forward
 from csam_ros.core.model.rendezvous import required_stamps
 from csam_ros.core.sam.factors import Cauchy, Huber

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import yaml
 
-from csam_ros.core.joining.csam import run_csam
+from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.joining.result import CsamResult, RunSummary
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

@@ -3,7 +3,7 @@
 Simulation is clean; real robots are not. Two filters act on the robots' rendezvous logs
 and return new logs plus what they dropped (nothing is dropped silently; feature
 measurements and odometry are untouched: outlying feature measurements are the local
-smoother's robust kernel's job). Both are settings of C-SAM (:class:`csam_ros.core.joining.csam.
+smoother's robust kernel's job). Both are settings of C-SAM (:class:`csam_ros.core.joining.config.
 CsamConfig`), so the nodes and an offline replay apply them alike.
 
 - :func:`thin_rendezvous`: robots that meet many times (MR.CLAM: 700-2,000 rendezvous

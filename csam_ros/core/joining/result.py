@@ -1,6 +1,6 @@
 """The typed result of C-SAM and of a whole run, and their ``summary.json`` form.
 
-:class:`CsamResult` is what :func:`csam_ros.core.joining.csam.join_maps` returns;
+:class:`CsamResult` is what :func:`csam_ros.core.joining.join.join_maps` returns;
 :class:`RunSummary` adds where the run came from (scenario, bag, dropped messages, the merger's
 counts). Inside the package only these types travel; ``to_dict`` / ``from_dict`` are the only
 places that know the keys of ``summary.json``, and ``from_dict`` is the exact inverse of
@@ -9,7 +9,18 @@ naming the key.
 
 Two encodings are not one-to-one by themselves: a robot's feature label ``k`` is written as
 ``"<robot>/<k>"``, and the joined fields of a robot without a joined map (``None``) are
-written as ``[]`` (a joined robot always has at least one pose).
+written as ``[]`` (a joined robot always has at least one pose). A note
+(:class:`~csam_ros.core.joining.notes.Note`) is written as its text alone; reading it, its kind
+comes back from the text (:meth:`~csam_ros.core.joining.notes.Note.of_text`).
+
+Heading standard deviations of a :class:`RobotResult`: ``sigma_phi_local`` is the local map's
+marginal heading sigma in ``G_r``; ``sigma_phi_joined`` is the heading sigma after joining
+*relative to the robot's own first pose* (in ``G_r``, the like-for-like comparison of the
+paper's figures 5c and 6c: it can only shrink); ``sigma_phi_joined_reference`` is the heading
+sigma in the reference frame (which adds the base node's uncertainty). A pending robot keeps its
+local estimate (``poses_local``, ``sigma_phi_local``); its base node and joined fields are
+``None`` (``null`` / ``[]`` in the summary) and its features are not in
+:attr:`CsamResult.features`, which is the joined map in the reference frame.
 """
 
 from __future__ import annotations
@@ -24,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from csam_ros.core.joining.notes import Note, NoteKind
 from csam_ros.core.joining.rendezvous_filters import FilterReport
 
 Array = NDArray[np.float64]
@@ -356,7 +368,7 @@ class CsamResult:
     features: list[FeatureResult]
     associations: list[AssociationRecord]
     timing_s: dict[str, float]
-    notes: list[str] = field(default_factory=list)
+    notes: list[Note] = field(default_factory=list)
     statistics: dict[str, float] = field(default_factory=dict)
     # what the rendezvous filters dropped: "consistency" and / or "thinning"
     rendezvous_filter: dict[str, FilterReport] = field(default_factory=dict)
@@ -375,6 +387,15 @@ class CsamResult:
             for key in ("algorithm1_converged", "joint_converged")
         )
 
+    def notes_of(self, *kinds: NoteKind) -> list[Note]:
+        """The notes of the given kinds, in order."""
+        return [note for note in self.notes if note.kind in kinds]
+
+    @property
+    def note_texts(self) -> list[str]:
+        """The notes' texts, as ``summary.json`` holds them."""
+        return [note.text for note in self.notes]
+
     def joined_robots(self) -> set[str]:
         """The robots in the joined map (the reference and the aligned ones)."""
         return {name for name, robot in self.robots.items() if robot.joined}
@@ -388,7 +409,7 @@ class CsamResult:
             "associations": [a.to_dict() for a in self.associations],
             "timing_s": {k: float(v) for k, v in self.timing_s.items()},
             "statistics": {k: float(v) for k, v in self.statistics.items()},
-            "notes": list(self.notes),
+            "notes": self.note_texts,
             "rendezvous_filter": {k: r.to_dict() for k, r in self.rendezvous_filter.items()},
         }
 
@@ -419,7 +440,10 @@ class CsamResult:
                 for i, a in enumerate(_list(node["associations"], "associations"))
             ],
             timing_s=_numbers(node["timing_s"], "timing_s"),
-            notes=[_string(s, f"notes[{i}]") for i, s in enumerate(_list(node["notes"], "notes"))],
+            notes=[
+                Note.of_text(_string(s, f"notes[{i}]"))
+                for i, s in enumerate(_list(node["notes"], "notes"))
+            ],
             statistics=_numbers(node["statistics"], "statistics"),
             rendezvous_filter=rendezvous_filter,
         )

@@ -1,6 +1,6 @@
 """Starting a join from the last one: initial values from the previous solve.
 
-A live merger joins maps that grow a little between solves. :func:`~csam_ros.core.joining.csam.
+A live merger joins maps that grow a little between solves. :func:`~csam_ros.core.joining.join.
 join_maps` takes the previous :class:`~csam_ros.core.joining.result.CsamResult` as a
 :class:`WarmStart`: initial values only, the problem solved is the same, so converged a
 warm join equals a cold one on the same inputs.

@@ -1,16 +1,15 @@
 """What a live merger's solves share, and one solve on it (docs/METHOD.md section 6.4).
 
-A :class:`Joiner` keeps, between solves, each robot's local map refined to its sender's
-optimum, the local views (:class:`~csam_ros.core.joining.csam.LocalViewCache`) and the last result,
-the warm start of the next join. :meth:`Joiner.join` takes a :class:`JoinRequest`: each robot's
-map source (a map built from updates, refined here once; or a map as saved, joined as it is),
-or ``None`` for the source of the last request, so that a caller in another process sends a
-map only when it changed. A join may be given up part-way (:class:`JoinCancelled`, raised
-inside the ``cancellable`` context the joiner was made with): the joiner keeps the maps it took
-and its warm start, and the reply says it was cancelled. A request may carry the merger's
-state, written by :meth:`Joiner.write_state` after the reply (the joined map goes out first).
-The merger node runs a joiner in a process of its own (:mod:`csam_ros.solve_process`); nothing
-here knows of ROS.
+A :class:`Joiner` keeps, between solves, each robot's local map refined to its sender's optimum,
+the local views (:class:`~csam_ros.core.joining.local_views.LocalViewCache`) and the last result,
+the warm start of the next join. :meth:`Joiner.join` takes a :class:`JoinRequest`: each robot's map
+source (a map built from updates, refined here once; or a map as saved, joined as it is), or
+``None`` for the source of the last request, so that a caller in another process sends a map only
+when it changed. A join may be given up part-way (:class:`JoinCancelled`, raised inside the
+``cancellable`` context the joiner was made with): the joiner keeps the maps it took and its warm
+start, and the reply says it was cancelled. A request may carry the merger's state, written by
+:meth:`Joiner.write_state` after the reply (the joined map goes out first). The merger node runs a
+joiner in a process of its own (:mod:`csam_ros.solve_process`); nothing here knows of ROS.
 """
 
 from __future__ import annotations
@@ -28,7 +27,9 @@ from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map
 from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import LocalMapArrays, LocalMapError
-from csam_ros.core.joining.csam import CsamConfig, LocalViewCache, in_threads, join_maps
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.local_views import LocalViewCache, in_threads
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.robot_map import RobotMap

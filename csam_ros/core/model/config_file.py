@@ -68,7 +68,7 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
 
 
 # The top-level sections of parameter and scenario files and who reads them: ``scenario``
-# (datasets.scenario, the simulator), ``csam`` (core.csam.CsamConfig: the merger, the
+# (datasets.scenario, the simulator), ``csam`` (core.joining.config.CsamConfig: the merger, the
 # smoothers' rendezvous thinning), ``local_map`` (core.local_map.LocalMapConfig: the
 # smoothers), ``merger`` (the merger node's solve_period), ``mrclam`` (the MR.CLAM importer
 # and calibration) and ``input`` (core.validation.InputBounds: bounds on sensor messages, in

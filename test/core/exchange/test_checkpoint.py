@@ -28,7 +28,8 @@ from csam_ros.core.exchange.checkpoint import (
     write_npz,
 )
 from csam_ros.core.exchange.validation import MeasurementFilter
-from csam_ros.core.joining.csam import join_maps, robot_map_from_local_map, run_csam
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import robot_map_from_local_map, run_csam
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.model.log import MultiRobotLog, empty_rendezvous
 from csam_ros.core.model.rendezvous import required_stamps

@@ -16,7 +16,7 @@ from csam_ros.core.exchange.map_updates import (
     apply_update,
 )
 from csam_ros.core.exchange.validation import LocalMapArrays
-from csam_ros.core.joining.csam import robot_map_from_local_map
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model import se2
 from csam_ros.core.smoothing.local_map import LocalMap
 from csam_ros.datasets.simulation import simulate_robot_log

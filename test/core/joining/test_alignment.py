@@ -18,7 +18,8 @@ from csam_ros.core.joining.alignment import (
     align,
     initial_pair_base,
 )
-from csam_ros.core.joining.csam import CsamConfig, run_csam
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.model import se2, sensor
 from csam_ros.core.model.rendezvous import RendezvousSet
 from csam_ros.core.sam.factors import POSE, LinearPrior

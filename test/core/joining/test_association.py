@@ -21,7 +21,9 @@ from csam_ros.core.joining.association import (
     _stack,
     associate,
 )
-from csam_ros.core.joining.csam import _map_features, local_view, robot_map_from_local_map
+from csam_ros.core.joining.local_views import local_view
+from csam_ros.core.joining.local_views import map_features as _map_features
+from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.rendezvous import collect, required_stamps
 from csam_ros.core.smoothing.local_map import build_local_map
 from csam_ros.datasets.scenario import load_scenario

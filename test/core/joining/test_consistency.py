@@ -8,7 +8,9 @@ import copy
 import numpy as np
 import pytest
 
-from csam_ros.core.joining.csam import CsamConfig, build_robot_maps, join_maps
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import build_robot_maps
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.core.smoothing.local_map import LocalMapConfig
 from csam_ros.core.truth.evaluation import evaluate

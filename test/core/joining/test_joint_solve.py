@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from csam_ros.core.joining.csam import CsamResult, robot_map_from_local_map, run_csam
 from csam_ros.core.joining.joint_solve import heading_sigmas
+from csam_ros.core.joining.pipeline import robot_map_from_local_map, run_csam
+from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model import motion, se2, sensor
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.core.sam.factors import POSE, PosePrior, RelativePose

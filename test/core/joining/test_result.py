@@ -1,4 +1,5 @@
-"""summary.json: to_dict and from_dict are inverses; a malformed summary names its key."""
+"""summary.json: to_dict and from_dict are inverses; a malformed summary names its key; notes
+are written as their texts and read back typed."""
 
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from csam_ros.core.joining.csam import CsamConfig, run_csam
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.notes import Note, NoteKind
+from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary, SummaryError
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.datasets.scenario import load_scenario
@@ -206,3 +209,41 @@ def test_summaries_from_before_the_local_map_check_still_read(joined: CsamResult
     back = CsamResult.from_dict(document)
     assert all(r.local_check is None for r in back.robots.values())
     assert back.robots["robot2"].alignment == joined.robots["robot2"].alignment
+
+
+def test_notes_are_written_as_their_texts_and_read_back_typed(joined: CsamResult) -> None:
+    result = copy.copy(joined)
+    left_out = [Note.no_local_map("robot3", "its solve failed"), Note.no_local_map("r4", "none")]
+    result.notes = [
+        left_out[0],
+        Note.features_not_associated("robot2", [3, 8]),
+        left_out[1],
+        Note.not_converged_joint("maximum iterations reached", 1, 1903.1),
+        Note(NoteKind.OTHER, "a note of another version"),
+    ]
+    document = json.loads(json.dumps(result.to_dict()))
+    assert document["notes"] == [n.text for n in result.notes] == result.note_texts
+    back = CsamResult.from_dict(document)
+    assert back.notes == result.notes
+    assert back.notes_of(NoteKind.NO_LOCAL_MAP) == left_out
+    assert back.to_dict() == result.to_dict()
+
+
+def test_notes_of_summaries_written_before_notes_were_typed_still_read(
+    joined: CsamResult,
+) -> None:
+    document = joined.to_dict()
+    document["notes"] = [
+        "robot2: no local map: 1 usable odometry sample(s), a map needs two",
+        "9 rendezvous measurement(s) of 'robot3' by 'robot2' ignored: no map of 'robot3'",
+        "Algorithm 1 not converged: maximum iterations reached after 1 iterations (cost 14.483)",
+        "joint solve not converged: maximum iterations reached after 1 iterations (cost 1903.1)",
+    ]
+    back = CsamResult.from_dict(document)
+    assert [n.kind for n in back.notes] == [
+        NoteKind.NO_LOCAL_MAP,
+        NoteKind.RENDEZVOUS_LEFT_OUT,
+        NoteKind.NOT_CONVERGED_ALIGNMENT,
+        NoteKind.NOT_CONVERGED_JOINT,
+    ]
+    assert back.to_dict()["notes"] == document["notes"]

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from growing_joins import largest_difference, maps_until
 
-from csam_ros.core.joining.csam import CsamConfig, LocalViewCache, join_maps
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.local_views import LocalViewCache
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.joining.warm_start import WarmStart, carried_forward
 from csam_ros.core.model import se2

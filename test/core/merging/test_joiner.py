@@ -15,7 +15,8 @@ from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.exchange.map_updates import HeldMap, UpdateSender, apply_update
 from csam_ros.core.exchange.validation import MALFORMED_LOCAL_MAP
-from csam_ros.core.joining.csam import CsamConfig, join_maps
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import join_maps
 from csam_ros.core.merging.joiner import JoinCancelled, Joiner, JoinRequest, MapSource
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.datasets.scenario import load_scenario

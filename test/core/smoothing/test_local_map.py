@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from csam_ros.core.joining.csam import CsamConfig
+from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.model import se2
 from csam_ros.core.smoothing.local_map import (
     LocalMap,

@@ -1,5 +1,6 @@
-"""C-SAM end to end on simulated runs: the paper's two experiments, base-node consistency
-over many seeds, pending robots, chains and repeated meetings, and the summary structure."""
+"""C-SAM's join end to end on simulated runs (the paper's two experiments, base-node
+consistency over many seeds, pending robots, chains and repeated meetings, the summary
+structure) and its steps one by one: the rendezvous filters, the notes, the step times."""
 
 from __future__ import annotations
 
@@ -10,18 +11,21 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from csam_ros.core.joining.csam import (
-    CsamConfig,
-    CsamResult,
-    local_view,
-    robot_map_from_local_map,
-    run_csam,
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.join import (
+    StepTimes,
+    filter_rendezvous,
+    join_maps,
+    local_map_notes,
+    rendezvous_measurements,
+    rendezvous_poses,
 )
+from csam_ros.core.joining.notes import NOT_CONVERGED, NoteKind
+from csam_ros.core.joining.pipeline import build_robot_maps, run_csam
+from csam_ros.core.joining.result import CsamResult, LocalMapCheck
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.sam.covariance import factorize_at_estimate
-from csam_ros.core.sam.factors import Cauchy
-from csam_ros.core.smoothing.local_map import LocalMapConfig, build_local_map
 from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.scenario import load_document, load_scenario, scenario_from_dict
 from csam_ros.datasets.simulation import simulate
@@ -228,17 +232,6 @@ def test_summary_structure(map_joining) -> None:
     assert all(by_member[a["a"]] == by_member[a["b"]] for a in summary["associations"])
 
 
-def test_config_from_file_and_errors() -> None:
-    config = CsamConfig.from_dict(load_document("map_joining")["csam"])
-    assert config.chi2_gate == pytest.approx(9.21)
-    with pytest.raises(ValueError, match="chi2_gat"):
-        CsamConfig.from_dict({"chi2_gat": 9.0})
-    with pytest.raises(ValueError, match="chi2_gate"):
-        CsamConfig.from_dict({"chi2_gate": -1})
-    with pytest.raises(ValueError, match="associate"):
-        CsamConfig.from_dict({"associate": "yes"})
-
-
 def test_rendezvous_filters_drop_a_wrong_measurement_and_thin_the_rest() -> None:
     log = _repeated_meetings_log()
     wrong = copy.deepcopy(log)
@@ -267,51 +260,29 @@ def test_rendezvous_filters_drop_a_wrong_measurement_and_thin_the_rest() -> None
     assert nees(thinned) < chi2.ppf(0.999, 3)
 
 
-def test_real_data_settings_and_errors() -> None:
-    document = load_document("mrclam")
-    config = CsamConfig.from_dict(document["csam"])
-    assert config.rendezvous_consistency and config.thinning().max_per_pair == 20
-    assert config.solver_options().relative_tolerance == 1e-5  # the robust cost creeps
-    assert CsamConfig.from_dict({"rendezvous_max_per_pair": 0}).thinning().max_per_pair is None
-    with pytest.raises(ValueError, match="rendezvous_min_interval"):
-        CsamConfig.from_dict({"rendezvous_min_interval": -1.0})
-    with pytest.raises(ValueError, match="max_step_scale: must be at least 1"):
-        CsamConfig.from_dict({"max_step_scale": 0.5})
-    local = LocalMapConfig.from_dict(document["local_map"])
-    assert isinstance(local.options().robust, Cauchy) and local.window == 10.0
-    assert local.options().robust.scale == 1.0
-    assert LocalMapConfig.from_dict({"batch_window": 0}).window is None
-    with pytest.raises(ValueError, match="robust_kernel"):
-        LocalMapConfig.from_dict({"robust_kernel": "tukey"})
-    with pytest.raises(ValueError, match="key_intervall"):
-        LocalMapConfig.from_dict({"key_intervall": 1.0})
-    with pytest.raises(ValueError, match="batch_window"):
-        LocalMapConfig.from_dict({"batch_window": "long"})
-
-
 def test_an_unconverged_solve_is_reported_never_silent(map_joining) -> None:
     log, converged = map_joining
     assert converged.converged
     assert converged.statistics["joint_converged"] == 1.0
-    assert not [n for n in converged.notes if "not converged" in n]
+    assert converged.notes == [] and not converged.notes_of(*NOT_CONVERGED)
 
     config = CsamConfig(max_iterations=1)
     result = run_csam(log, config)
     assert not result.converged
     assert result.statistics["joint_converged"] == 0.0
-    (note,) = [n for n in result.notes if n.startswith("joint solve not converged")]
-    assert "maximum iterations reached after 1 iterations" in note
+    kinds = [n.kind for n in result.notes]
+    assert kinds == [NoteKind.NOT_CONVERGED_ALIGNMENT, NoteKind.NOT_CONVERGED_JOINT]
+    assert all(n.not_converged for n in result.notes)
+    (note,) = result.notes_of(NoteKind.NOT_CONVERGED_JOINT)
+    assert note.text.startswith("joint solve not converged: maximum iterations reached after 1 ")
     again = CsamResult.from_dict(json.loads(json.dumps(result.to_dict())))
-    assert not again.converged and note in again.notes
+    assert not again.converged and again.notes == result.notes
 
 
 def test_one_robot_alone_has_the_marginals_of_its_dense_information(map_joining) -> None:
     """A robot joined alone: its joint problem is its local problem, and the reported
     marginals (heading sigmas, feature covariances) are those of the dense inverse of its
     information matrix at the joined estimate."""
-    from csam_ros.core.joining.csam import build_robot_maps, join_maps
-    from csam_ros.core.sam.covariance import factorize_at_estimate
-
     log, _ = map_joining
     alone = copy.copy(log)
     alone.robots = {"robot1": log.robots["robot1"]}
@@ -341,26 +312,100 @@ def test_one_robot_alone_has_the_marginals_of_its_dense_information(map_joining)
     np.testing.assert_allclose(np.array([f.cov for f in features]), expected, rtol=1e-6)
 
 
-@pytest.mark.parametrize("kept", [4, 8])
-def test_a_local_view_is_the_dense_covariance_of_its_rendezvous_poses_and_features(
-    kept: int,
-) -> None:
-    """The rendezvous part (``R^T R`` = the poses' marginal information) and ``P_l,rho``
-    against the dense inverse: with three poses of four rendezvous poses (the others
-    eliminated along the trajectory) and with one of eight (more feature than pose scalars:
-    the covariance columns)."""
-    log = simulate(load_scenario("map_joining"), seed=1)
-    m = robot_map_from_local_map(build_local_map(log.robots["robot1"]))
-    index = np.arange(len(m.pose_ids))
-    poses = index[index % 4 != 0] if kept == 4 else index[index % 8 == 1]
-    view = local_view(m, poses)
-    upper = factorize_at_estimate(m.problem).matrix().toarray()
-    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
-    pose_columns = m.problem.scalar_indices(m.pose_ids[poses])
-    feature_columns = m.problem.scalar_indices(m.feature_ids)
-    assert (len(feature_columns) <= len(pose_columns)) == (kept == 4)  # which way
-    root = view.part.sqrt_information
-    block = dense[np.ix_(pose_columns, pose_columns)]
-    np.testing.assert_allclose(np.linalg.inv(root.T @ root), block, rtol=1e-6, atol=1e-9)
-    cross = dense[np.ix_(feature_columns, pose_columns)].reshape(len(m.feature_ids), 2, -1)
-    np.testing.assert_allclose(view.cross, cross, rtol=1e-6, atol=1e-10)
+def test_the_steps_are_timed_in_their_order(map_joining) -> None:
+    """``timing_s`` names the steps in the order they ran (summary.json keeps that order);
+    Algorithm 2 is timed only when it runs."""
+    log, result = map_joining
+    steps = [
+        "local_map_checks",
+        "local_rendezvous_parts",
+        "alignment",
+        "local_marginals",
+        "association",
+        "joint_solve",
+        "joint_base_node_covariance",
+        "joint_marginals",
+    ]
+    assert list(result.timing_s) == [*steps, "total", "local_maps"]
+    built = build_robot_maps(log)
+    alone = join_maps(built.maps, built.rendezvous_logs, CsamConfig(associate=False))
+    assert list(alone.timing_s) == [s for s in steps if s != "association"] + ["total"]
+    assert alone.timing_s["total"] == pytest.approx(sum(list(alone.timing_s.values())[:-1]))
+    clock = StepTimes()
+    clock.lap("a")
+    clock.lap("b")
+    clock.lap("a")
+    times = clock.with_total()
+    assert list(times) == ["a", "b", "total"] and times["total"] == times["a"] + times["b"]
+
+
+def test_join_maps_needs_maps_of_distinct_robots() -> None:
+    built = build_robot_maps(simulate(scenario_from_dict(SMALL), 0))
+    with pytest.raises(ValueError, match="no local maps"):
+        join_maps([], built.rendezvous_logs)
+    with pytest.raises(ValueError, match="duplicate robot names"):
+        join_maps([built.maps[0], built.maps[0]], built.rendezvous_logs)
+
+
+def test_a_measurement_outside_a_maps_time_span_is_left_out_and_counted() -> None:
+    built = build_robot_maps(simulate(scenario_from_dict(SMALL), 0))
+    config = CsamConfig()
+    logs, reports = filter_rendezvous(built.maps, built.rendezvous_logs, config)
+    assert reports == {} and logs is built.rendezvous_logs
+    rv = built.rendezvous_logs["robot1"]
+    late = copy.copy(rv)
+    late.stamps = rv.stamps.copy()
+    late.stamps[-1] = built.maps[1].stamps[-1] + 1.0  # after robot2's last pose
+    logs, reports = filter_rendezvous(built.maps, {**built.rendezvous_logs, "robot1": late}, config)
+    assert reports["trajectory_span"].dropped == {"robot1": {"outside_trajectory": 1}}
+    np.testing.assert_array_equal(logs["robot1"].stamps, rv.stamps[:-1])
+    assert logs["robot2"] is built.rendezvous_logs["robot2"]
+
+
+def test_rendezvous_poses_are_the_poses_of_the_measurements(map_joining) -> None:
+    log, result = map_joining
+    built = build_robot_maps(log)
+    measurements, notes = rendezvous_measurements(built.maps, built.rendezvous_logs, CsamConfig())
+    assert notes == []
+    poses = rendezvous_poses(measurements)
+    for r, m in enumerate(built.maps):
+        stamps = np.concatenate(
+            [
+                measurements.stamps[measurements.observer == r],
+                measurements.stamps[measurements.observed == r],
+            ]
+        )
+        np.testing.assert_array_equal(np.asarray(m.stamps)[poses[r]], np.unique(stamps))
+        np.testing.assert_array_equal(result.robots[m.name].rendezvous_stamps, np.unique(stamps))
+
+
+def test_rendezvous_of_a_robot_without_a_map_are_a_typed_note(map_joining) -> None:
+    log, _ = map_joining
+    alone = copy.copy(log)
+    alone.robots = {"robot1": log.robots["robot1"]}
+    result = run_csam(alone)
+    (note,) = result.notes
+    assert note.kind is NoteKind.RENDEZVOUS_LEFT_OUT
+    assert note.text.endswith(
+        "rendezvous measurement(s) of 'robot2' by 'robot1' ignored: no map of 'robot2'"
+    )
+
+
+def test_the_local_map_checks_are_typed_notes() -> None:
+    failed = LocalMapCheck(10, 9, 20, 1, [], "inconsistent local map: 9 of 10 factors")
+    features = LocalMapCheck(10, 0, 20, 1, [4, 7])
+    notes = local_map_notes(["robot1", "robot2", "robot3"], {0: failed, 1: features, 2: failed})
+    assert [(n.kind, n.text) for n in notes] == [
+        (
+            NoteKind.LOCAL_MAP_INCONSISTENT,
+            "robot1: inconsistent local map: 9 of 10 factors (reference kept)",
+        ),
+        (
+            NoteKind.FEATURES_NOT_ASSOCIATED,
+            "robot2: features [4, 7] not associated: their observations disagree",
+        ),
+        (
+            NoteKind.LOCAL_MAP_INCONSISTENT,
+            "robot3: inconsistent local map: 9 of 10 factors (pending)",
+        ),
+    ]

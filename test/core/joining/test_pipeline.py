@@ -1,0 +1,79 @@
+"""C-SAM from logs: each robot's local map as its smoother builds it, a robot without one left
+out with a typed note, the smoothers' thinning reported, C-SAM's view of a local map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.notes import NoteKind
+from csam_ros.core.joining.pipeline import build_robot_maps, robot_map_from_local_map, run_csam
+from csam_ros.core.model.log import (
+    FeatureLog,
+    MultiRobotLog,
+    OdometryLog,
+    RobotLog,
+    empty_rendezvous,
+)
+from csam_ros.core.sam.covariance import factorize_at_estimate
+from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.datasets.scenario import load_scenario
+from csam_ros.datasets.simulation import simulate
+
+
+def _robot(name: str, n: int, v: float) -> RobotLog:
+    """``n`` odometry samples at ``v`` m/s straight on, one feature seen at each."""
+    t = 0.5 * np.arange(n)
+    odometry = OdometryLog(t, np.tile([v, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
+    features = FeatureLog(
+        t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
+    )
+    return RobotLog(name, odometry, features, empty_rendezvous())
+
+
+def test_a_robot_without_a_local_map_is_left_out_with_a_typed_note() -> None:
+    log = MultiRobotLog(
+        {"robot1": _robot("robot1", 5, 0.1), "robot2": _robot("robot2", 1, 0.1)}
+        | {"robot3": _robot("robot3", 5, 1e305)}
+    )
+    built = build_robot_maps(log)
+    assert [m.name for m in built.maps] == ["robot1"]
+    assert [n.kind for n in built.left_out] == [NoteKind.NO_LOCAL_MAP] * 2
+    assert built.left_out[0].text == (
+        "robot2: no local map: 1 usable odometry sample(s), a map needs two"
+    )
+    assert built.left_out[1].text.startswith("robot3: no local map: its solve failed (")
+    result = run_csam(log)
+    assert list(result.robots) == ["robot1"]
+    assert result.notes_of(NoteKind.NO_LOCAL_MAP) == built.left_out == result.notes[:2]
+    with pytest.raises(ValueError, match="^no robot has a local map: robot2: no local map: 1 "):
+        run_csam(MultiRobotLog({"robot2": _robot("robot2", 1, 0.1)}))
+
+
+def test_the_thinning_is_reported_when_it_thins_and_the_maps_are_timed() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    plain = run_csam(log)
+    assert "thinning" not in plain.rendezvous_filter
+    assert plain.timing_s["local_maps"] > 0.0
+    thinned = run_csam(log, CsamConfig(rendezvous_max_per_pair=3))
+    report = thinned.rendezvous_filter["thinning"]
+    assert sum(report.kept.values()) == thinned.statistics["rendezvous_measurements"]
+    assert thinned.statistics["rendezvous_measurements"] <= 6
+    assert plain.statistics["rendezvous_measurements"] > 6
+
+
+def test_csams_view_of_a_local_map_has_its_poses_features_and_their_covariances() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    local = build_local_map(log.robots["robot2"])
+    m = robot_map_from_local_map(local, with_covariances=True)
+    assert m.name == "robot2" and m.gauge_factor is not None
+    np.testing.assert_array_equal(m.poses, local.poses)
+    np.testing.assert_array_equal(m.feature_labels, local.landmark_labels)
+    np.testing.assert_array_equal(m.feature_positions, local.landmarks)
+    upper = factorize_at_estimate(m.problem).matrix().toarray()
+    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    xy = m.problem.scalar_indices(m.feature_ids).reshape(-1, 2)
+    expected = dense[xy[:, :, None], xy[:, None, :]]
+    np.testing.assert_allclose(m.feature_covariances, expected, rtol=1e-6, atol=1e-12)
+    assert robot_map_from_local_map(local).feature_covariances is None
