@@ -546,11 +546,11 @@ def test_offline_run_leaves_out_a_robot_without_a_local_map() -> None:
     )
     result = run_csam(log)
     assert list(result.robots) == ["robot1"]
-    assert result.notes[:2] == [
+    assert result.note_texts[:2] == [
         "robot2: no local map: 1 usable odometry sample(s), a map needs two",
-        result.notes[1],
+        result.note_texts[1],
     ]
-    assert result.notes[1].startswith("robot3: no local map: its solve failed")
+    assert result.notes[1].text.startswith("robot3: no local map: its solve failed")
     with pytest.raises(ValueError, match="no robot has a local map: robot2: no local map"):
         run_csam(MultiRobotLog({"robot2": robot("robot2", 1, 0.1)}))
 

@@ -21,8 +21,7 @@ from csam_ros.core.joining.association import (
     _stack,
     associate,
 )
-from csam_ros.core.joining.local_views import local_view
-from csam_ros.core.joining.local_views import map_features as _map_features
+from csam_ros.core.joining.local_views import local_view, map_features
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.rendezvous import collect, required_stamps
 from csam_ros.core.smoothing.local_map import build_local_map
@@ -46,7 +45,7 @@ def _stage(scenario: str, seed: int):
         )
         view = local_view(m, idx)
         parts.append(view.part)
-        feats.append(_map_features(m, view))
+        feats.append(map_features(m, view))
     alignment = align(parts, meas)
     roots = [p.sqrt_information for p in parts]
     return log, maps, alignment, feats, roots

@@ -69,7 +69,7 @@ def test_a_folded_map_stays_pending_and_the_others_join_as_without_it(chain) -> 
     assert check is not None and not check.passed
     assert check.trajectory_outliers > 0.5 * check.trajectory_factors
     assert result.robots["robot4"].alignment == f"pending: {check.reason}"
-    assert any(n.startswith("robot4: inconsistent local map") for n in result.notes)
+    assert any(n.text.startswith("robot4: inconsistent local map") for n in result.notes)
 
     others = join_maps(built.maps[:3], built.rendezvous_logs, CsamConfig())
     assert result.joined_robots() == others.joined_robots() == {"robot1", "robot2", "robot3"}
