@@ -19,8 +19,8 @@ measurements, the reference, the counts, the last result) and decides with it:
 - the status content (:class:`~csam_ros.core.merging.status.MergerStatus`).
 
 Its clock is injected (a callable returning monotonic seconds). It is not thread-safe: the
-node calls it under its lock. Its input dicts are replaced, never mutated, so that a solve's
-snapshot of them stays as it was taken.
+node calls it under its lock. The inputs a solve takes (maps, sources, stamps, rendezvous)
+are dicts replaced, never mutated, so that a solve's snapshot of them stays as it was taken.
 """
 
 from __future__ import annotations
@@ -302,10 +302,6 @@ class MergerPolicy:
     def resync_refused(self, robot: str) -> None:
         """``robot``'s smoother had nothing to send: ask again after ``RESYNC_RETRY_S``."""
         self._resync_next[robot] = self.clock() + RESYNC_RETRY_S
-
-    def fell_behind(self, robot: str) -> None:
-        """An update of ``robot`` did not apply to the map held: its whole map is wanted."""
-        self._behind.add(robot)
 
     # inputs
 
