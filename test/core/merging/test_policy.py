@@ -166,10 +166,10 @@ def test_with_nothing_configured_the_first_robot_heard_from_is_the_reference(run
 def test_an_absent_configured_reference_is_awaited_reference_wait(run: Run) -> None:
     merger = Merger(reference="robot1", reference_wait=5.0)
     merger.send(run.early["robot2"])
-    merger.clock.advance(4.9)
+    merger.clock.advance(4.75)
     assert merger.policy.start_solve() is None
     assert merger.policy.dirty and merger.policy.reference == ""  # asked again later
-    merger.clock.advance(0.1)
+    merger.clock.advance(0.25)
     start = merger.policy.start_solve()
     assert start is not None and start.inputs.order == ("robot2",)
     assert start.notice == ReferenceAbsent("robot1", "robot2", 5.0)
@@ -341,9 +341,9 @@ def test_no_provisional_map_before_a_joined_one(run: Run) -> None:
 def test_a_provisional_map_goes_out_after_provisional_quiet(run: Run) -> None:
     merger = _provisional_merger(run, provisional_quiet=0.5, provisional_period=1.0)
     merger.send(run.late["robot2"], 2.0)
-    merger.clock.advance(0.4)
+    merger.clock.advance(0.25)
     assert merger.policy.provisional_due() is None
-    merger.clock.advance(0.1)
+    merger.clock.advance(0.25)
     due = merger.policy.provisional_due()
     assert due is not None and due.last is run.joined
     assert due.stamps == {"robot1": S, "robot2": 2 * S} and due.robots == ROBOTS
@@ -357,11 +357,11 @@ def test_a_provisional_map_goes_out_after_provisional_quiet(run: Run) -> None:
 def test_a_provisional_map_waits_no_longer_than_provisional_period(run: Run) -> None:
     merger = _provisional_merger(run, provisional_quiet=0.5, provisional_period=1.0)
     maps = [run.early["robot2"], run.late["robot2"]]
-    for k in range(1, 5):  # a new map every 0.3 s: never quiet
+    for k in range(1, 5):  # a new map every 0.25 s: never quiet
         merger.send(maps[k % 2], 1.0 + k)
-        merger.clock.advance(0.3)
+        merger.clock.advance(0.25)
         due = merger.policy.provisional_due()
-        assert (due is not None) == (k == 4), k  # 1.2 s after the first of them
+        assert (due is not None) == (k == 4), k  # 1 s after the first of them
 
 
 def test_a_provisional_map_goes_out_at_once_when_every_robots_map_is_new(run: Run) -> None:
@@ -379,9 +379,9 @@ def test_provisional_maps_go_out_at_most_every_provisional_period(run: Run) -> N
     merger.send(run.late["robot2"], 2.0)
     assert merger.policy.provisional_due() is not None
     merger.send(run.early["robot2"], 3.0)
-    merger.clock.advance(0.9)
+    merger.clock.advance(0.75)
     assert merger.policy.provisional_due() is None
-    merger.clock.advance(0.1)
+    merger.clock.advance(0.25)
     assert merger.policy.provisional_due() is not None
 
 
