@@ -7,14 +7,22 @@ measurements, the reference, the counts, the last result) and decides with it:
   robot heard from; kept once made. The first solve waits, up to ``reference_wait`` s after the
   first local map, for the configured reference's map and for the maps and rendezvous of every
   robot on the allow-list;
-- when a solve starts: when the inputs changed since the last solve's snapshot and no solve
-  runs (the node asks every ``solve_period`` s); after ``~/flush``, each robot's next local map
-  gives up a running solve, once;
-- when the provisional joined map goes out: once every robot's map is newer than the last
-  joined and provisional maps, or ``provisional_quiet`` s pass without another map, or
-  ``provisional_period`` s after the first of them; at most every ``provisional_period`` s;
-- restarts: a robot's new local map that starts later or holds fewer poses than its last one;
-- staleness: no local map for ``stale_after`` s;
+- when a solve starts: when the inputs changed since the last solve's snapshot (a map
+  delivered again unchanged is no change) and no solve runs (the node asks every
+  ``solve_period`` s); ``~/flush`` solves the newest inputs at once, and after it each robot's
+  next local map gives up a running solve, once (a smoother's final map may come after the
+  flush that asked for it; no more, so that a flush in the middle of a run does not keep
+  solves from ending);
+- when the provisional joined map goes out (the newest local maps placed by the last join):
+  once every robot's map is newer than the last joined and provisional maps, or
+  ``provisional_quiet`` s pass without another map (maps that arrive together go out in one),
+  or ``provisional_period`` s after the first of them; at most every ``provisional_period`` s;
+- restarts: a robot's new local map that starts later or holds fewer poses than its last one
+  comes from a restarted smoother. It replaces the old one all the same (it is the robot's
+  current truth, in a new frame); the restart and the poses lost are logged once and counted
+  in the status and the summary;
+- staleness: a robot without a new local map for ``stale_after`` s is reported stale; its
+  last map stays joined;
 - when to ask a smoother for its whole map (``RESYNC_*``);
 - the status content (:class:`~csam_ros.core.merging.status.MergerStatus`).
 
