@@ -417,7 +417,8 @@ def test_a_grown_map_is_no_restart(run: Run) -> None:
 
 def test_a_map_that_starts_later_is_a_restart_counted_with_the_poses_lost(run: Run) -> None:
     merger = Merger()
-    old, new = run.late["robot2"], run.restarted
+    old, new = run.early["robot2"], run.restarted
+    assert len(new.stamps) > len(old.stamps)  # more poses, from a later start
     merger.send(old)
     taken = merger.send(new, 2.0, session=2)
     lost = int(np.sum(old.stamps < new.stamps[0] - CONFIG.stamp_tolerance))
