@@ -225,10 +225,10 @@ class MergerHarness:
             self.rendezvous[topic_robot].publish(msg)
             return
         pub = self.maps[topic_robot]
-        if topic_robot in self.merger.robots:
+        if topic_robot in self.merger.policy.robots:
             self.wait(lambda: pub.get_subscription_count() > 0, MATCH_TIMEOUT_S)
         pub.publish(msg)
-        if topic_robot in self.merger.robots:
+        if topic_robot in self.merger.policy.robots:
             assert pub.wait_for_all_acked(Duration(seconds=MATCH_TIMEOUT_S)), "never acknowledged"
 
     def hold(self, messages: RunMessages) -> None:
@@ -240,23 +240,29 @@ class MergerHarness:
             self.publish(r, messages.local_maps[r])
         self.wait(
             lambda: (
-                set(self.merger.local_maps) == set(ROBOTS)
-                and set(self.merger.rendezvous) == set(ROBOTS)
+                set(self.merger.policy.local_maps) == set(ROBOTS)
+                and set(self.merger.policy.rendezvous) == set(ROBOTS)
             )
         )
 
     def start(self, messages: RunMessages) -> JoinedMap:
         """Publish the good messages; return the joined map of them all."""
         self.hold(messages)
-        self.wait(lambda: not self.merger.dirty and self.merger.solves > 0 and len(self.joined) > 0)
+        self.wait(
+            lambda: (
+                not self.merger.policy.dirty
+                and self.merger.policy.solves > 0
+                and len(self.joined) > 0
+            )
+        )
         self.settle(0.1)
         return self.resolve()
 
     def resolve(self) -> JoinedMap:
         """Solve again on what the merger holds now; return the joined map it publishes."""
-        solves, published = self.merger.solves, len(self.joined)
-        self.merger.dirty = True
-        self.wait(lambda: self.merger.solves > solves and len(self.joined) > published)
+        solves, published = self.merger.policy.solves, len(self.joined)
+        self.merger.policy.inputs_changed()
+        self.wait(lambda: self.merger.policy.solves > solves and len(self.joined) > published)
         return self.joined[-1]
 
     def send_and_wait_drop(self, topic_robot: str, msg: Any, drops: int = 1) -> dict[str, int]:

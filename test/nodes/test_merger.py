@@ -43,6 +43,7 @@ import csam_ros.nodes.merger as merger_module
 from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
 from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.exchange.validation import FAILED_SOLVE
+from csam_ros.core.joining.notes import NoteKind
 from csam_ros.core.joining.result import RunSummary
 from csam_ros.core.joining.warm_start import carried_forward
 from csam_ros.ros.conversions import ns_to_time, time_to_ns
@@ -185,7 +186,7 @@ def test_malformed_local_map_keeps_the_last_valid_one(harness, good, malformatio
 def test_topic_names_the_robot(harness, good) -> None:
     """Case 6: a robot2 map sent on /robot1/local_map replaced robot2's real one."""
     before = joined_view(harness.start(good))
-    held = dict(harness.merger.local_maps)
+    held = dict(harness.merger.policy.local_maps)
     counts = harness.send_and_wait_drop("robot1", resent(good.local_maps["robot2"]))
     assert counts == {"robot_mismatch": 1}
     counts = harness.send_and_wait_drop("robot1", good.rendezvous["robot2"])
@@ -194,7 +195,7 @@ def test_topic_names_the_robot(harness, good) -> None:
     elsewhere.header.frame_id = "world"
     counts = harness.send_and_wait_drop("robot1", elsewhere)
     assert counts == {"robot_mismatch": 3}
-    assert harness.merger.local_maps == held
+    assert harness.merger.policy.local_maps == held
     assert joined_view(harness.resolve()) == before
 
 
@@ -221,13 +222,13 @@ def test_bad_rendezvous_rows_are_dropped_one_by_one(
     """Case 6: rendezvous naming robot9, the robot itself or a stamp without a pose replaced
     robot2's real measurements (its base node moved 7 cm, 0.4 degrees), uncounted."""
     before = joined_view(harness.start(good))
-    real = harness.merger.rendezvous["robot2"]
+    real = harness.merger.policy.rendezvous["robot2"]
     msg: RendezvousPoses = copied(good.rendezvous["robot2"])
     row = _row(observed, _between_poses(good.local_maps["robot2"]))
     msg.measurements = [row] if alone else [*msg.measurements, row]
     counts = harness.send_and_wait_drop("robot2", msg)
     assert counts == {reason: 1}
-    kept = harness.merger.rendezvous["robot2"]
+    kept = harness.merger.policy.rendezvous["robot2"]
     assert kept.observed == real.observed and list(kept.stamps) == list(real.stamps)
     assert joined_view(harness.resolve()) == before
 
@@ -260,21 +261,21 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
         lambda a: status.update({s.name: {kv.key: kv.value for kv in s.values} for s in a.status}),
         10,
     )
-    solves = harness.merger.solves
+    solves = harness.merger.policy.solves
     harness.publish("robot2", restarted.rendezvous["robot2"])
     harness.publish("robot2", new_map)
     harness.wait(
         lambda: (
-            len(harness.merger.local_maps["robot2"].stamps) == poses_of(new_map)
-            and harness.merger.solves > solves
+            len(harness.merger.policy.local_maps["robot2"].stamps) == poses_of(new_map)
+            and harness.merger.policy.solves > solves
             and status.get("merger/robot2", {}).get("restarts") == "1"
         )
     )
     harness.publish("robot2", new_map)  # the same map again is no new restart
     harness.settle(0.5)
     harness.resolve()
-    assert harness.merger.restarts == {"robot2": 1}
-    assert harness.merger.restart_poses_lost == {"robot2": lost}
+    assert harness.merger.policy.restarts == {"robot2": 1}
+    assert harness.merger.policy.restart_poses_lost == {"robot2": lost}
     assert status["merger/robot2"]["restart_poses_lost"] == str(lost)
     assert status["merger"]["restarts"] == "1"
     assert harness.merger.drops.total == 0
@@ -282,7 +283,7 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
     assert summary.merger is not None
     assert summary.merger.restarts == {"robot2": 1}
     assert summary.merger.restart_poses_lost == {"robot2": lost}
-    result = harness.merger.last_result
+    result = harness.merger.policy.last_result
     assert result is not None and len(result.robots["robot2"].stamps) == poses_of(new_map)
 
 
@@ -300,9 +301,9 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good) -> None:
         ),
         10,
     )
-    solves, published = harness.merger.solves, len(harness.joined)
+    solves, published = harness.merger.policy.solves, len(harness.joined)
     with _held_solves(harness.merger):
-        harness.merger.dirty = True
+        harness.merger.policy.inputs_changed()
         harness.wait(lambda: _solving_newest(harness.merger))
         seen = len(status)
         harness.wait(lambda: len(status) > seen + 1 and status[-1]["solving"] == "True")
@@ -312,24 +313,24 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good) -> None:
         harness.publish("robot2", new_map)
         harness.wait(
             lambda: (
-                len(harness.merger.local_maps["robot2"].stamps) == poses_of(new_map)
-                and harness.merger.dirty
+                len(harness.merger.policy.local_maps["robot2"].stamps) == poses_of(new_map)
+                and harness.merger.policy.dirty
             )
         )
-        old_log = harness.merger.rendezvous["robot2"]
+        old_log = harness.merger.policy.rendezvous["robot2"]
         harness.publish("robot2", restarted.rendezvous["robot2"])
-        harness.wait(lambda: harness.merger.rendezvous["robot2"] is not old_log)
-        assert harness.merger.solving and harness.merger.solves == solves
+        harness.wait(lambda: harness.merger.policy.rendezvous["robot2"] is not old_log)
+        assert harness.merger.policy.solving and harness.merger.policy.solves == solves
     harness.wait(
         lambda: (
-            harness.merger.solves == solves + 2
-            and not harness.merger.dirty
-            and not harness.merger.solving
+            harness.merger.policy.solves == solves + 2
+            and not harness.merger.policy.dirty
+            and not harness.merger.policy.solving
             and len(harness.joined) == published + 2
         )
     )
     harness.settle(0.5)
-    assert harness.merger.solves == solves + 2 and len(harness.joined) == published + 2
+    assert harness.merger.policy.solves == solves + 2 and len(harness.joined) == published + 2
     poses = [{t.robot: len(t.poses) for t in m.trajectories} for m in harness.joined[-2:]]
     assert poses[0]["robot2"] == poses_of(good.local_maps["robot2"])
     assert poses[1]["robot2"] == poses_of(new_map)
@@ -353,23 +354,23 @@ def _held_solves(merger: merger_module.Merger) -> Iterator[None]:
 def _solving_newest(merger: merger_module.Merger) -> bool:
     """Whether a solve of the newest inputs runs (the last solve may still be ending when its
     joined map arrives)."""
-    return merger.solving and not merger.dirty
+    return merger.policy.solving and not merger.policy.dirty
 
 
 def test_destroying_the_node_stops_a_running_solve(harness, good) -> None:
     """destroy_node stops the solve process at once; the solve it ran is neither published
     nor counted as failed."""
     harness.start(good)
-    merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
+    merger, solves, published = harness.merger, harness.merger.policy.solves, len(harness.joined)
     with _held_solves(merger):
-        merger.dirty = True
+        merger.policy.inputs_changed()
         harness.wait(lambda: _solving_newest(merger))
         merger.destroy_node()
         worker = merger._worker
         worker.join(10.0)
         assert not worker.is_alive()
     assert merger.solve_process.pid is None
-    assert merger.solves == solves and merger.drops.total == 0
+    assert merger.policy.solves == solves and merger.drops.total == 0
     harness.settle(0.3)
     assert len(harness.joined) == published
 
@@ -378,21 +379,21 @@ def test_a_solve_process_that_dies_is_a_failed_solve_and_started_again(harness, 
     """The solve process killed during a solve: that solve counts as failed, the last joined
     map stays, and the next solve starts a new process that is sent every map again."""
     harness.start(good)
-    merger, solves = harness.merger, harness.merger.solves
-    before = merger.last_result
+    merger, solves = harness.merger, harness.merger.policy.solves
+    before = merger.policy.last_result
     starts = merger.solve_process.starts
     with _held_solves(merger):
-        merger.dirty = True
+        merger.policy.inputs_changed()
         harness.wait(lambda: _solving_newest(merger))
         os.kill(merger.solve_process.pid, signal.SIGKILL)
-        harness.wait(lambda: not merger.solving)
+        harness.wait(lambda: not merger.policy.solving)
     assert merger.drops.as_dict() == {FAILED_SOLVE: 1}
-    assert merger.solves == solves and merger.last_result is before
-    assert "the solve process ended" in merger.last_error
-    merger.dirty = True
-    harness.wait(lambda: merger.solves == solves + 1)
+    assert merger.policy.solves == solves and merger.policy.last_result is before
+    assert "the solve process ended" in merger.policy.last_error
+    merger.policy.inputs_changed()
+    harness.wait(lambda: merger.policy.solves == solves + 1)
     assert merger.solve_process.starts == starts + 1
-    after = merger.last_result
+    after = merger.policy.last_result
     assert after is not None and after is not before
     for f, g in zip(before.features, after.features, strict=True):
         np.testing.assert_allclose(f.xy, g.xy, atol=1e-9)
@@ -409,20 +410,20 @@ def test_flush_gives_up_a_solve_of_older_maps_and_solves_the_newest(
     harness.start(
         _with_robot2(middle, _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"]))))
     )
-    merger, solves, published = harness.merger, harness.merger.solves, len(harness.joined)
+    merger, solves, published = harness.merger, harness.merger.policy.solves, len(harness.joined)
     flush = _flush_client(harness)
     assert flush().startswith("the joined map (or the running solve) holds the newest")
     newer = STAMP_NS + 10**9
     update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
     with _held_solves(merger):
-        merger.dirty = True
+        merger.policy.inputs_changed()
         harness.wait(lambda: _solving_newest(merger))
         harness.publish("robot2", local_map_update_message(update, "robot2", newer))
-        harness.wait(lambda: merger.dirty)
+        harness.wait(lambda: merger.policy.dirty)
         assert flush() == "a solve of older inputs was given up: solving the newest"
-    harness.wait(lambda: merger.solves > solves and not merger.solving)
+    harness.wait(lambda: merger.policy.solves > solves and not merger.policy.solving)
     harness.settle(0.3)
-    assert merger.solves == solves + 1 and merger.solves_given_up == 1
+    assert merger.policy.solves == solves + 1 and merger.policy.solves_given_up == 1
     assert len(harness.joined) == published + 1 and merger.drops.total == 0
     assert time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == newer
     assert status_values(harness.status[-1], "merger")["solves_given_up"] == "1"
@@ -437,23 +438,23 @@ def test_after_a_flush_each_robots_next_map_gives_up_a_running_solve_once(
     sender = UpdateSender(11)
     maps = [_message(sender.update(robot_map_arrays(g.robot_maps["robot2"]))) for g in growing]
     harness.start(_with_robot2(growing[0], maps[0]))
-    merger, solves = harness.merger, harness.merger.solves
+    merger, solves = harness.merger, harness.merger.policy.solves
     assert _flush_client(harness)().startswith("the joined map (or the running solve) holds")
     for k, stamp in ((1, STAMP_NS + 10**9), (2, STAMP_NS + 2 * 10**9)):
         with _held_solves(merger):
-            merger.dirty = True
+            merger.policy.inputs_changed()
             harness.wait(lambda: _solving_newest(merger))
             maps[k].header.stamp = ns_to_time(stamp)
             harness.publish("robot2", maps[k])
-            harness.wait(lambda: merger.dirty)
+            harness.wait(lambda: merger.policy.dirty)
         harness.wait(
             lambda stamp=stamp: (
                 time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == stamp
             )
         )
-        assert merger.solves_given_up == 1  # the first map given up for, not the second
-    harness.wait(lambda: not merger.solving)
-    assert merger.solves == solves + 3 and merger.drops.total == 0
+        assert merger.policy.solves_given_up == 1  # the first map given up for, not the second
+    harness.wait(lambda: not merger.policy.solving)
+    assert merger.policy.solves == solves + 3 and merger.drops.total == 0
 
 
 def _flush_client(harness: MergerHarness) -> Callable[[], str]:
@@ -487,7 +488,7 @@ def test_an_unconverged_solve_is_a_warning_in_status_and_summary(
         h.wait(summary_path.exists)  # written once the joined map is out
         summary = RunSummary.read(summary_path)
         assert not summary.result.converged
-        assert any(n.startswith("joint solve not converged") for n in summary.result.notes)
+        assert summary.result.notes_of(NoteKind.NOT_CONVERGED_JOINT)
     finally:
         h.close()
 
@@ -535,13 +536,13 @@ def _joined_from_updates(
         h.smoothers.answer["robot2"] = lambda: _message(sender.resend())
         h.smoothers.whole["robot1"] = last.local_maps["robot1"]
         # both robots held nothing at the start: the merger asked for their maps
-        h.wait(lambda: h.smoothers.resyncs["robot2"] > 0 and "robot1" in h.merger.held)
+        h.wait(lambda: h.smoothers.resyncs["robot2"] > 0 and "robot1" in h.merger.policy.held)
         for r in ("robot1", "robot2"):
             h.publish(r, last.rendezvous[r])
         first = _message(sender.update(arrays[0]))
         h.publish("robot2", first)
-        h.wait(lambda: "robot2" in h.merger.held)
-        asked = h.merger.resync_requests.get("robot2", 0)
+        h.wait(lambda: "robot2" in h.merger.policy.held)
+        asked = h.merger.policy.resync_requests.get("robot2", 0)
         second, third = (_message(sender.update(a)) for a in arrays[1:])
         assert first.base_sequence == 0 and second.base_sequence and third.base_sequence
         if not missed:
@@ -551,23 +552,25 @@ def _joined_from_updates(
         def holds_what_was_sent() -> bool:
             sent = sender.held  # a resync sends it again, as a new update
             assert sent is not None
-            mine = h.merger.held["robot2"]
+            mine = h.merger.policy.held["robot2"]
             return (mine.session, mine.sequence) == (sent.session, sent.sequence)
 
         h.wait(holds_what_was_sent)
-        held = h.merger.held["robot2"]
+        held = h.merger.policy.held["robot2"]
         assert sender.held is not None
         _keyed_equal(held.map, sender.held.map)
         if missed:
-            assert h.merger.resync_requests["robot2"] > asked
+            assert h.merger.policy.resync_requests["robot2"] > asked
             assert held.sequence == third.sequence + 1  # the whole map, sent again
         else:
-            assert h.merger.resync_requests.get("robot2", 0) == asked
+            assert h.merger.policy.resync_requests.get("robot2", 0) == asked
             assert held.sequence == third.sequence
-        h.wait(lambda: not h.merger.dirty and h.merger.solves > 0 and len(h.joined) > 0)
+        h.wait(
+            lambda: not h.merger.policy.dirty and h.merger.policy.solves > 0 and len(h.joined) > 0
+        )
         joined = h.resolve()
         assert h.merger.drops.total == 0
-        assert len(h.merger.local_maps["robot2"].stamps) == len(arrays[-1].stamps)
+        assert len(h.merger.policy.local_maps["robot2"].stamps) == len(arrays[-1].stamps)
         return joined
     finally:
         h.close()
@@ -590,23 +593,25 @@ def test_an_update_delivered_twice_changes_nothing(harness, growing: list[RunMes
     sender = UpdateSender(11)
     first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
     harness.start(_with_robot2(middle, first))
-    solves, published = harness.merger.solves, len(harness.joined)
+    solves, published = harness.merger.policy.solves, len(harness.joined)
     update = _message(sender.update(robot_map_arrays(last.robot_maps["robot2"])))
     assert update.base_sequence == first.sequence
     harness.publish("robot2", update)
     harness.publish("robot2", update)
     harness.wait(
         lambda: (
-            harness.merger.held["robot2"].sequence == update.sequence
-            and harness.merger.solves > solves
-            and not harness.merger.dirty
-            and not harness.merger.solving
+            harness.merger.policy.held["robot2"].sequence == update.sequence
+            and harness.merger.policy.solves > solves
+            and not harness.merger.policy.dirty
+            and not harness.merger.policy.solving
         )
     )
     harness.settle(0.5)  # both deliveries acknowledged: the second one is taken in here
-    assert harness.merger.solves == solves + 1 and len(harness.joined) == published + 1
-    assert harness.merger.drops.total == 0 and not harness.merger.dirty
-    assert len(harness.merger.local_maps["robot2"].stamps) == len(last.robot_maps["robot2"].stamps)
+    assert harness.merger.policy.solves == solves + 1 and len(harness.joined) == published + 1
+    assert harness.merger.drops.total == 0 and not harness.merger.policy.dirty
+    assert len(harness.merger.policy.local_maps["robot2"].stamps) == len(
+        last.robot_maps["robot2"].stamps
+    )
     once = harness.joined[-1]
     assert joined_view(harness.resolve()) == joined_view(once)
 
@@ -625,14 +630,14 @@ def test_an_update_of_another_session_asks_for_the_whole_map(
     assert update.base_sequence != 0
     harness.smoothers.answer["robot2"] = lambda: _message(sender.resend())
     harness.publish("robot2", update)
-    harness.wait(lambda: harness.merger.held["robot2"].session == 99)
+    harness.wait(lambda: harness.merger.policy.held["robot2"].session == 99)
     harness.wait(
         lambda: int(status_values(harness.status[-1], "merger/robot2")["resync_requests"]) > before
     )
     assert int(status_values(harness.status[-1], "merger")["resync_requests"]) > before
     assert sender.held is not None
-    _keyed_equal(harness.merger.held["robot2"].map, sender.held.map)
-    assert harness.merger.drops.total == 0 and harness.merger.restarts == {}
+    _keyed_equal(harness.merger.policy.held["robot2"].map, sender.held.map)
+    assert harness.merger.drops.total == 0 and harness.merger.policy.restarts == {}
 
 
 def test_a_running_solve_publishes_the_newest_maps_provisionally(
@@ -644,7 +649,7 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
     sender = UpdateSender(11)
     first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
     harness.start(_with_robot2(middle, first))
-    joined = harness.merger.last_result
+    joined = harness.merger.policy.last_result
     provisional: list[JoinedMap] = []
     harness.injector.create_subscription(
         JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
@@ -655,11 +660,11 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
         harness.publish("robot2", local_map_update_message(update, "robot2", newer))
         harness.wait(lambda: _solving_newest(harness.merger) and len(provisional) > 0)
         harness.settle(1.5)  # past provisional_period: nothing newer to publish
-        assert len(provisional) == 1 and harness.merger.solving
+        assert len(provisional) == 1 and harness.merger.policy.solving
     message = provisional[0]
     stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in message.base_nodes}
     assert stamps == {"robot1": STAMP_NS, "robot2": newer}
-    maps = [harness.merger.local_maps[r] for r in ROBOTS]
+    maps = [harness.merger.policy.local_maps[r] for r in ROBOTS]
     expected = carried_forward(joined, maps, harness.merger.config.stamp_tolerance)
     trajectories = {t.robot: t for t in message.trajectories}
     for name, robot in expected.robots.items():
@@ -670,8 +675,8 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
     assert [tuple(f.members) for f in message.features] == [
         tuple(f.members) for f in expected.features
     ]
-    solves, published = harness.merger.solves, len(harness.joined)
-    harness.wait(lambda: harness.merger.solves > solves and len(harness.joined) > published)
+    solves, published = harness.merger.policy.solves, len(harness.joined)
+    harness.wait(lambda: harness.merger.policy.solves > solves and len(harness.joined) > published)
     harness.settle(1.5)
     assert len(provisional) == 1  # the solved map holds the newest maps: nothing provisional
     assert time_to_ns(harness.joined[-1].base_nodes[1].local_map_stamp) == newer
@@ -682,13 +687,16 @@ def test_a_provisional_map_waits_for_quiet_unless_every_robot_has_a_new_map(
 ) -> None:
     """With provisional_quiet and provisional_period far off, robot2's newer map alone does
     not go out; once robot1's is in too, both go out at once in one provisional joined map,
-    while no solve runs (the next one is kept from starting)."""
-    harness = MergerHarness(ros_context, spin, provisional_period=600.0, provisional_quiet=600.0)
+    while no solve runs (solve_period is far off too: the test solves when it means to)."""
+    harness = MergerHarness(
+        ros_context, spin, provisional_period=600.0, provisional_quiet=600.0, solve_period=3600.0
+    )
     try:
         middle, last = growing[1], growing[2]
         sender = UpdateSender(11)
         first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-        harness.start(_with_robot2(middle, first))
+        harness.hold(_with_robot2(middle, first))
+        assert harness.merger.solve_pending() and harness.merger.policy.last_result is not None
         provisional: list[JoinedMap] = []
         harness.injector.create_subscription(
             JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
@@ -696,15 +704,15 @@ def test_a_provisional_map_waits_for_quiet_unless_every_robot_has_a_new_map(
         newer = STAMP_NS + 10**9
         robot1 = UpdateSender(12).update(robot_map_arrays(last.robot_maps["robot1"]))
         robot2 = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
-        with harness.merger._solve_lock:  # no solve publishes the new maps meanwhile
-            harness.publish("robot2", local_map_update_message(robot2, "robot2", newer))
-            harness.wait(lambda: harness.merger.local_map_stamps.get("robot2") == newer)
-            harness.settle(1.0)
-            assert not provisional
-            harness.publish("robot1", local_map_update_message(robot1, "robot1", newer))
-            harness.wait(lambda: len(provisional) > 0)
-            harness.settle(0.5)
-            assert len(provisional) == 1 and not harness.merger.solving and harness.merger.dirty
+        policy = harness.merger.policy
+        harness.publish("robot2", local_map_update_message(robot2, "robot2", newer))
+        harness.wait(lambda: policy.local_map_stamps.get("robot2") == newer)
+        harness.settle(1.0)
+        assert not provisional
+        harness.publish("robot1", local_map_update_message(robot1, "robot1", newer))
+        harness.wait(lambda: len(provisional) > 0)
+        harness.settle(0.5)
+        assert len(provisional) == 1 and not policy.solving and policy.dirty
         stamps = {b.robot: time_to_ns(b.local_map_stamp) for b in provisional[0].base_nodes}
         assert stamps == {"robot1": newer, "robot2": newer}
     finally:
@@ -720,12 +728,14 @@ def test_maps_are_checked_on_arrival_and_joined_refined(
     sender = UpdateSender(11)
     first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
     harness.start(_with_robot2(middle, first))
-    solves = harness.merger.solves
+    solves = harness.merger.policy.solves
     harness.publish("robot2", _message(sender.update(robot_map_arrays(last.robot_maps["robot2"]))))
-    harness.wait(lambda: harness.merger.solves > solves and not harness.merger.solving)
-    held = harness.merger.local_maps["robot2"]
-    refined = held_robot_map("robot2", harness.merger.sources["robot2"])
-    joined = harness.merger.last_result.robots["robot2"]
+    harness.wait(
+        lambda: harness.merger.policy.solves > solves and not harness.merger.policy.solving
+    )
+    held = harness.merger.policy.local_maps["robot2"]
+    refined = held_robot_map("robot2", harness.merger.policy.sources["robot2"])
+    joined = harness.merger.policy.last_result.robots["robot2"]
     assert np.abs(held.poses - refined.poses).max() > 1e-9  # the update left some behind
     np.testing.assert_allclose(joined.poses_local, refined.poses, atol=1e-12)
     np.testing.assert_allclose(refined.poses, last.robot_maps["robot2"].poses, atol=1e-6)

@@ -68,11 +68,11 @@ def _last_status(h: MergerHarness, name: str) -> dict[str, str] | None:
 
 def test_robots_not_listed_are_found_and_joined(make, good) -> None:
     h = make(robots=[])
-    assert h.merger.robots == []
+    assert h.merger.policy.robots == []
     # the injector's publishers are on the graph: both robots are found before any map
-    h.wait(lambda: set(h.merger.robots) == set(ROBOTS))
+    h.wait(lambda: set(h.merger.policy.robots) == set(ROBOTS))
     _send(h, good, "robot1")
-    h.wait(lambda: "robot1" in h.merger.local_maps and len(h.joined) > 0)
+    h.wait(lambda: "robot1" in h.merger.policy.local_maps and len(h.joined) > 0)
     assert _joined_robots(h) == {"robot1"}
     # a robot that starts publishing later joins at its first usable rendezvous
     _send(h, good, "robot2")
@@ -91,17 +91,20 @@ def test_an_absent_reference_is_replaced_and_the_choice_kept(make, good) -> None
     _send(h, good, "robot1")
     h.wait(lambda: _joined_robots(h) == set(ROBOTS))
     assert h.joined[-1].reference_robot == "robot2"
-    assert h.merger.last_result is not None and h.merger.last_result.reference == "robot2"
+    assert (
+        h.merger.policy.last_result is not None
+        and h.merger.policy.last_result.reference == "robot2"
+    )
 
 
 def test_an_allow_list_leaves_other_robots_out(make, good) -> None:
     h = make(robots=["robot1"])
     _send(h, good, "robot2")
     _send(h, good, "robot1")
-    h.wait(lambda: len(h.joined) > 0 and "robot2" in h.merger._ignored)
+    h.wait(lambda: len(h.joined) > 0 and "robot2" in h.merger.policy.ignored)
     h.settle(0.3)
-    assert h.merger.robots == ["robot1"]
-    assert "robot2" not in h.merger.local_maps
+    assert h.merger.policy.robots == ["robot1"]
+    assert "robot2" not in h.merger.policy.local_maps
     assert _joined_robots(h) == {"robot1"}
 
 
@@ -126,12 +129,12 @@ def test_a_map_delivered_twice_changes_nothing(make, good) -> None:
     """The same whole map again (same session and sequence): no new arrival, no solve."""
     h = make()
     h.start(good)
-    solves, joined = h.merger.solves, len(h.joined)
-    arrivals = dict(h.merger.map_arrival)
+    solves, joined = h.merger.policy.solves, len(h.joined)
+    arrivals = dict(h.merger.policy.map_arrival)
     h.publish("robot2", good.local_maps["robot2"])  # acknowledged: taken in the settle
     h.settle(0.5)
-    assert not h.merger.dirty and h.merger.map_arrival == arrivals
-    assert (h.merger.solves, len(h.joined)) == (solves, joined)
+    assert not h.merger.policy.dirty and h.merger.policy.map_arrival == arrivals
+    assert (h.merger.policy.solves, len(h.joined)) == (solves, joined)
     assert h.merger.drops.total == 0
 
 
@@ -155,13 +158,13 @@ def test_robots_appearing_later_on_the_graph_join(make, renamed) -> None:
     """Names known nowhere in advance; robotB's topics appear after robotA's map was joined."""
     h = make(robots=[])
     maps_a, rendezvous_a = _publishers(h, "robotA")
-    h.wait(lambda: "robotA" in h.merger.robots)
-    assert "robotB" not in h.merger.robots
+    h.wait(lambda: "robotA" in h.merger.policy.robots)
+    assert "robotB" not in h.merger.policy.robots
     rendezvous_a.publish(renamed.rendezvous["robotA"])
     _publish_update(h, maps_a, "robotA", renamed.local_maps["robotA"])
     h.wait(lambda: _joined_robots(h) == {"robotA"})
     maps_b, rendezvous_b = _publishers(h, "robotB")
-    h.wait(lambda: "robotB" in h.merger.robots)
+    h.wait(lambda: "robotB" in h.merger.policy.robots)
     rendezvous_b.publish(renamed.rendezvous["robotB"])
     _publish_update(h, maps_b, "robotB", renamed.local_maps["robotB"])
     h.wait(lambda: _joined_robots(h) == {"robotA", "robotB"})
@@ -184,9 +187,9 @@ def test_the_configured_reference_is_awaited(make, good) -> None:
     reference while robot1, the first of robots, may still come."""
     h = make(reference_wait=3600.0)
     _send(h, good, "robot2")
-    h.wait(lambda: "robot2" in h.merger.local_maps)
+    h.wait(lambda: "robot2" in h.merger.policy.local_maps)
     assert not h.merger.solve_pending()
-    assert h.merger.reference == "" and h.merger.dirty and not h.joined
+    assert h.merger.policy.reference == "" and h.merger.policy.dirty and not h.joined
     _send(h, good, "robot1")
     h.wait(lambda: _joined_robots(h) == set(ROBOTS))
     assert h.joined[-1].reference_robot == "robot1"

@@ -270,7 +270,7 @@ def _view(result: CsamResult | None) -> Any:
     )
 
 
-def _same_data(merger: Any, maps: dict[str, Any], logs: dict[str, Any]) -> bool:
+def _same_data(policy: Any, maps: dict[str, Any], logs: dict[str, Any]) -> bool:
     def log_key(log: Any) -> Any:
         return (
             log.stamps.tolist(),
@@ -281,55 +281,52 @@ def _same_data(merger: Any, maps: dict[str, Any], logs: dict[str, Any]) -> bool:
             log.sigma_bearing.tolist(),
         )
 
-    return all(merger.local_maps.get(r) is maps[r] for r in ROBOTS) and all(
-        log_key(merger.rendezvous[r]) == log_key(logs[r]) for r in ROBOTS
+    return all(policy.local_maps.get(r) is maps[r] for r in ROBOTS) and all(
+        log_key(policy.rendezvous[r]) == log_key(logs[r]) for r in ROBOTS
     )
 
 
 class Fuzzer:
-    """A merger holding the good maps; each message is fed to it from that state."""
+    """A merger holding the good maps; each message is fed to it from that state (its policy
+    restored to a copy taken then)."""
 
     def __init__(self, harness: MergerHarness) -> None:
         self.merger = harness.merger
         self.harness = harness
         self.callbacks = {s.topic_name: s.callback for s in self.merger.subscriptions}
-        self.maps = dict(self.merger.local_maps)
-        self.held = dict(self.merger.held)
-        self.logs = dict(self.merger.rendezvous)
-        self.stamps = dict(self.merger.local_map_stamps)
-        self.result = self.merger.last_result
+        policy = self.merger.policy
+        assert not policy.dirty
+        self.saved = policy.copy()
+        self.maps = dict(policy.local_maps)
+        self.logs = dict(policy.rendezvous)
+        self.result = policy.last_result
         self.view = _view(self.result)
 
     def feed(self, topic_robot: str, msg: Any) -> None:
-        m = self.merger
-        m.local_maps, m.rendezvous, m.held = dict(self.maps), dict(self.logs), dict(self.held)
-        m._behind.clear()
-        m.local_map_stamps, m.last_result, m.dirty = dict(self.stamps), self.result, False
-        m.restarts.clear()
-        m.restart_poses_lost.clear()
+        m, policy = self.merger, self.merger.policy
+        policy.restore(self.saved)
         kind = "local_map_updates" if isinstance(msg, LocalMapUpdate) else "rendezvous_poses"
         dropped = m.drops.total
         self.callbacks[f"/{topic_robot}/{kind}"](msg)
         m.solve_pending()
         counts = m.drops.as_dict()
         assert counts.get("callback_error", 0) == 0, counts
-        assert counts.get("failed_solve", 0) == 0, (counts, m.last_error)
-        if _same_data(m, self.maps, self.logs):
-            assert _view(m.last_result) == self.view
+        assert counts.get("failed_solve", 0) == 0, (counts, policy.last_error)
+        if _same_data(policy, self.maps, self.logs):
+            assert _view(policy.last_result) == self.view
             TALLY["refused" if m.drops.total > dropped else "unchanged"] += 1
         else:
-            assert m.last_result is not self.result  # taken and solved
+            assert policy.last_result is not self.result  # taken and solved
             TALLY["taken"] += 1
 
 
 @pytest.fixture
 def fuzzer(ros_context, spin) -> Iterator[Fuzzer]:
     harness = MergerHarness(ros_context, spin, solve_period=3600.0)
-    harness.merger.dirty = False
     try:
         harness.hold(GOOD)
-        harness.merger.solve_pending()
-        assert harness.merger.last_result is not None
+        assert harness.merger.solve_pending()
+        assert harness.merger.policy.last_result is not None
         yield Fuzzer(harness)
     finally:
         print(f"\nmerger fuzz: {sum(TALLY.values())} examples so far: {dict(TALLY)}")
@@ -361,4 +358,4 @@ def test_rendezvous_messages(fuzzer: Fuzzer, msg: RendezvousPoses) -> None:
 def test_good_messages_are_taken_unchanged(fuzzer: Fuzzer) -> None:
     """The fuzzer's baseline: the good messages again leave the joined map as it was."""
     fuzzer.feed("robot2", GOOD.rendezvous["robot2"])
-    assert _view(fuzzer.merger.last_result) == fuzzer.view
+    assert _view(fuzzer.merger.policy.last_result) == fuzzer.view

@@ -1,0 +1,665 @@
+"""The merger's decisions, without ROS: :class:`MergerPolicy`.
+
+It holds what a live merger holds between messages (each robot's local map and rendezvous
+measurements, the reference, the counts, the last result) and decides with it:
+
+- the reference: ``reference`` (else the first of ``robots``) if it has a map, else the first
+  robot heard from; kept once made. The first solve waits, up to ``reference_wait`` s after the
+  first local map, for the configured reference's map and for the maps and rendezvous of every
+  robot on the allow-list;
+- when a solve starts: when the inputs changed since the last solve's snapshot (a map
+  delivered again unchanged is no change) and no solve runs (the node asks every
+  ``solve_period`` s); ``~/flush`` solves the newest inputs at once, and after it each robot's
+  next local map gives up a running solve, once (a smoother's final map may come after the
+  flush that asked for it; no more, so that a flush in the middle of a run does not keep
+  solves from ending);
+- when the provisional joined map goes out (the newest local maps placed by the last join):
+  once every robot's map is newer than the last joined and provisional maps, or
+  ``provisional_quiet`` s pass without another map (maps that arrive together go out in one),
+  or ``provisional_period`` s after the first of them; at most every ``provisional_period`` s;
+- restarts: a robot's new local map that starts later or holds fewer poses than its last one
+  comes from a restarted smoother. It replaces the old one all the same (it is the robot's
+  current truth, in a new frame); the restart and the poses lost are logged once and counted
+  in the status and the summary;
+- staleness: a robot without a new local map for ``stale_after`` s is reported stale; its
+  last map stays joined;
+- when to ask a smoother for its whole map (``RESYNC_*``);
+- the status content (:class:`~csam_ros.core.merging.status.MergerStatus`).
+
+Its clock is injected (a callable returning monotonic seconds). It is not thread-safe: the
+node calls it under its lock. The inputs a solve takes (maps, sources, stamps, rendezvous)
+are dicts replaced, never mutated, so that a solve's snapshot of them stays as it was taken.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+
+from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
+from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
+from csam_ros.core.exchange.map_updates import HeldMap, MapUpdate, MissingBaseError, apply_update
+from csam_ros.core.exchange.validation import (
+    FAILED_SOLVE,
+    DropCounter,
+    LocalMapError,
+    RefusedMessageError,
+)
+from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.result import CsamResult, MergerStats
+from csam_ros.core.merging.joiner import JoinReply, JoinRequest, MapSource
+from csam_ros.core.merging.notices import (
+    Notice,
+    ReferenceAbsent,
+    ReferenceChosen,
+    ReferenceKept,
+    Refused,
+    RowsDropped,
+    SolveFailed,
+    SolveGivenUp,
+    StateMissing,
+    StateUnusable,
+    smoother_restart,
+)
+from csam_ros.core.merging.status import MergerStatus, RobotStatus, outside_trajectory
+from csam_ros.core.model.log import RendezvousLog
+from csam_ros.core.smoothing.robot_map import RobotMap
+
+PROVISIONAL_CHECKS = 4  # looks per provisional_quiet (or period) whether a provisional map is due
+# asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
+# long after it was subscribed to (its first update, whole, usually comes first); a request
+# stands this long before another is made (the whole map may take long on a slow link), and
+# one the smoother could not serve (nothing sent yet) is made again after RESYNC_RETRY_S
+RESYNC_FIRST_S = 3.0
+RESYNC_TIMEOUT_S = 30.0
+RESYNC_RETRY_S = 2.0
+NO_MAP_HELD = "no local map held yet"
+UPDATE = "local map update"  # what a refused map update is called
+BEHIND = "an update did not apply to the map held"
+
+
+@dataclass(frozen=True)
+class MergerSettings:
+    """The merger node's own parameters its decisions take (seconds of the wall clock)."""
+
+    robots: tuple[str, ...] = ()  # the allow-list (empty: every robot found)
+    reference: str = ""  # the configured reference ("": the first of robots)
+    reference_wait: float = 5.0
+    stale_after: float = 30.0  # 0: never stale
+    solve_period: float = 0.5
+    provisional_period: float = 1.0  # 0: no provisional maps
+    provisional_quiet: float = 0.5
+
+    @property
+    def configured_reference(self) -> str:
+        """``reference``, else the first of ``robots`` ("" when neither is set)."""
+        return self.reference or (self.robots[0] if self.robots else "")
+
+    def admits(self, robot: str) -> bool:
+        """Whether ``robot`` is joined (on the allow-list, or there is none)."""
+        return not self.robots or robot in self.robots
+
+    @property
+    def solve_check_period(self) -> float:
+        """s between looks whether a solve is to start."""
+        return max(self.solve_period, 0.01)
+
+    @property
+    def provisional_check_period(self) -> float | None:
+        """s between looks whether a provisional map is due (None: there are none)."""
+        if self.provisional_period <= 0.0:
+            return None
+        quickest = min(self.provisional_period, self.provisional_quiet)
+        return max(quickest / PROVISIONAL_CHECKS, 0.01)
+
+
+class Flushed(Enum):
+    """What ``~/flush`` did (its reply's message)."""
+
+    NOTHING_NEWER = "the joined map (or the running solve) holds the newest inputs"
+    GAVE_UP = "a solve of older inputs was given up: solving the newest"
+    SOLVING = "solving the newest inputs"
+
+    @classmethod
+    def of(cls, newer: bool, given_up: bool) -> Flushed:
+        """With inputs ``newer`` than the last solve's, and a running solve ``given_up``."""
+        if not newer:
+            return cls.NOTHING_NEWER
+        return cls.GAVE_UP if given_up else cls.SOLVING
+
+
+class Found(Enum):
+    """What to do with a robot newly seen publishing local map updates."""
+
+    JOIN = "join"  # subscribe to it
+    LEAVE_OUT = "leave out"  # not on the allow-list (said once)
+
+
+@dataclass(frozen=True)
+class SolveInputs:
+    """What one solve works on, taken from the policy: never changed afterwards."""
+
+    order: tuple[str, ...]  # the robots joined, the reference first
+    sources: Mapping[str, MapSource]  # each robot's map as held (refined by the solve)
+    logs: Mapping[str, RendezvousLog]
+    stamps: Mapping[str, int]
+    robots: tuple[str, ...]  # every known robot, in the solve's order
+
+
+@dataclass(frozen=True)
+class SolveStart:
+    """A solve to run now, and what making the reference for it has to say (if anything)."""
+
+    inputs: SolveInputs
+    notice: Notice | None = None
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """An update on a robot's topic applied to the map held of it (:func:`arrival`)."""
+
+    held: HeldMap | None = None  # the map it built (None: it built none new)
+    checked: RobotMap | None = None  # ``held`` checked (None: not usable, or none)
+    behind: str = ""  # why it did not apply to the map held: the whole map is wanted
+    refused: RefusedMessageError | None = None  # why it, or the map it built, is not usable
+    whole: bool = False  # it was a complete update: a resync request no longer stands
+
+
+def arrival(robot: str, held: HeldMap | None, update: MapUpdate) -> Arrival:
+    """``update`` on ``robot``'s topic applied to ``held``, the map held of it, and the map
+    it builds checked (not refined: the solve process refines it). Pure: the node calls it
+    outside its lock (only the executor changes what is held), then
+    :meth:`MergerPolicy.map_arrived`."""
+    try:
+        new = apply_update(held, update)
+    except MissingBaseError as error:
+        return Arrival(behind=str(error))
+    except RefusedMessageError as error:
+        return Arrival(refused=error)
+    except ValueError as error:  # it does not fit the map held
+        return Arrival(refused=LocalMapError(f"{robot}: {error}"))
+    if new is held:
+        return Arrival()  # delivered again: nothing to solve
+    try:
+        return Arrival(new, held_robot_map(robot, new, refine=False), whole=update.complete)
+    except RefusedMessageError as error:
+        return Arrival(new, refused=error, whole=update.complete)
+
+
+@dataclass(frozen=True)
+class MapTaken:
+    """What an update on a robot's topic led to."""
+
+    notices: tuple[Notice, ...] = ()  # a refusal, a smoother restart
+    behind: str = ""  # why its whole map is wanted ("": it is not)
+    taken: bool = False  # a new local map is held: a provisional map may be due
+    give_up_solve: bool = False  # give up a running solve for the newest inputs (~/flush)
+
+
+@dataclass(frozen=True)
+class ProvisionalMap:
+    """A provisional joined map decided on: the newest local maps (in the join's robot order)
+    to be placed by ``last`` (:func:`~csam_ros.core.joining.warm_start.carried_forward`)."""
+
+    last: CsamResult
+    maps: list[RobotMap]
+    stamps: dict[str, int]
+    robots: tuple[str, ...]
+    stamp_tolerance: float  # s: carried_forward's
+
+
+def read_state(path: Path) -> MergerState | StateMissing | StateUnusable:
+    """The merger state saved at ``path``, or why there is none to take up."""
+    if not path.exists():
+        return StateMissing(path)
+    try:
+        return MergerState.read(path)
+    except CheckpointError as err:
+        return StateUnusable(str(err))
+    except Exception as err:  # noqa: BLE001 - a node never dies of a bad file
+        return StateUnusable(f"{path}: {type(err).__name__}: {err}")
+
+
+class MergerPolicy:
+    """The merger's state between messages and its decisions on it (module docstring)."""
+
+    def __init__(
+        self,
+        settings: MergerSettings,
+        clock: Callable[[], float],
+        config: CsamConfig,
+        drops: DropCounter | None = None,
+    ) -> None:
+        self.settings = settings
+        self.clock = clock
+        self.config = config  # what solves join with
+        self.drops = drops if drops is not None else DropCounter()
+        # the inputs: each robot's last valid local map, as its updates built it (held), what
+        # it was built from (a held map, or a resumed map's arrays), its message's stamp, and
+        # its rendezvous measurements
+        self.local_maps: dict[str, RobotMap] = {}
+        self.held: dict[str, HeldMap] = {}
+        self.sources: dict[str, MapSource] = {}
+        self.local_map_stamps: dict[str, int] = {}
+        self.rendezvous: dict[str, RendezvousLog] = {}
+        self.robots: list[str] = []  # subscribed to, in the order found
+        self.ignored: set[str] = set()  # robots found outside the allow-list
+        self.heard: list[str] = []  # robots in the order their first local map arrived
+        self.reference = ""  # made at the first solve, then kept
+        self.map_arrival: dict[str, float] = {}  # clock s of each robot's last map
+        self.resync_requests: dict[str, int] = {}
+        self.dirty = False  # inputs changed since the last solve's snapshot
+        self.solving = False  # a solve is running
+        self.solves = 0
+        self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
+        self.solve_seconds = 0.0  # how long the last solve took
+        self.last_error = ""  # why the last solve failed
+        self.last_result: CsamResult | None = None
+        self.restarts: dict[str, int] = {}
+        self.restart_poses_lost: dict[str, int] = {}
+        self.provisional_maps = 0  # provisional joined maps published
+        self._first_heard_at = 0.0  # clock s of the first local map
+        self._late_reference_noted = False
+        self._behind: set[str] = set()  # an update of did not apply: resync until one does
+        self._resync_next: dict[str, float] = {}  # clock s from which to ask again
+        # robots whose next local map gives up a running solve (after ~/flush)
+        self._after_flush: frozenset[str] = frozenset()
+        # the local map stamps the last joined map and the last provisional map used
+        self._published_stamps: dict[str, int] = {}
+        self._provisional_stamps: dict[str, int] = {}
+        self._provisional_next = 0.0  # clock s from which the next one may go out
+        self._unpublished_since: float | None = None  # clock s a map first waited
+
+    # robots and resyncs
+
+    def found(self, robot: str) -> Found | None:
+        """What to do with ``robot``, seen publishing local map updates (None: nothing, it is
+        subscribed to or was left out already)."""
+        if robot in self.robots or robot in self.ignored:
+            return None
+        if self.settings.admits(robot):
+            return Found.JOIN
+        self.ignored.add(robot)
+        return Found.LEAVE_OUT
+
+    def subscribed(self, robot: str) -> None:
+        """``robot``'s topics are subscribed to: its map is asked for if none comes soon."""
+        self._resync_next[robot] = self.clock() + RESYNC_FIRST_S
+        self.robots = [*self.robots, robot]
+
+    def resyncs_wanted(self) -> Iterator[tuple[str, str]]:
+        """The robots whose whole map is wanted (none is held, or an update did not apply),
+        with why; :meth:`resync_due` says whether to ask now."""
+        for robot in self.robots:
+            if robot not in self.held:
+                yield robot, NO_MAP_HELD
+            elif robot in self._behind:
+                yield robot, BEHIND
+
+    def resync_due(self, robot: str) -> bool:
+        """Whether a request for ``robot``'s whole map may be made now (none stands)."""
+        return self.clock() >= self._resync_next.get(robot, 0.0)
+
+    def resync_asked(self, robot: str) -> None:
+        """A request for ``robot``'s whole map was made: it stands ``RESYNC_TIMEOUT_S``."""
+        self._resync_next[robot] = self.clock() + RESYNC_TIMEOUT_S
+        self.resync_requests[robot] = self.resync_requests.get(robot, 0) + 1
+
+    def resync_refused(self, robot: str) -> None:
+        """``robot``'s smoother had nothing to send: ask again after ``RESYNC_RETRY_S``."""
+        self._resync_next[robot] = self.clock() + RESYNC_RETRY_S
+
+    # inputs
+
+    def map_arrived(self, robot: str, arrived: Arrival, stamp_ns: int) -> MapTaken:
+        """Take what an update on ``robot``'s topic (stamped ``stamp_ns``) built: the map held
+        of it, and its new local map when that is usable (a refused one is dropped, and the
+        last valid map stays in use); a smoother restart is counted."""
+        if arrived.behind:
+            self._behind.add(robot)
+            return MapTaken(behind=arrived.behind)
+        if arrived.held is not None:
+            self.held = {**self.held, robot: arrived.held}
+            self._behind.discard(robot)
+            if arrived.whole:
+                self._resync_next.pop(robot, None)
+        if arrived.refused is not None:
+            return MapTaken(notices=(self.refused(robot, UPDATE, arrived.refused),))
+        if arrived.held is None or arrived.checked is None:
+            return MapTaken()
+        return self._map_taken(robot, arrived.held, arrived.checked, stamp_ns)
+
+    def _map_taken(self, robot: str, held: HeldMap, new: RobotMap, stamp_ns: int) -> MapTaken:
+        now = self.clock()
+        old = self.local_maps.get(robot)
+        tolerance = self.config.stamp_tolerance
+        restart = None if old is None else smoother_restart(robot, old, new, tolerance)
+        if restart is not None:
+            self.restarts[robot] = self.restarts.get(robot, 0) + 1
+            self.restart_poses_lost[robot] = self.restart_poses_lost.get(robot, 0) + restart.lost
+        self.map_arrival[robot] = now
+        if robot not in self.heard:
+            if not self.heard:
+                self._first_heard_at = now
+            self.heard = [*self.heard, robot]
+        self.local_maps = {**self.local_maps, robot: new}
+        self.sources = {**self.sources, robot: held}
+        self.local_map_stamps = {**self.local_map_stamps, robot: stamp_ns}
+        self.dirty = True
+        if self._unpublished_since is None:
+            self._unpublished_since = now
+        give_up = robot in self._after_flush
+        self._after_flush -= {robot}
+        notices = () if restart is None else (restart,)
+        return MapTaken(notices, taken=True, give_up_solve=give_up)
+
+    def rendezvous_arrived(
+        self, robot: str, log: RendezvousLog, dropped: Mapping[str, int]
+    ) -> list[Notice]:
+        """Take ``log``, the valid measurements of a rendezvous message on ``robot``'s topic
+        (``dropped``: the single ones left out, by reason), unless it has none and usable ones
+        are held. What to log of it."""
+        for reason, n in dropped.items():
+            self.drops.add(reason, n)
+        notices: list[Notice] = [RowsDropped(robot, dict(dropped))] if dropped else []
+        if len(log.stamps) == 0 and robot in self.rendezvous:
+            return notices  # a message with no usable measurement never replaces usable ones
+        self.rendezvous = {**self.rendezvous, robot: log}
+        self.dirty = True
+        return notices
+
+    def refused(self, robot: str, what: str, error: RefusedMessageError) -> Refused:
+        """A message on ``robot``'s topic (``what``) refused by ``error``: counted."""
+        self.drops.add(error.reason)
+        return Refused(robot, what, error.reason, str(error))
+
+    def inputs_changed(self) -> None:
+        """Solve the inputs again as if they had changed."""
+        self.dirty = True
+
+    def take_up(self, saved: MergerState) -> list[str]:
+        """Go on from a saved merger state (before anything arrived); the robots it had
+        subscribed to that are still to be (the allow-list's)."""
+        now = self.clock()
+        self.local_maps = dict(saved.maps)
+        self.sources = {robot: robot_map_arrays(m) for robot, m in saved.maps.items()}
+        self.local_map_stamps = dict(saved.map_stamps)
+        self.rendezvous = dict(saved.rendezvous)
+        self.heard = list(saved.heard)
+        self.reference = saved.reference
+        self.map_arrival = {robot: now for robot in saved.maps}
+        self.restarts = dict(saved.restarts)
+        self.restart_poses_lost = dict(saved.restart_poses_lost)
+        self.solves = saved.solves
+        for reason, n in saved.dropped.items():
+            self.drops.add(reason, n)
+        self.last_result = saved.result
+        if saved.result is not None:  # the node publishes it at once
+            self._published_stamps = dict(self.local_map_stamps)
+        return [robot for robot in saved.robots if self.settings.admits(robot)]
+
+    # solves
+
+    def solve_wanted(self) -> bool:
+        """Whether a solve is to start: the inputs changed and none runs."""
+        return self.dirty and not self.solving
+
+    def flush(self) -> bool:
+        """``~/flush``: each robot heard from gives up a running solve with its next map;
+        whether there are inputs newer than the last solve's (to solve at once)."""
+        self._after_flush = frozenset(self.heard)
+        return self.dirty
+
+    def start_solve(self) -> SolveStart | None:
+        """A solve of the inputs now, if they changed since the last one and the first solve
+        need not wait (:meth:`_first_inputs_complete`, :meth:`_choose_reference`); it runs
+        until :meth:`solve_ended`."""
+        if not self.dirty:
+            return None
+        self.dirty = False
+        if not self.heard:
+            return None
+        chosen = self._choose_reference() if self._first_inputs_complete() else None
+        if chosen is None:
+            self.dirty = True  # asked again at the next look
+            return None
+        _, notice = chosen
+        order, robots = self._order()
+        inputs = SolveInputs(
+            order=tuple(order),
+            sources=self.sources,
+            logs={r: self.rendezvous[r] for r in order if r in self.rendezvous},
+            stamps=self.local_map_stamps,
+            robots=robots,
+        )
+        self.solving = True
+        return SolveStart(inputs, notice)
+
+    def solve_ended(self) -> None:
+        self.solving = False
+
+    def solve_done(self, inputs: SolveInputs, reply: JoinReply, seconds: float) -> list[Notice]:
+        """Record how the running solve of ``inputs`` went (``seconds`` long): the maps it
+        could not use (dropped), and its result (the new joined map), or that it was given up
+        for newer inputs, or failed (the last joined map stays). What to log of it."""
+        notices: list[Notice] = []
+        for refusal in reply.refused:
+            self.drops.add(refusal.reason)
+            notices.append(Refused(refusal.robot, UPDATE, refusal.reason, refusal.detail))
+        if reply.cancelled:
+            self.solves_given_up += 1
+            notices.append(SolveGivenUp())
+        elif reply.result is None:
+            self.solve_seconds = seconds
+            self.last_error = reply.error
+            self.drops.add(FAILED_SOLVE)
+            notices.append(SolveFailed(reply.error))
+        else:
+            self.last_error = ""
+            self.solve_seconds = seconds
+            self.solves += 1
+            self.last_result = reply.result
+            self._published_stamps = dict(inputs.stamps)
+        return notices
+
+    def stats(self) -> MergerStats:
+        """What the merger counted so far, as the summary carries it."""
+        return MergerStats(
+            dropped=self.drops.as_dict(),
+            solves=self.solves,
+            restarts=dict(self.restarts),
+            restart_poses_lost=dict(self.restart_poses_lost),
+        )
+
+    def join_request(self, inputs: SolveInputs, state_path: Path | None) -> JoinRequest:
+        """The solve process's request to join ``inputs``, warm-started from the last result;
+        with ``state_path``, the merger's state to write there after the join."""
+        return JoinRequest(
+            maps=tuple((r, inputs.sources[r]) for r in inputs.order),
+            logs=inputs.logs,
+            config=self.config,
+            previous=self.last_result,
+            state=self.state_after(inputs) if state_path is not None else None,
+            state_path=state_path,
+        )
+
+    def state_after(self, inputs: SolveInputs) -> MergerState:
+        """The merger's state as it will be once the solve of ``inputs`` is counted (its maps,
+        rendezvous and result filled in by the solve)."""
+        stats = self.stats()
+        return MergerState(
+            reference=inputs.order[0],
+            heard=list(inputs.order),
+            robots=list(inputs.robots),
+            maps={},
+            map_stamps={r: inputs.stamps[r] for r in inputs.order},
+            rendezvous={},
+            solves=stats.solves + 1,
+            dropped=stats.dropped,
+            restarts=stats.restarts,
+            restart_poses_lost=stats.restart_poses_lost,
+        )
+
+    def _order(self) -> tuple[list[str], tuple[str, ...]]:
+        """The robots heard from, the reference first (the order they are joined in), and
+        those followed by every other robot subscribed to."""
+        order = [self.reference] + [r for r in self.heard if r != self.reference]
+        return order, (*order, *(r for r in self.robots if r not in order))
+
+    def _first_inputs_complete(self) -> bool:
+        """Whether the first solve may run: every listed robot's local map and rendezvous
+        have come, or ``reference_wait`` has passed since the first map (a merger started
+        beside running smoothers gets their latched inputs within moments, in any order; one
+        solve then joins them all)."""
+        if self.reference:
+            return True
+        waiting = [
+            r for r in self.settings.robots if r not in self.local_maps or r not in self.rendezvous
+        ]
+        return not waiting or self.clock() - self._first_heard_at >= self.settings.reference_wait
+
+    def _choose_reference(self) -> tuple[str, Notice | None] | None:
+        """The configured reference if it has a map, else, once ``reference_wait`` has passed
+        since the first map, the first robot heard from; kept once made. The reference and
+        what to say of it, or None while there is none (call with a map heard)."""
+        configured = self.settings.configured_reference
+        if self.reference:
+            late = configured and configured != self.reference and configured in self.local_maps
+            if late and not self._late_reference_noted:
+                self._late_reference_noted = True
+                return self.reference, ReferenceKept(configured, self.reference)
+            return self.reference, None
+        absent = bool(configured) and configured not in self.local_maps
+        wait = self.settings.reference_wait
+        if absent and self.clock() - self._first_heard_at < wait:
+            return None
+        self.reference = configured if configured in self.local_maps else self.heard[0]
+        if absent:
+            return self.reference, ReferenceAbsent(configured, self.reference, wait)
+        return self.reference, ReferenceChosen(self.reference, self.reference == configured)
+
+    # provisional maps
+
+    def provisional_due(self) -> ProvisionalMap | None:
+        """The provisional map to publish now (module docstring), if one is due: the newest
+        local maps when neither the last joined nor the last provisional map used them."""
+        now = self.clock()
+        settings = self.settings
+        last, stamps = self.last_result, dict(self.local_map_stamps)
+        if stamps in (self._published_stamps, self._provisional_stamps):
+            self._unpublished_since = None
+            return None
+        waited = now - (now if self._unpublished_since is None else self._unpublished_since)
+        quiet = now - max(self.map_arrival.values(), default=now)
+        # every robot's map is newer than the last joined and provisional maps: no other is
+        # to come that this one should wait for
+        complete = all(
+            stamp not in (self._published_stamps.get(r), self._provisional_stamps.get(r))
+            for r, stamp in stamps.items()
+        )
+        if (
+            last is None
+            or settings.provisional_period <= 0.0
+            or now < self._provisional_next
+            or (
+                quiet < settings.provisional_quiet
+                and waited < settings.provisional_period
+                and not complete
+            )
+        ):
+            return None
+        order, robots = self._order()
+        self._provisional_stamps = stamps
+        self._unpublished_since = None
+        self._provisional_next = now + settings.provisional_period
+        maps = [self.local_maps[r] for r in order]
+        return ProvisionalMap(last, maps, stamps, robots, self.config.stamp_tolerance)
+
+    def joined_holds(self, stamps: Mapping[str, int]) -> bool:
+        """Whether the last joined map holds the local maps of ``stamps`` already."""
+        return stamps == self._published_stamps
+
+    def provisional_published(self) -> None:
+        self.provisional_maps += 1
+
+    # status
+
+    def seconds_since_map(self, robot: str, now: float | None = None) -> float | None:
+        """s since ``robot``'s last local map at ``now`` (None: the clock's now); None when
+        none came."""
+        arrival = self.map_arrival.get(robot)
+        if arrival is None:
+            return None
+        return (self.clock() if now is None else now) - arrival
+
+    def stale(self, robot: str, now: float | None = None) -> bool:
+        """Whether ``robot`` sent no local map for more than ``stale_after`` s (0: never) at
+        ``now`` (None: the clock's now)."""
+        since = self.seconds_since_map(robot, now)
+        return since is not None and 0.0 < self.settings.stale_after < since
+
+    def status(self) -> MergerStatus:
+        """What ``/csam/status`` says now."""
+        result = self.last_result
+        now = self.clock()
+        robots = []
+        for robot in self.robots:
+            r = result.robots.get(robot) if result is not None else None
+            if robot not in self.local_maps:
+                alignment = "pending: no local map received"
+            elif r is None:
+                alignment = "pending: not solved yet"
+            else:
+                alignment = r.alignment
+            robots.append(
+                RobotStatus(
+                    robot=robot,
+                    alignment=alignment,
+                    stale=self.stale(robot, now),
+                    seconds_since_map=self.seconds_since_map(robot, now),
+                    poses=len(r.stamps) if r is not None else 0,
+                    solve_seconds=self.solve_seconds,
+                    restarts=self.restarts.get(robot, 0),
+                    restart_poses_lost=self.restart_poses_lost.get(robot, 0),
+                    update=self.held[robot].sequence if robot in self.held else 0,
+                    resync_requests=self.resync_requests.get(robot, 0),
+                )
+            )
+        return MergerStatus(
+            robots=tuple(robots),
+            reference=self.reference,
+            solves=self.solves,
+            features=len(result.features) if result is not None else 0,
+            associations=len(result.associations) if result is not None else 0,
+            solve_seconds=self.solve_seconds,
+            solving=self.solving,
+            solves_given_up=self.solves_given_up,
+            provisional_maps=self.provisional_maps,
+            converged=result.converged if result is not None else None,
+            dropped=self.drops.as_dict(),
+            restarts=sum(self.restarts.values()),
+            resync_requests=sum(self.resync_requests.values()),
+            outside_trajectory=outside_trajectory(result),
+            last_error=self.last_error,
+        )
+
+    # going back
+
+    def copy(self) -> MergerPolicy:
+        """This policy as it is now, to go back to with :meth:`restore`: its own dicts, lists
+        and sets; the maps, results, settings, clock and drop counter shared (never changed in
+        place, or meant to be shared)."""
+        twin = object.__new__(MergerPolicy)
+        vars(twin).update(
+            {
+                name: type(value)(value) if isinstance(value, dict | list | set) else value
+                for name, value in vars(self).items()
+            }
+        )
+        return twin
+
+    def restore(self, saved: MergerPolicy) -> None:
+        """Go back to the state ``saved`` (a :meth:`copy`) holds; ``saved`` stays as it is."""
+        vars(self).update(vars(saved.copy()))
