@@ -50,7 +50,7 @@ or ``RobotN_Measurement.dat``, that is missing, unreadable or without one valid 
   (``config/mrclam.yaml``) the pairs are found from the measurements themselves: the
   robots are localised snapshot by snapshot on the listed landmarks, and two subjects whose
   measurements nearly all miss their own positions and fit each other's are exchanged
-  (:func:`~csam_ros.core.truth.calibration.detect_landmark_swaps`). Applied swaps are listed in
+  (:func:`~csam_ros.datasets.landmark_swaps.detect_landmark_swaps`). Applied swaps are listed in
   ``ImportReport.truth_corrections``; nothing is swapped unless asked.
 - Range calibration: ``range_scale`` maps robot numbers to the ratio of measured to true
   range of that robot's camera (a per-camera scale error, estimated against the landmark
@@ -81,7 +81,8 @@ from csam_ros.core.model.log import (
     RendezvousLog,
     RobotLog,
 )
-from csam_ros.core.truth.calibration import NoiseModel, detect_landmark_swaps, exchange_landmarks
+from csam_ros.core.truth.noise_model import NoiseModel
+from csam_ros.datasets.landmark_swaps import detect_landmark_swaps, exchange_landmarks
 
 FloatArray = NDArray[np.float64]
 
@@ -135,7 +136,7 @@ def _numbers(value: object) -> bool:
 
 def load_config(path: str | Path) -> dict:
     """Read ``config/mrclam.yaml`` (top-level key ``mrclam``) and return that section, with
-    ``noise`` turned into a :class:`~csam_ros.core.truth.calibration.NoiseModel` (keys it leaves
+    ``noise`` turned into a :class:`~csam_ros.core.truth.noise_model.NoiseModel` (keys it leaves
     out from :data:`MRCLAM_NOISE`). A file that cannot be read, or a section of the wrong
     shape, raises :class:`~csam_ros.core.model.config_file.ConfigFileError` naming file and key."""
     from csam_ros.core.model.config_file import ConfigFileError, load_document
@@ -560,7 +561,7 @@ def import_mrclam(
     (stamps relative to ``report.epoch``; ground truth: landmark positions and each robot's
     label -> subject map) and the :class:`ImportReport`. ``landmark_swaps`` lists pairs of
     landmark subjects whose true positions are exchanged, or is :data:`AUTO`: the pairs are
-    found from the measurements (:func:`~csam_ros.core.truth.calibration.detect_landmark_swaps`).
+    found from the measurements (:func:`~csam_ros.datasets.landmark_swaps.detect_landmark_swaps`).
     ``range_scale`` each robot's ratio of
     measured to true range (module docstring). ``occlusion`` drops landmark observations:
     :data:`STRESS` or windows ``(robot number, start, end)`` (:func:`occlude_landmarks`).

@@ -14,7 +14,8 @@ import textwrap
 from dataclasses import asdict
 from pathlib import Path
 
-from csam_ros.core.truth.calibration import NoiseEstimate, NoiseModel, Progress, estimate_noise
+from csam_ros.core.truth.calibration import NoiseEstimate, Progress, estimate_noise
+from csam_ros.core.truth.noise_model import NoiseModel
 from csam_ros.datasets.mrclam import LandmarkSwaps, import_mrclam, landmark_swaps_of, load_config
 
 _TOP_LEVEL_KEY = re.compile(r"^[A-Za-z_][\w-]*:")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mrclam_files import BARCODES, LANDMARKS, clean_odometry, write_dataset
 
-from csam_ros.core.truth.calibration import NoiseModel
+from csam_ros.core.truth.noise_model import NoiseModel
 from csam_ros.datasets.mrclam import (
     AUTO,
     MRCLAM_NOISE,

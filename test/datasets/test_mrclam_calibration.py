@@ -7,12 +7,9 @@ from pathlib import Path
 import pytest
 
 from csam_ros.core.model.config_file import load_document
-from csam_ros.core.truth.calibration import (
-    NoiseEstimate,
-    NoiseModel,
-    OdometryNoiseEstimate,
-    SensorNoiseEstimate,
-)
+from csam_ros.core.truth.calibration import NoiseEstimate
+from csam_ros.core.truth.noise_model import NoiseModel
+from csam_ros.core.truth.snapshots import OdometryNoiseEstimate, SensorNoiseEstimate
 from csam_ros.datasets.mrclam import load_config
 from csam_ros.datasets.mrclam_calibration import calibration_config, range_scales
 

@@ -52,13 +52,10 @@ from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
 
 from csam_ros.core.model.log import FeatureLog, GroundTruth, MultiRobotLog
-from csam_ros.core.truth.calibration import (
-    NoiseModel,
-    localise,
-    range_scale,
-    robust_sigma,
-    snapshot_localisation,
-)
+from csam_ros.core.truth.calibration import range_scale
+from csam_ros.core.truth.localisation import localise
+from csam_ros.core.truth.noise_model import NoiseModel, robust_sigma
+from csam_ros.core.truth.snapshots import snapshot_localisation
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -471,7 +468,7 @@ def map_range_scales(
     """Each camera's range scale against a common landmark map, relative to the others.
 
     Every robot is localised against ``reference`` (landmarks held fixed, odometry between
-    its feature stamps; :func:`csam_ros.core.truth.calibration.localise`) using its landmark
+    its feature stamps; :func:`csam_ros.core.truth.localisation.localise`) using its landmark
     observations whose labels the map names, ranges divided by ``cos(bearing)^exponent``;
     its scale is the weighted fit of measured on predicted range
     (:func:`csam_ros.core.truth.calibration.range_scale`). A map that no truth fixed has its own

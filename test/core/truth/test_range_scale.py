@@ -220,7 +220,7 @@ def test_jackknife_over_meetings_sees_errors_shared_within_a_meeting() -> None:
 
 
 def test_scales_against_a_map_of_its_own_scale_and_frame_are_the_relative_scales() -> None:
-    from csam_ros.core.truth.calibration import NoiseModel
+    from csam_ros.core.truth.noise_model import NoiseModel
     from csam_ros.datasets.scenario import load_scenario
     from csam_ros.datasets.simulation import simulate
 
