@@ -17,7 +17,8 @@ from csam_ros.core.sam.factors import (
     RelativePose,
     RobustKernel,
 )
-from csam_ros.core.sam.solver import Problem, SingularProblemError
+from csam_ros.core.sam.normal_equations import SingularProblemError
+from csam_ros.core.sam.solver import Problem
 from csam_ros.core.smoothing.local_map import LocalMapOptions
 from csam_ros.core.smoothing.robot_map import RobotMap
 

@@ -60,14 +60,8 @@ from csam_ros.core.sam.factors import (
     _as_sqrt_information,
     sqrt_information_from_covariance,
 )
-from csam_ros.core.sam.solver import (
-    NormalEquations,
-    Problem,
-    SingularProblemError,
-    SolveReport,
-    SolverOptions,
-    minimise,
-)
+from csam_ros.core.sam.normal_equations import NormalEquations, SingularProblemError
+from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions, minimise
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

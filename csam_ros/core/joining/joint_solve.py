@@ -31,8 +31,9 @@ from numpy.typing import NDArray
 from csam_ros.core.model import se2
 from csam_ros.core.model.rendezvous import RendezvousSet
 from csam_ros.core.sam.factors import POINT, POSE, RelativePosition
+from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
-from csam_ros.core.sam.solver import NormalEquations, Problem, SolveReport, SolverOptions
+from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 Array = NDArray[np.float64]

@@ -28,7 +28,8 @@ from scipy.linalg import cho_factor, cho_solve_banded, cholesky_banded, solve_tr
 from scipy.linalg.lapack import dpotri
 from scipy.sparse.linalg import spsolve_triangular
 
-from csam_ros.core.sam.solver import NormalEquations, Problem
+from csam_ros.core.sam.normal_equations import NormalEquations
+from csam_ros.core.sam.solver import Problem
 
 Array = NDArray[np.float64]
 

@@ -8,7 +8,8 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core.sam.solver import NormalEquations, Problem
+from csam_ros.core.sam.normal_equations import NormalEquations
+from csam_ros.core.sam.solver import Problem
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

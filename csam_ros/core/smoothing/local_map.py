@@ -68,14 +68,9 @@ from csam_ros.core.sam.factors import (
     RobustKernel,
     sqrt_information_from_covariance,
 )
+from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
-from csam_ros.core.sam.solver import (
-    GAUGE_SIGMA,
-    NormalEquations,
-    Problem,
-    SolveReport,
-    SolverOptions,
-)
+from csam_ros.core.sam.solver import GAUGE_SIGMA, Problem, SolveReport, SolverOptions
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -1,7 +1,8 @@
-"""The sparse least-squares engine: assembly, GTSAM as oracle, LM safeguard, clear errors."""
+"""The sparse least-squares engine: GTSAM as oracle, LM safeguard, clear errors."""
 
 import numpy as np
 import pytest
+from sam_problems import chain, mixed_problem
 
 from csam_ros.core.model import se2
 from csam_ros.core.sam.covariance import marginal_covariance
@@ -15,116 +16,11 @@ from csam_ros.core.sam.factors import (
     PointPrior,
     PosePrior,
     RelativePose,
-    RelativePosition,
     VariableKind,
 )
-from csam_ros.core.sam.solver import WIDE_FACTOR_ROWS, Problem, SingularProblemError, SolverOptions
+from csam_ros.core.sam.solver import Problem, SolverOptions
 from csam_ros.testing.gtsam_oracle import build_gtsam, gtsam_estimate, gtsam_marginal_covariance
 from csam_ros.testing.landmark_problem import build_problem, simulate_landmark_problem
-
-
-def mixed_problem(seed=0):
-    """A small problem with every factor kind (and a robust kernel)."""
-    rng = np.random.default_rng(seed)
-    p = Problem()
-    truth = np.zeros((8, 3))
-    for i in range(1, 8):
-        truth[i] = se2.compose(truth[i - 1], [1.0, 0.1, 0.3])
-    lms = rng.uniform(-2, 6, (4, 2))
-    x = p.add_variables(POSE, [("x", i) for i in range(8)], truth + rng.normal(0, 0.1, (8, 3)))
-    other = p.add_variables(POSE, ["y0", "y1"], truth[[2, 5]] + [[0.5, 1.0, 0.2], [0.4, 1.1, 0.1]])
-    l_ids = p.add_variables(POINT, [("l", j) for j in range(4)], lms + rng.normal(0, 0.2, (4, 2)))
-    p.add_factor(PosePrior(x[:1], truth[:1], np.eye(3) * 100.0))
-    z = se2.between(truth[:-1], truth[1:]) + rng.normal(0, 0.01, (7, 3))
-    p.add_factor(RelativePose(x[:-1], x[1:], z, covariance=np.eye(3) * 1e-3))
-    pi, li = np.meshgrid(np.arange(8), np.arange(4), indexing="ij")
-    pi, li = pi.ravel(), li.ravel()
-    zz = se2.inverse_transform_point(truth[pi], lms[li]) + rng.normal(0, 0.02, (32, 2))
-    p.add_factor(
-        PointObservation(x[pi], l_ids[li], zz, covariance=np.eye(2) * 4e-4, robust=Huber())
-    )
-    p.add_factor(PointPrior(l_ids[:1], lms[:1], np.eye(2) * 2.0))
-    yt = truth[[2, 5]] + [[0.5, 1.0, 0.2], [0.4, 1.1, 0.1]]
-    rel = se2.between(truth[[1, 6, 1]], yt[[0, 1, 1]])[:, :2]
-    p.add_factor(RelativePosition(x[[1, 6, 1]], other[[0, 1, 1]], rel, covariance=np.eye(2) * 1e-2))
-    m = rng.normal(size=(5, 5))
-    p.add_factor(
-        LinearPrior(
-            [other[0], l_ids[2]], [POSE, POINT], np.r_[yt[0], lms[2]], np.triu(m) + 4 * np.eye(5)
-        )
-    )
-    p.add_factor(PosePrior(other[1:], yt[1:], np.eye(3) * 10.0))
-    return p
-
-
-def dense_system(p):
-    """Dense A (whitened Jacobian) and r, scattered row by row from each factor kind."""
-    rows, rhs = [], []
-    for f in p.factors:
-        blocks = p._blocks(f, p.values)
-        r, a, _ = f.whitened(blocks)
-        cols = np.concatenate(
-            [
-                p.scalar_indices(f.variables[:, j]).reshape(len(f), -1)
-                for j in range(f.variables.shape[1])
-            ],
-            axis=1,
-        )
-        for k in range(len(f)):
-            for d in range(r.shape[1]):
-                row = np.zeros(p.dim)
-                np.add.at(row, cols[k], a[k, d])
-                rows.append(row)
-                rhs.append(r[k, d])
-    return np.array(rows), np.array(rhs)
-
-
-def test_normal_equations_equal_dense_product_of_whitened_jacobian():
-    p = mixed_problem()
-    system = p.normal_equations()
-    cost = system.linearize(p.values)
-    A, r = dense_system(p)
-    upper = system.matrix().toarray()
-    np.testing.assert_allclose(upper, np.triu(A.T @ A), rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(system.gradient, A.T @ r, rtol=1e-12, atol=1e-9)
-    assert cost == pytest.approx(p.cost())
-
-
-def test_wide_factor_is_assembled_like_the_dense_product():
-    """A LinearPrior with more rows than WIDE_FACTOR_ROWS takes the matrix-product path."""
-    p = mixed_problem(seed=1)
-    rng = np.random.default_rng(4)
-    ids = [p.index(("x", i)) for i in (6, 2, 4)] + [p.index(("l", 3))]
-    rows = WIDE_FACTOR_ROWS + 7
-    p.add_factor(
-        LinearPrior(
-            ids, [POSE, POSE, POSE, POINT], rng.normal(size=11), rng.normal(size=(rows, 11))
-        )
-    )
-    system = p.normal_equations()
-    cost = system.linearize(p.values)
-    A, r = dense_system(p)
-    np.testing.assert_allclose(system.matrix().toarray(), np.triu(A.T @ A), rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(system.gradient, A.T @ r, rtol=1e-12, atol=1e-9)
-    assert cost == pytest.approx(p.cost())
-
-
-def test_evaluate_then_assemble_leaves_the_system_alone_until_assembled():
-    p = mixed_problem()
-    system = p.normal_equations()
-    system.linearize(p.values)
-    hessian, gradient = system.hessian_data.copy(), system.gradient.copy()
-    elsewhere = p.values + 0.1
-    trial = system.evaluate(elsewhere)  # a trial step: nothing assembled yet
-    np.testing.assert_array_equal(system.hessian_data, hessian)
-    np.testing.assert_array_equal(system.gradient, gradient)
-    assert trial.cost == pytest.approx(p.cost(elsewhere))
-    system.assemble(trial)
-    assembled, assembled_gradient = system.hessian_data.copy(), system.gradient.copy()
-    assert not np.allclose(assembled_gradient, gradient)
-    assert system.linearize(elsewhere) == trial.cost
-    np.testing.assert_array_equal(system.hessian_data, assembled)
-    np.testing.assert_array_equal(system.gradient, assembled_gradient)
 
 
 def test_gauss_newton_converges_and_backends_agree():
@@ -275,35 +171,6 @@ def test_same_map_estimate_and_marginals_as_gtsam():
 
 
 # -- clear errors -------------------------------------------------------------------------------
-
-
-def chain(n=3):
-    p = Problem()
-    ids = p.add_variables(POSE, [("x", i) for i in range(n)], np.zeros((n, 3)))
-    return p, ids
-
-
-def test_unconstrained_variable_is_named():
-    p, ids = chain()
-    p.add_factor(PosePrior(ids[:1], np.zeros((1, 3)), np.eye(3)))
-    p.add_factor(RelativePose(ids[:1], ids[1:2], np.zeros((1, 3)), np.eye(3)))
-    with pytest.raises(SingularProblemError, match=r"\('x', 2\).*not constrained by any factor"):
-        p.solve()
-
-
-def test_under_constrained_pose_is_named():
-    p, ids = chain(2)
-    p.add_factor(PosePrior(ids[:1], np.zeros((1, 3)), np.eye(3)))
-    p.add_factor(RelativePosition(ids[:1], ids[1:], [[1.0, 0.0]], np.eye(2)))
-    with pytest.raises(SingularProblemError, match=r"\('x', 1\).*rank 2 < 3"):
-        p.solve()
-
-
-def test_missing_gauge_is_reported():
-    p, ids = chain()
-    p.add_factor(RelativePose(ids[:-1], ids[1:], np.ones((2, 3)), np.tile(np.eye(3), (2, 1, 1))))
-    with pytest.raises(SingularProblemError, match="singular.*gauge"):
-        p.solve()
 
 
 def test_bad_variables_and_factors_are_rejected():
