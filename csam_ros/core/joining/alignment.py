@@ -22,15 +22,16 @@ Refinement (Algorithm 1): Gauss-Newton on the rendezvous poses of all placed rob
 their base nodes. Each local map enters only through its :class:`RendezvousPart`, the marginal
 square-root information ``R_r`` of its rendezvous poses at its own estimate (a dense linear
 prior ``||R_r (rho_r - rho_r^0)||^2`` that is never relinearised); only the connector rows
-(eq. 22-24, :class:`Connector`) are relinearised. Solver (:func:`dense_newton`, up to
-``DENSE_NEWTON_LIMIT`` unknowns): Newton's method with the connectors' second derivatives,
-Gauss-Newton where that matrix is not positive definite, Levenberg-Marquardt safeguard, dense
-LAPACK Cholesky. Gauss-Newton alone converges linearly here (the priors are weak along each
-map's rigid rotation and the connector residuals stay large): on MR.CLAM Dataset 1 (five
-robots, 1,941 unknowns) it took about 100 iterations, Newton 24 to a lower cost. Larger
-systems (or ``method="gauss-newton"``) use the generic sparse solver. Stopping rule (both):
-after a step whose largest component is below ``step_tolerance`` (m, rad) or whose relative
-cost decrease is below ``relative_tolerance``, at most ``max_iterations`` steps.
+(eq. 22-24, :class:`~csam_ros.core.joining.connector.Connector`) are relinearised. Solver
+(:func:`~csam_ros.core.joining.dense_newton.dense_newton`, up to ``DENSE_NEWTON_LIMIT``
+unknowns): Newton's method with the connectors' second derivatives, Gauss-Newton where that
+matrix is not positive definite, Levenberg-Marquardt safeguard, dense LAPACK Cholesky.
+Gauss-Newton alone converges linearly here (the priors are weak along each map's rigid rotation
+and the connector residuals stay large): on MR.CLAM Dataset 1 (five robots, 1,941 unknowns) it
+took about 100 iterations, Newton 24 to a lower cost. Larger systems (or
+``method="gauss-newton"``) use the generic sparse solver. Stopping rule (both): after a step
+whose largest component is below ``step_tolerance`` (m, rad) or whose relative cost decrease is
+below ``relative_tolerance``, at most ``max_iterations`` steps.
 
 The observability check is on what the rendezvous rows determine (local poses fixed), not on
 the base node's marginal after Algorithm 1, which also carries each map's own drift between
@@ -39,103 +40,27 @@ its first pose and the rendezvous and may legitimately be large.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from csam_ros.core.joining.connector import BASE_NODE, Connector
+from csam_ros.core.joining.dense_newton import dense_newton
 from csam_ros.core.model import rendezvous, se2
 from csam_ros.core.model.rendezvous import RendezvousSet
 from csam_ros.core.sam.covariance import marginal_covariance
-from csam_ros.core.sam.factors import (
-    POSE,
-    Factor,
-    LinearPrior,
-    VariableKind,
-    _as_ids,
-    _as_measurements,
-    _as_sqrt_information,
-    sqrt_information_from_covariance,
-)
-from csam_ros.core.sam.normal_equations import NormalEquations, SingularProblemError
-from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions, minimise
+from csam_ros.core.sam.factors import POSE, LinearPrior, sqrt_information_from_covariance
+from csam_ros.core.sam.normal_equations import SingularProblemError
+from csam_ros.core.sam.solver import Problem, SolverOptions
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-BASE_NODE = VariableKind("base_node", 3, 2)
-
 # Algorithm 1 systems up to this many unknowns are solved densely by Newton's method (a dense
 # Cholesky of this size takes about a second); larger ones by the generic sparse solver.
 DENSE_NEWTON_LIMIT = 4000
-# central-difference step (m, rad) of the connectors' Jacobians for their second derivatives
-CURVATURE_STEP = 1e-6
-
-
-class Connector(Factor):
-    """Rendezvous rows through base nodes: ``e = c(x_o, B_o, t_t, B_t) - z`` (eq. 22-24).
-
-    ``c`` is :func:`csam_ros.core.model.rendezvous.predict`. A base node given as ``None`` is the
-    reference robot's identity and is not a variable; otherwise it is a ``BASE_NODE``
-    variable. The observed robot is a ``POSE`` variable whose heading does not enter.
-    """
-
-    residual_dim = 2
-
-    def __init__(
-        self,
-        observer_poses: ArrayLike,
-        observed_poses: ArrayLike,
-        measured: ArrayLike,
-        sqrt_information: ArrayLike | None = None,
-        *,
-        covariance: ArrayLike | None = None,
-        observer_bases: ArrayLike | None = None,
-        observed_bases: ArrayLike | None = None,
-        name: str = "Connector",
-    ) -> None:
-        obs = _as_ids(observer_poses, name)
-        w = _as_sqrt_information(sqrt_information, covariance, len(obs), 2, name)
-        columns: list[ArrayLike] = [obs]
-        kinds: list[VariableKind] = [POSE]
-        if observer_bases is not None:
-            columns.append(observer_bases)
-            kinds.append(BASE_NODE)
-        columns.append(observed_poses)
-        kinds.append(POSE)
-        if observed_bases is not None:
-            columns.append(observed_bases)
-            kinds.append(BASE_NODE)
-        self.kinds = tuple(kinds)
-        self._has_observer_base = observer_bases is not None
-        self._has_observed_base = observed_bases is not None
-        super().__init__(columns, w, None, name)
-        self.measured = _as_measurements(measured, len(obs), 2, name)
-
-    def evaluate(
-        self, blocks: Sequence[Array], jacobians: bool = True
-    ) -> tuple[Array, list[Array]]:
-        it = iter(blocks)
-        x_o = next(it)
-        b_o = next(it) if self._has_observer_base else np.zeros_like(x_o)
-        x_t = next(it)
-        b_t = next(it) if self._has_observed_base else np.zeros_like(x_o)
-        pred = rendezvous.predict(x_o, b_o, x_t[:, :2], b_t)
-        e = pred.position - self.measured
-        if not jacobians:
-            return e, []
-        d_observed = np.zeros((len(e), 2, 3))
-        d_observed[:, :, :2] = pred.d_observed_position
-        jac = [pred.d_observer_pose]
-        if self._has_observer_base:
-            jac.append(pred.d_observer_base)
-        jac.append(d_observed)
-        if self._has_observed_base:
-            jac.append(pred.d_observed_base)
-        return e, jac
 
 
 @dataclass
@@ -656,151 +581,3 @@ def _take_warm_start(
             )
         warm[problem.scalar_indices(ids)] = np.asarray(poses, dtype=float).reshape(-1)
     return problem.take_if_cheaper(warm)
-
-
-def _factor_columns(problem: Problem, factor: Factor) -> tuple[IntArray, list[int]]:
-    """Scalar columns (K, D) of each factor's variables and the split points of its blocks."""
-    dims = [k.dim for k in factor.kinds]
-    cols = np.concatenate(
-        [
-            problem.offsets[factor.variables[:, j]][:, None] + np.arange(d)
-            for j, d in enumerate(dims)
-        ],
-        axis=1,
-    )
-    return cols, list(np.cumsum(dims)[:-1])
-
-
-def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
-    """``sum_i r_i d^2 r_i / dx^2`` over all connector rows (dense (n, n)): the part of the
-    Hessian of the cost that Gauss-Newton leaves out (the priors are linear).
-
-    Second derivatives by central differences of the analytic whitened Jacobians, one
-    vectorised evaluation per connector at all its rows moved by ``+-h`` along each of its
-    columns (at most 12) at once.
-    """
-    out = np.zeros((n, n))
-    for factor in problem.factors:
-        if not isinstance(factor, Connector):
-            continue
-        cols, splits = _factor_columns(problem, factor)
-        x = values[cols]
-        k, width = x.shape
-        r, _, _ = factor.whitened(np.split(x, splits, axis=1), jacobians=False)
-        step = CURVATURE_STEP * np.eye(width)
-        moved = np.concatenate(
-            [x + step[j] for j in range(width)] + [x - step[j] for j in range(width)]
-        )
-        tiled = copy.copy(factor)  # the same rows, 2 width times
-        tiled.measured = np.tile(factor.measured, (2 * width, 1))
-        tiled.sqrt_information = np.tile(factor.sqrt_information, (2 * width, 1, 1))
-        a = tiled.whitened(np.split(moved, splits, axis=1))[1]
-        a = a.reshape(2, width, k, *a.shape[1:])
-        curvature = np.einsum("ki,jkid->kdj", r, a[0] - a[1])
-        curvature /= 2.0 * CURVATURE_STEP
-        curvature = 0.5 * (curvature + curvature.transpose(0, 2, 1))
-        rows = np.broadcast_to(cols[:, :, None], curvature.shape)
-        np.add.at(out, (rows, np.broadcast_to(cols[:, None, :], curvature.shape)), curvature)
-    return out
-
-
-def _dense_information(system: NormalEquations) -> Array:
-    """The assembled ``A^T A`` of normal equations as a full dense matrix."""
-    n = system.n
-    rows = system.indices
-    cols = np.repeat(np.arange(n), np.diff(system.indptr))
-    full = np.zeros((n, n))
-    full[rows, cols] = system.hessian_data
-    full[cols, rows] = system.hessian_data
-    return full
-
-
-def _damped(matrix: Array, scale: Array) -> Array:
-    """``matrix + diag(scale)`` (a copy)."""
-    out = matrix.copy()
-    out.flat[:: len(out) + 1] += scale
-    return out
-
-
-def _cholesky(matrix: Array) -> tuple[Array, bool] | None:
-    """Upper Cholesky factor (scipy ``cho_factor`` form, ``matrix`` is overwritten) or ``None``
-    if not positive definite (a pivot below ``1e-14`` of its diagonal entry counts as zero,
-    as in the sparse solver)."""
-    reference = np.maximum(np.diag(matrix).copy(), 1e-300)
-    try:
-        factor = scipy.linalg.cho_factor(matrix, lower=False, overwrite_a=True, check_finite=False)
-    except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.diag(factor[0]) ** 2 > 1e-14 * reference):
-        return None
-    return factor
-
-
-class DenseNewtonStep:
-    """Newton step of Algorithm 1's cost with a positive-definite fallback (dense LAPACK
-    Cholesky; :func:`dense_newton`): the model ``A^T A + sum r_i d^2 r_i`` when, damped by
-    ``lambda diag(A^T A)``, it is positive definite, otherwise the Gauss-Newton ``A^T A``."""
-
-    def __init__(self, problem: Problem, system: NormalEquations) -> None:
-        self.problem = problem
-        self.system = system
-        self.information = np.zeros((0, 0))
-        self.curvature = np.zeros((0, 0))
-
-    def relinearised(self) -> None:
-        problem = self.problem
-        self.information = _dense_information(self.system)
-        self.curvature = _connector_curvature(problem, problem.values, problem.dim)
-
-    def propose(self, damping: float) -> tuple[Array, float] | None:
-        gradient = self.system.gradient
-        scale = damping * np.diag(self.information)
-        model = self.information + self.curvature
-        factor = _cholesky(_damped(model, scale))
-        if factor is None:
-            model = self.information
-            factor = _cholesky(_damped(model, scale))
-        if factor is None:
-            if damping == 0.0:
-                raise SingularProblemError(
-                    "the Algorithm 1 information matrix is singular: some base node or "
-                    "rendezvous pose is not determined"
-                )
-            return None
-        step = -scipy.linalg.cho_solve(factor, gradient, check_finite=False)
-        return step, -float(gradient @ step + 0.5 * step @ (model @ step))
-
-
-def dense_newton(
-    problem: Problem, options: SolverOptions, keys: Sequence[tuple]
-) -> tuple[SolveReport, Array]:
-    """Minimise Algorithm 1's cost in place by Newton's method; returns the report and the
-    joint covariance of ``keys`` (inverse of ``A^T A`` at the estimate, as
-    :func:`~csam_ros.core.sam.covariance.marginal_covariance`).
-
-    Why Newton: the rendezvous priors are weak along each map's rigid rotation (a tenth of a
-    radian on MR.CLAM) and the connectors' residuals stay large, so the term
-    ``sum_i r_i d^2 r_i`` that Gauss-Newton drops is comparable to ``A^T A`` along those
-    directions; Gauss-Newton then converges linearly (about a hundred iterations on MR.CLAM
-    Dataset 1, five robots), Newton quadratically. The Newton matrix ``A^T A + sum r_i
-    d^2 r_i`` is used whenever it is positive definite (with the damping), otherwise the
-    Gauss-Newton matrix (:class:`DenseNewtonStep`); the iteration (damping, gain ratio,
-    acceptance, stopping) is :func:`csam_ros.core.sam.solver.minimise`, the loop of
-    :func:`~csam_ros.core.sam.solver.gauss_newton`, the gain measured against the model used.
-    Dense LAPACK Cholesky: the priors make the system dense by blocks anyway (one robot's
-    rendezvous poses are all coupled).
-    """
-    system = problem.normal_equations(options.backend)
-    report = minimise(problem, options, DenseNewtonStep(problem, system))
-    # covariance from A^T A at the estimate (no damping, no curvature), like the sparse path
-    system.assemble(system.evaluate(problem.values))
-    factor = _cholesky(_dense_information(system))
-    if factor is None:
-        raise SingularProblemError("the Algorithm 1 information matrix is singular")
-    cols = problem.scalar_indices(problem.indices(keys))
-    # the inverse from the factor (LAPACK potri, upper triangle), not n solves with unit columns
-    inverse, info = scipy.linalg.lapack.dpotri(factor[0], lower=False, overwrite_c=True)
-    if info != 0:
-        raise SingularProblemError("the Algorithm 1 information matrix is singular")
-    inverse = np.triu(inverse) + np.triu(inverse, 1).T
-    return report, inverse[np.ix_(cols, cols)]

@@ -1,7 +1,7 @@
 """Base-node initialisation and Algorithm 1: closed-form cases without noise, observability
-checks (pending), chains through non-reference robots, the connector's Jacobians and second
-derivatives, the dense Newton path against the generic Gauss-Newton path, and agreement of
-Algorithm 1 (rendezvous parts only) with the full joint solve."""
+checks (pending), chains through non-reference robots, the dense Newton path against the
+generic Gauss-Newton path, and agreement of Algorithm 1 (rendezvous parts only) with the full
+joint solve."""
 
 from __future__ import annotations
 
@@ -9,12 +9,8 @@ import numpy as np
 import pytest
 
 from csam_ros.core.joining.alignment import (
-    BASE_NODE,
     AlignmentOptions,
-    Connector,
     RendezvousPart,
-    _connector_curvature,
-    _dense_information,
     align,
     initial_pair_base,
 )
@@ -22,8 +18,6 @@ from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.model import se2, sensor
 from csam_ros.core.model.rendezvous import RendezvousSet
-from csam_ros.core.sam.factors import POSE, LinearPrior
-from csam_ros.core.sam.solver import Problem
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 
@@ -164,36 +158,6 @@ def test_a_start_at_the_optimum_ends_there(two_robots) -> None:
         align(parts, meas, rendezvous_start=[poses[0], poses[1][1:]])
 
 
-@pytest.mark.parametrize(
-    ("observer_base", "observed_base"), [(False, True), (True, False), (True, True)]
-)
-def test_connector_jacobians(observer_base: bool, observed_base: bool) -> None:
-    rng = np.random.default_rng(5)
-    k = 6
-    problem = Problem()
-    poses = problem.add_variables(POSE, range(2 * k), rng.normal(0, 2, (2 * k, 3)))
-    bases = problem.add_variables(BASE_NODE, ["b0", "b1"], rng.normal(0, 2, (2, 3)))
-    factor = Connector(
-        poses[:k],
-        poses[k:],
-        rng.normal(0, 1, (k, 2)),
-        covariance=np.eye(2),
-        observer_bases=np.full(k, bases[0]) if observer_base else None,
-        observed_bases=np.full(k, bases[1]) if observed_base else None,
-    )
-    blocks = problem._blocks(factor, problem.values)
-    _, jac = factor.evaluate(blocks)
-    for j, block in enumerate(blocks):
-        numeric = np.zeros_like(jac[j])
-        for d in range(block.shape[1]):
-            step = np.zeros_like(block)
-            step[:, d] = 1e-6
-            plus = [b if i != j else block + step for i, b in enumerate(blocks)]
-            minus = [b if i != j else block - step for i, b in enumerate(blocks)]
-            numeric[:, :, d] = (factor.evaluate(plus)[0] - factor.evaluate(minus)[0]) / 2e-6
-        np.testing.assert_allclose(jac[j], numeric, atol=1e-7)
-
-
 @pytest.mark.parametrize("scenario", ["map_joining", "chain"])
 def test_algorithm1_agrees_with_the_joint_solve(scenario: str) -> None:
     """From the rendezvous parts alone, Algorithm 1 finds the joint solution's base nodes
@@ -277,50 +241,6 @@ def test_dense_newton_matches_gauss_newton(three_drifting_robots) -> None:
     assert 1 <= newton.iterations <= generic.iterations
     auto = align(parts, meas, AlignmentOptions(max_iterations=500))
     np.testing.assert_array_equal(auto.base_nodes, newton.base_nodes)
-
-
-def test_newton_matrix_is_the_hessian_of_the_cost() -> None:
-    """``A^T A`` plus the connectors' curvature equals the numerical Hessian of the cost."""
-    rng = np.random.default_rng(3)
-    k = 5
-    problem = Problem()
-    poses = problem.add_variables(POSE, range(2 * k), rng.normal(0, 2, (2 * k, 3)))
-    base = problem.add_variable(BASE_NODE, "b", rng.normal(0, 1, 3))
-    prior_sqrt = np.triu(rng.normal(0, 1, (6 * k, 6 * k))) + 5 * np.eye(6 * k)
-    problem.add_factor(LinearPrior(poses, [POSE] * 2 * k, rng.normal(0, 2, 6 * k), prior_sqrt))
-    problem.add_factor(
-        Connector(
-            poses[:k],
-            poses[k:],
-            rng.normal(0, 3, (k, 2)),
-            covariance=0.01 * np.eye(2),
-            observed_bases=np.full(k, base),
-        )
-    )
-    problem.add_factor(
-        Connector(
-            poses[k:],
-            poses[:k],
-            rng.normal(0, 3, (k, 2)),
-            covariance=0.04 * np.eye(2),
-            observer_bases=np.full(k, base),
-        )
-    )
-    system = problem.normal_equations()
-    x = problem.values.copy()
-    system.linearize(x)
-    newton = _dense_information(system) + _connector_curvature(problem, x, problem.dim)
-    numeric = np.empty_like(newton)
-    h = 1e-5
-    for j in range(problem.dim):
-        step = np.zeros(problem.dim)
-        step[j] = h
-        system.linearize(x + step)
-        plus = system.gradient.copy()
-        system.linearize(x - step)
-        numeric[:, j] = (plus - system.gradient) / (2 * h)
-    assert np.abs(_connector_curvature(problem, x, problem.dim)).max() > 1.0  # not trivial
-    np.testing.assert_allclose(newton, numeric, atol=1e-4 * np.abs(numeric).max())
 
 
 def test_unknown_alignment_method_is_an_error(two_robots) -> None:
