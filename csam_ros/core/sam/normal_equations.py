@@ -26,21 +26,37 @@ singular.
 from __future__ import annotations
 
 import weakref
+from collections.abc import Hashable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:
-    from csam_ros.core.sam.solver import Problem
+from csam_ros.core.sam.factors import Factor
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 # factors with more residual rows than this are assembled by matrix products (see assemble)
 WIDE_FACTOR_ROWS = 8
+
+
+class ProblemStructure(Protocol):
+    """What the normal equations read of a :class:`csam_ros.core.sam.solver.Problem`."""
+
+    offsets: IntArray  # first scalar of each variable
+    _dims: IntArray  # scalars of each variable
+    factors: list[Factor]
+
+    @property
+    def dim(self) -> int: ...
+
+    @property
+    def num_variables(self) -> int: ...
+
+    def key(self, index: int) -> Hashable: ...
 
 
 class SingularProblemError(ValueError):
@@ -68,7 +84,7 @@ class NormalEquations:
     linearisation refills the values with one ``np.bincount``.
     """
 
-    def __init__(self, problem: Problem, backend: str = "qdldl") -> None:
+    def __init__(self, problem: ProblemStructure, backend: str = "qdldl") -> None:
         if backend not in ("qdldl", "splu"):
             raise ValueError(f"unknown backend {backend!r}: use 'qdldl' or 'splu'")
         if not problem.factors:
@@ -190,7 +206,7 @@ class NormalEquations:
         self.gradient: Array = np.zeros(n)
 
     @property
-    def problem(self) -> Problem:
+    def problem(self) -> ProblemStructure:
         problem = self._problem_ref()
         if problem is None:
             raise RuntimeError("the problem of these normal equations no longer exists")
