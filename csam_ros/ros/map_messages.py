@@ -44,7 +44,12 @@ from csam_ros.core.exchange.validation import (
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import RendezvousLog
-from csam_ros.core.sam.factors import Cauchy, Huber, PointObservation, RelativePose, RobustKernel
+from csam_ros.core.sam.factors import (
+    PointObservation,
+    RelativePose,
+    RobustKernel,
+    robust_kernel_name,
+)
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.ros.conversions import (
     ns_to_time,
@@ -58,12 +63,10 @@ from csam_ros.ros.conversions import (
 
 
 def _kernel_to_message(kernel: RobustKernel | None) -> tuple[str, float]:
-    if kernel is None:
-        return "", 0.0
-    name = {Huber: "huber", Cauchy: "cauchy"}.get(type(kernel))
-    if name is None:
+    named = robust_kernel_name(kernel)
+    if named is None:
         raise LocalMapError(f"robust kernel {type(kernel).__name__} has no message form")
-    return name, float(kernel.threshold if isinstance(kernel, Huber) else kernel.scale)
+    return named
 
 
 def robot_map_to_message(

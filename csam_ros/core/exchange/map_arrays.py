@@ -10,12 +10,11 @@ from csam_ros.core.exchange.validation import LocalMapArrays, LocalMapError, loc
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
-    Cauchy,
-    Huber,
     PointObservation,
     PosePrior,
     RelativePose,
-    RobustKernel,
+    robust_kernel,
+    robust_kernel_name,
 )
 from csam_ros.core.sam.normal_equations import SingularProblemError
 from csam_ros.core.sam.solver import Problem
@@ -56,12 +55,10 @@ def robot_map_arrays(m: RobotMap) -> LocalMapArrays:
             obs_label.append(label_of[f.variables[:, 1]])
             obs_xy.append(f.measured)
             obs_w.append(f.sqrt_information.reshape(-1, 4))
-            if isinstance(f.robust, Huber):
-                kernel, parameter = "huber", float(f.robust.threshold)
-            elif isinstance(f.robust, Cauchy):
-                kernel, parameter = "cauchy", float(f.robust.scale)
-            elif f.robust is not None:
+            named = robust_kernel_name(f.robust)
+            if named is None:
                 raise ValueError(f"{m.name}: robust kernel {type(f.robust).__name__} not saved")
+            kernel, parameter = named
         else:
             raise ValueError(f"{m.name}: factor kind {type(f).__name__} is not saved")
     n_features = len(m.feature_ids)
@@ -119,18 +116,13 @@ def robot_map_from_arrays(name: str, m: LocalMapArrays) -> RobotMap:
             )
         )
     if len(m.observation_pose):
-        kernel: RobustKernel | None = None
-        if m.robust_kernel == "huber":
-            kernel = Huber(m.robust_parameter)
-        elif m.robust_kernel == "cauchy":
-            kernel = Cauchy(m.robust_parameter)
         problem.add_factor(
             PointObservation(
                 pose_ids[m.observation_pose],
                 np.array([feature_of[int(k)] for k in m.observation_label], dtype=np.int64),
                 m.observation_xy,
                 m.observation_sqrt_information.reshape(-1, 2, 2),
-                robust=kernel,
+                robust=robust_kernel(m.robust_kernel, m.robust_parameter),
                 name=f"{name} observations",
             )
         )

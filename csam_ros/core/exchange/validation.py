@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.model.config_file import from_mapping, setting
 from csam_ros.core.model.log import correlation_minors
-from csam_ros.core.sam.factors import singular_sqrt_information
+from csam_ros.core.sam.factors import ROBUST_KERNELS, singular_sqrt_information
 from csam_ros.core.smoothing.local_map import SMOOTHER
 
 # Reasons, as they appear in /csam/status and summary.json.
@@ -699,7 +699,7 @@ def local_map_fault(m: LocalMapArrays) -> str | None:
     unreached = _unreached_pose(n, m.odometry_ends)
     if unreached is not None:
         return f"pose {unreached} is not tied to the first pose by odometry"
-    if m.robust_kernel not in ("", "huber", "cauchy"):
+    if m.robust_kernel not in ("", *ROBUST_KERNELS):
         return f"unknown robust kernel {m.robust_kernel!r}"
     if m.robust_kernel and not (0 < m.robust_parameter <= MAX_COORDINATE):
         return f"robust kernel parameter {m.robust_parameter!r} is not a positive number"

@@ -74,6 +74,11 @@ class RobustKernel(ABC):
     def weight(self, s: Array) -> Array:
         """``rho'(s)``, the weight of the squared residual."""
 
+    @property
+    @abstractmethod
+    def parameter(self) -> float:
+        """The kernel's threshold or scale, in whitened units."""
+
 
 @dataclass(frozen=True)
 class Huber(RobustKernel):
@@ -95,6 +100,10 @@ class Huber(RobustKernel):
         r = np.sqrt(s)
         return np.where(r <= k, 1.0, k / np.maximum(r, k))
 
+    @property
+    def parameter(self) -> float:
+        return float(self.threshold)
+
 
 @dataclass(frozen=True)
 class Cauchy(RobustKernel):
@@ -112,6 +121,34 @@ class Cauchy(RobustKernel):
 
     def weight(self, s: Array) -> Array:
         return 1.0 / (1.0 + s / self.scale**2)
+
+    @property
+    def parameter(self) -> float:
+        return float(self.scale)
+
+
+# the kernels by the names that parameter files, local map messages and saved states give them
+ROBUST_KERNELS: dict[str, type[RobustKernel]] = {"huber": Huber, "cauchy": Cauchy}
+
+
+def robust_kernel(name: str, parameter: float = 0.0) -> RobustKernel | None:
+    """The kernel called ``name`` in :data:`ROBUST_KERNELS` with its threshold or scale
+    ``parameter`` (0: the kernel's default); ``None`` for the name ``""``."""
+    if not name:
+        return None
+    kind = ROBUST_KERNELS[name]
+    return kind(parameter) if parameter > 0 else kind()
+
+
+def robust_kernel_name(kernel: RobustKernel | None) -> tuple[str, float] | None:
+    """The name in :data:`ROBUST_KERNELS` and the parameter of ``kernel`` (``("", 0.0)`` for
+    none), or ``None`` for a kernel of another kind."""
+    if kernel is None:
+        return "", 0.0
+    for name, kind in ROBUST_KERNELS.items():
+        if type(kernel) is kind:
+            return name, kernel.parameter
+    return None
 
 
 # ---------------------------------------------------------------------------------------------

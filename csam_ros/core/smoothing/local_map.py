@@ -60,12 +60,12 @@ from csam_ros.core.sam.covariance import (
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
-    Cauchy,
-    Huber,
+    ROBUST_KERNELS,
     PointObservation,
     PosePrior,
     RelativePose,
     RobustKernel,
+    robust_kernel,
     sqrt_information_from_covariance,
 )
 from csam_ros.core.sam.normal_equations import NormalEquations
@@ -91,7 +91,6 @@ class LocalMapOptions:
     )
 
 
-ROBUST_KERNELS: dict[str, type[RobustKernel]] = {"huber": Huber, "cauchy": Cauchy}
 SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
 
 
@@ -161,13 +160,9 @@ class LocalMapConfig:
         return from_mapping(cls, node, source)
 
     def options(self) -> LocalMapOptions:
-        kernel = ROBUST_KERNELS.get(self.robust_kernel)
-        robust = None
-        if kernel is not None:
-            robust = kernel(self.robust_threshold) if self.robust_threshold > 0 else kernel()
         return LocalMapOptions(
             key_interval=self.key_interval or None,
-            robust=robust,
+            robust=robust_kernel(self.robust_kernel, self.robust_threshold),
             solver=SolverOptions(max_step_scale=self.converged_step_scale),
         )
 

@@ -12,6 +12,7 @@ from csam_ros.core.model import se2
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
+    ROBUST_KERNELS,
     Cauchy,
     Huber,
     LinearPrior,
@@ -20,6 +21,8 @@ from csam_ros.core.sam.factors import (
     PosePrior,
     RelativePose,
     RelativePosition,
+    robust_kernel,
+    robust_kernel_name,
     sqrt_information_from_covariance,
 )
 
@@ -343,3 +346,16 @@ def test_robust_kernel_scales_rows_by_the_square_root_of_the_weight(kernel, x, p
     np.testing.assert_allclose(j, j0 * scale[:, None, None], atol=1e-12)
     np.testing.assert_allclose(c, 0.5 * kernel.rho(s), rtol=1e-12)
     assert np.all(c <= c0 * (1 + 1e-12))
+
+
+def test_robust_kernels_by_name_and_back() -> None:
+    for name, kind in ROBUST_KERNELS.items():
+        kernel = robust_kernel(name, 1.5)
+        assert type(kernel) is kind and robust_kernel_name(kernel) == (name, 1.5)
+        assert robust_kernel(name) == kind()  # parameter 0: the kernel's default
+    assert robust_kernel("") is None and robust_kernel_name(None) == ("", 0.0)
+
+    class Unnamed(Huber):
+        pass
+
+    assert robust_kernel_name(Unnamed()) is None
