@@ -40,6 +40,7 @@ from matplotlib.patches import Patch
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.joining.result import CsamResult, RobotResult, RunSummary, SummaryError
+from csam_ros.core.model.stamps import matching_stamp
 from csam_ros.figures import FIGURES
 
 FloatArray = NDArray[np.float64]
@@ -404,17 +405,8 @@ def _rendezvous_poses(robot: _Robot, poses: FloatArray, tolerance: float) -> Flo
         return np.empty((0, 3))
     order = np.argsort(robot.stamps)
     stamps = robot.stamps[order]
-    index = np.clip(np.searchsorted(stamps, robot.rendezvous_stamps), 1, len(stamps) - 1)
-    if len(stamps) == 1:
-        index = np.zeros_like(index)
-        nearest = index
-    else:
-        left_closer = np.abs(robot.rendezvous_stamps - stamps[index - 1]) <= np.abs(
-            robot.rendezvous_stamps - stamps[index]
-        )
-        nearest = np.where(left_closer, index - 1, index)
-    close = np.abs(stamps[nearest] - robot.rendezvous_stamps) <= tolerance
-    return poses[order[np.unique(nearest[close])]]
+    matched = matching_stamp(stamps, robot.rendezvous_stamps, tolerance)
+    return poses[order[np.unique(matched[matched >= 0])]]
 
 
 def _sample_period(robots: Sequence[_Robot]) -> float:

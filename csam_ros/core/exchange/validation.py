@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.model.config_file import from_mapping, setting
 from csam_ros.core.model.log import correlation_minors
+from csam_ros.core.model.stamps import nearest_stamp
 from csam_ros.core.sam.factors import ROBUST_KERNELS, singular_sqrt_information
 from csam_ros.core.smoothing.local_map import SMOOTHER
 
@@ -740,8 +741,7 @@ def rendezvous_row_mask(
         keep &= ~fault
     if pose_stamps is not None and len(pose_stamps) and keep.any():
         ps = np.asarray(pose_stamps, dtype=float)
-        near = np.clip(np.searchsorted(ps, t), 1, max(len(ps) - 1, 1))
-        gap = np.minimum(np.abs(ps[near - 1] - t), np.abs(ps[np.minimum(near, len(ps) - 1)] - t))
+        gap = np.abs(ps[nearest_stamp(ps, t)] - t)
         fault = keep & (t <= ps[-1] + tolerance) & (gap > tolerance)
         drops.add(NO_POSE_AT_STAMP, int(fault.sum()))
         keep &= ~fault

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from csam_ros.core.joining.result import CsamResult, FeatureResult, RobotResult
 from csam_ros.core.model import se2
+from csam_ros.core.model.stamps import matching_stamp
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 Array = NDArray[np.float64]
@@ -68,7 +69,7 @@ class WarmStart:
                 base_nodes[name] = np.asarray(robot.alignment_base_node, dtype=float)
             if robot.alignment_rendezvous_poses is not None:
                 stamps = np.asarray(robot.rendezvous_stamps, dtype=float)
-                held = _matching(np.asarray(robot.stamps, dtype=float), stamps, 0.0)
+                held = matching_stamp(np.asarray(robot.stamps, dtype=float), stamps, 0.0)
                 rendezvous[name] = (
                     stamps,
                     se2.compose(
@@ -135,7 +136,7 @@ def _corrected(
     if before is None:
         return None
     before_stamps, corrections = before
-    held = _matching(before_stamps, np.asarray(stamps, dtype=float), tolerance)
+    held = matching_stamp(before_stamps, np.asarray(stamps, dtype=float), tolerance)
     matched = np.flatnonzero(held >= 0)
     if len(matched) == 0:
         return None
@@ -205,13 +206,3 @@ def carried_forward(previous: CsamResult, maps: Sequence[RobotMap], tolerance: f
         timing_s={"carried_forward": time.perf_counter() - start},
         notes=["provisional: the local maps placed by the last join, not solved"],
     )
-
-
-def _matching(before: Array, now: Array, tolerance: float) -> IntArray:
-    """For each stamp of ``now`` the index of the equal one in sorted ``before``, else -1."""
-    if len(before) == 0:
-        return np.full(len(now), -1, dtype=np.int64)
-    right = np.minimum(np.searchsorted(before, now), len(before) - 1)
-    left = np.maximum(right - 1, 0)
-    nearest = np.where(np.abs(before[left] - now) < np.abs(before[right] - now), left, right)
-    return np.where(np.abs(before[nearest] - now) <= tolerance, nearest, -1).astype(np.int64)

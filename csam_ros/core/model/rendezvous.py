@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.model.sensor import polar_to_cartesian
+from csam_ros.core.model.stamps import nearest_stamp
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -227,10 +228,7 @@ def _pose_index(
         if not strict:
             return np.full(len(query), -1, dtype=np.int64)
         raise ValueError(f"robot {robot!r} has no poses but rendezvous stamps need some")
-    pos = np.clip(np.searchsorted(stamps, query), 1, max(len(stamps) - 1, 1))
-    left = np.clip(pos - 1, 0, len(stamps) - 1)
-    right = np.clip(pos, 0, len(stamps) - 1)
-    nearest = np.where(np.abs(stamps[left] - query) <= np.abs(stamps[right] - query), left, right)
+    nearest = nearest_stamp(stamps, query)
     missing = np.abs(stamps[nearest] - query) > tolerance
     if missing.any() and strict:
         first = int(np.flatnonzero(missing)[0])

@@ -52,6 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from csam_ros.core.model import motion, se2, sensor
 from csam_ros.core.model.config_file import from_mapping, setting
 from csam_ros.core.model.log import RobotLog, correlations_valid
+from csam_ros.core.model.stamps import nearest_stamp
 from csam_ros.core.sam.covariance import (
     factorize_at_estimate,
     marginal_covariance,
@@ -525,12 +526,7 @@ class LocalMap:
         return len(unknown), covered - start
 
     def _key_index_of(self, stamps: Array) -> IntArray:
-        pos = np.searchsorted(self._keys, stamps)
-        nxt = np.minimum(pos, len(self._keys) - 1)
-        prv = np.maximum(pos - 1, 0)
-        pick = np.where(
-            np.abs(self._keys[nxt] - stamps) <= np.abs(self._keys[prv] - stamps), nxt, prv
-        )
+        pick = nearest_stamp(self._keys, stamps)
         off = np.abs(self._keys[pick] - stamps)
         if np.any(off > self.options.stamp_tolerance):
             bad = int(np.argmax(off))
