@@ -40,6 +40,7 @@ from matplotlib.patches import Patch
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.joining.result import CsamResult, RobotResult, RunSummary, SummaryError
+from csam_ros.core.model.chi_square import chi2_quantile
 from csam_ros.core.model.stamps import matching_stamp
 from csam_ros.figures import FIGURES
 
@@ -67,13 +68,6 @@ MULTI_ROBOT_COLOUR = "black"
 UNKNOWN_COLOUR = "0.5"
 
 
-def chi2_2dof_quantile(confidence: float) -> float:
-    """Chi-square quantile with 2 degrees of freedom: ``-2 ln(1 - confidence)``."""
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    return -2.0 * math.log1p(-confidence)
-
-
 def ellipse_axes(
     covariances: ArrayLike, confidence: float = CONFIDENCE
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -99,7 +93,7 @@ def ellipse_axes(
             f"covariances {bad[:5].tolist()} are not finite symmetric positive semi-definite: "
             f"{cov[bad[0]].tolist()}"
         )
-    k = chi2_2dof_quantile(confidence)
+    k = chi2_quantile(confidence, 2)
     semi = np.sqrt(k * np.clip(eigenvalues, 0.0, None))
     major = eigenvectors[:, :, 1]
     angles = np.degrees(np.arctan2(major[:, 1], major[:, 0]))
@@ -316,7 +310,7 @@ def _title(summary: _Summary, what: str) -> str:
 
 
 def _ellipse_label(magnification: int) -> str:
-    text = f"{CONFIDENCE:.0%} ellipses (χ²₂ = {chi2_2dof_quantile(CONFIDENCE):.3f})"
+    text = f"{CONFIDENCE:.0%} ellipses (χ²₂ = {chi2_quantile(CONFIDENCE, 2):.3f})"
     return text.replace("%", " %") + (f", drawn ×{magnification}" if magnification > 1 else "")
 
 

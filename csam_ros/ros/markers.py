@@ -9,8 +9,8 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from csam_ros.core.joining.result import CsamResult
+from csam_ros.core.model.chi_square import CHI2_2DOF_95
 
-CHI2_2DOF_95 = 5.991  # ellipses enclose 95 % of a 2D Gaussian
 ELLIPSE_SEGMENTS = 24
 PALETTE = [  # tab10
     (0.12, 0.47, 0.71),

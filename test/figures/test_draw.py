@@ -31,6 +31,7 @@ from csam_ros.core.joining.result import (
     SummaryError,
 )
 from csam_ros.core.model import se2
+from csam_ros.core.model.chi_square import chi2_quantile
 from csam_ros.figures import FIGURES, draw
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -130,13 +131,6 @@ def assert_png(path: Path, min_bytes: int = 15_000) -> None:
 # --------------------------------------------------------------------------- geometry
 
 
-def test_chi2_quantile_matches_table_value() -> None:
-    assert draw.chi2_2dof_quantile(0.95) == pytest.approx(5.991, abs=5e-4)
-    assert draw.chi2_2dof_quantile(0.99) == pytest.approx(9.210, abs=5e-4)
-    scipy_stats = pytest.importorskip("scipy.stats")
-    assert draw.chi2_2dof_quantile(0.9) == pytest.approx(scipy_stats.chi2.ppf(0.9, 2))
-
-
 def test_ellipse_axes_of_rotated_covariance() -> None:
     sigma_major, sigma_minor, angle = 0.3, 0.1, np.radians(30.0)
     rotation = se2.rotation(angle)
@@ -160,7 +154,7 @@ def test_ellipse_axes_boundary_point_is_on_the_chi2_contour() -> None:
         ]
     )
     distances = np.einsum("ni,ij,nj->n", ends, np.linalg.inv(cov), ends)
-    np.testing.assert_allclose(distances, draw.chi2_2dof_quantile(0.9))
+    np.testing.assert_allclose(distances, chi2_quantile(0.9, 2))
 
 
 def test_ellipse_axes_rejects_indefinite_and_asymmetric() -> None:

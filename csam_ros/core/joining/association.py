@@ -54,11 +54,10 @@ from scipy.sparse.csgraph import connected_components
 
 from csam_ros.core.joining.alignment import Alignment
 from csam_ros.core.model import se2
+from csam_ros.core.model.chi_square import CHI2_2DOF_99
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-CHI2_2DOF_99 = 9.21
 
 
 @dataclass

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import gammaincinv
 
 from csam_ros.core.joining.result import LocalMapCheck
+from csam_ros.core.model.chi_square import chi2_quantile
 from csam_ros.core.sam.factors import POINT, POSE
 from csam_ros.core.smoothing.robot_map import RobotMap
 
@@ -48,11 +48,6 @@ class ConsistencyOptions:
     max_trajectory_outliers: float = 0.02
     max_observation_outliers: float = 0.3
     max_feature_outliers: float = 0.3
-
-
-def chi2_quantile(probability: float, dof: int) -> float:
-    """The chi2 quantile (scipy.stats.chi2.ppf without importing scipy.stats, 0.6 s)."""
-    return float(2.0 * gammaincinv(0.5 * dof, probability))
 
 
 def _share(part: int, whole: int) -> float:

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core.joining.consistency import chi2_quantile
 from csam_ros.core.model import se2
+from csam_ros.core.model.chi_square import chi2_quantile
 from csam_ros.core.model.log import GroundTruth, MultiRobotLog, OdometryLog, RobotLog
 from csam_ros.core.model.motion import odometry_poses, odometry_poses_at
 from csam_ros.core.truth.noise_model import (

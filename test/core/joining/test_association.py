@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from scipy.linalg import block_diag
 
-from csam_ros.core.joining import association
 from csam_ros.core.joining.alignment import align
 from csam_ros.core.joining.association import (
     AssociationOptions,
@@ -157,4 +156,3 @@ def test_chain_clusters_span_robots() -> None:
         assert len(truth) == 1  # every cluster is one true feature
         assert len({r for r, _ in cluster}) == len(cluster)
     assert max(len(c) for c in result.clusters) >= 3
-    assert pytest.approx(9.21) == association.CHI2_2DOF_99
