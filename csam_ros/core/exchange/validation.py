@@ -11,12 +11,11 @@ import math
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from csam_ros.core.model.config_file import from_mapping, setting
+from csam_ros.core.model.config_file import Section, setting
 from csam_ros.core.model.log import correlation_minors
 from csam_ros.core.model.stamps import nearest_stamp
 from csam_ros.core.sam.factors import ROBUST_KERNELS, singular_sqrt_information
@@ -70,7 +69,7 @@ class LocalMapError(RefusedMessageError):
 
 
 @dataclass(frozen=True)
-class InputBounds:
+class InputBounds(Section):
     """The ``input:`` section of a parameter file, and the smoother node's parameters of the
     same names: physical bounds on every field of an incoming sensor message.
 
@@ -78,6 +77,8 @@ class InputBounds:
     covariance that is not positive definite) or be left stuck with it (an odometry factor
     that no later update can whiten), or, for a stamp, build a million poses.
     """
+
+    section = "input"
 
     max_range: float = setting(
         1000.0,
@@ -136,11 +137,6 @@ class InputBounds:
             raise ValueError(
                 f"input: min_sigma {self.min_sigma:g} exceeds max_sigma {self.max_sigma:g}"
             )
-
-    @classmethod
-    def from_dict(cls, node: Mapping[str, Any] | None, source: str = "input") -> InputBounds:
-        """Build from a mapping; unknown keys and bad values are errors naming them."""
-        return from_mapping(cls, node, source)
 
 
 @dataclass

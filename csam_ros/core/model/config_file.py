@@ -6,8 +6,9 @@ found: ``$CSAM_CONFIG_DIR``; ``share/csam_ros/config`` under each prefix of
 ``make`` install it); the ``config/`` folder of a source checkout.
 
 A parameter dataclass declares each field with :func:`setting` (description, minimum, choices,
-the node that takes it); :func:`from_mapping` checks a file section against those rules, and
-the nodes declare their ROS parameters from the same fields.
+the node that takes it); :func:`from_mapping` checks a file section against those rules (a
+:class:`Section` subclass by its ``from_dict``), and the nodes declare their ROS parameters from
+the same fields.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import sys
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, Self, TypeVar
 
 import yaml
 
@@ -171,3 +172,15 @@ def from_mapping(cls: type[T], node: Mapping[str, Any] | None, source: str) -> T
         rule, default = known[key]
         values[key] = rule.check(value, default, f"{source}.{key}")
     return cls(**values)
+
+
+class Section:
+    """Base of a parameter dataclass that is one section of a parameter file."""
+
+    section: ClassVar[str] = ""  # the section's name in a parameter file
+
+    @classmethod
+    def from_dict(cls, node: Mapping[str, Any] | None, source: str | None = None) -> Self:
+        """Build from a mapping (:func:`from_mapping`); unknown keys and bad values are errors
+        naming them, after ``source`` (default: the section's name)."""
+        return from_mapping(cls, node, source or cls.section)

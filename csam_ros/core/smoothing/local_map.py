@@ -42,15 +42,14 @@ paths can settle in different local minima (MR.CLAM robots 2-5: 0.1-0.2 m apart)
 from __future__ import annotations
 
 import time
-from collections.abc import Hashable, Mapping, Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.model import motion, se2, sensor
-from csam_ros.core.model.config_file import from_mapping, setting
+from csam_ros.core.model.config_file import Section, setting
 from csam_ros.core.model.log import RobotLog, correlations_valid
 from csam_ros.core.model.stamps import nearest_stamp
 from csam_ros.core.sam.covariance import (
@@ -96,9 +95,11 @@ SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
 
 
 @dataclass
-class LocalMapConfig:
+class LocalMapConfig(Section):
     """The ``local_map:`` section of a parameter file; the smoother node's parameters of the
     same names (``batch_window`` is for offline builds only, ``publish_period`` for nodes)."""
+
+    section = "local_map"
 
     key_interval: float = setting(
         1.0, "s between regular key poses (0: off)", minimum=0.0, node=SMOOTHER
@@ -154,11 +155,6 @@ class LocalMapConfig:
         minimum=0.0,
         node=SMOOTHER,
     )
-
-    @classmethod
-    def from_dict(cls, node: Mapping[str, Any] | None, source: str = "local_map") -> LocalMapConfig:
-        """Build from a mapping; unknown keys and bad values are errors naming them."""
-        return from_mapping(cls, node, source)
 
     def options(self) -> LocalMapOptions:
         return LocalMapOptions(
