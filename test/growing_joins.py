@@ -13,7 +13,7 @@ from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.model.rendezvous import required_stamps
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 

@@ -33,7 +33,7 @@ from csam_ros.core.joining.config import CsamConfig  # noqa: E402
 from csam_ros.core.joining.join import join_maps  # noqa: E402
 from csam_ros.core.joining.pipeline import robot_map_from_local_map  # noqa: E402
 from csam_ros.core.model.rendezvous import required_stamps  # noqa: E402
-from csam_ros.core.smoothing.local_map import build_local_map  # noqa: E402
+from csam_ros.core.smoothing.local_map_build import build_local_map  # noqa: E402
 from csam_ros.core.truth.evaluation import evaluate  # noqa: E402
 from csam_ros.datasets.simulation import RobotSpec, Scenario, Segment, feature_grid, simulate
 

@@ -40,7 +40,8 @@ from csam_ros.core.joining.rendezvous_filters import select_rendezvous  # noqa: 
 from csam_ros.core.joining.result import CsamResult  # noqa: E402
 from csam_ros.core.model.log import MultiRobotLog, RendezvousLog  # noqa: E402
 from csam_ros.core.model.rendezvous import required_stamps  # noqa: E402
-from csam_ros.core.smoothing.local_map import LocalMap, LocalMapConfig  # noqa: E402
+from csam_ros.core.smoothing.local_map import LocalMap  # noqa: E402
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig  # noqa: E402
 
 PARTS = 10
 

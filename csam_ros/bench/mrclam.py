@@ -59,7 +59,8 @@ from csam_ros.core.joining.rendezvous_filters import select_rendezvous, thin_ren
 from csam_ros.core.model.config_file import load_document
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.core.model.rendezvous import required_stamps
-from csam_ros.core.smoothing.local_map import LocalMapConfig, build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.core.truth.calibration import NoiseEstimate
 from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.mrclam import (

@@ -66,7 +66,9 @@ from csam_ros.core.model.log import RobotLog
 from csam_ros.core.sam.factors import Cauchy
 from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.solver import Problem, SolverOptions
-from csam_ros.core.smoothing.local_map import LocalMap, LocalMapOptions, build_local_map
+from csam_ros.core.smoothing.local_map import LocalMap
+from csam_ros.core.smoothing.local_map_build import build_local_map
+from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.datasets.simulation import simulate_robot_log
 from csam_ros.datasets.slam2d import Slam2dData, initial_values, read_slam2d
 from csam_ros.testing.gtsam_oracle import build_gtsam, gtsam_estimate

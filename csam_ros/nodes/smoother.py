@@ -75,7 +75,7 @@ from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.local_map import LocalMap as CoreLocalMap
-from csam_ros.core.smoothing.local_map import LocalMapConfig
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.nodes.common import (
     declare,

@@ -93,7 +93,7 @@ def offline_summary(
     from csam_ros.core.joining.config import CsamConfig
     from csam_ros.core.joining.pipeline import run_csam
     from csam_ros.core.joining.result import RunSummary
-    from csam_ros.core.smoothing.local_map import LocalMapConfig
+    from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 
     document = config_document or {}
     try:

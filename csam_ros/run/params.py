@@ -62,7 +62,7 @@ def smoother_params(document: dict) -> dict:
     ``input:`` section (bounds on sensor messages)."""
     from csam_ros.core.exchange.validation import InputBounds
     from csam_ros.core.joining.config import CsamConfig
-    from csam_ros.core.smoothing.local_map import SMOOTHER, LocalMapConfig
+    from csam_ros.core.smoothing.local_map_config import SMOOTHER, LocalMapConfig
 
     return {
         **node_params(document, "local_map", LocalMapConfig, SMOOTHER),

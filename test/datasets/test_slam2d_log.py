@@ -13,7 +13,7 @@ import pytest
 from csam_ros.core.model import se2
 from csam_ros.core.model.motion import increment, increment_and_jacobian
 from csam_ros.core.model.sensor import polar_to_cartesian
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.datasets.slam2d import Slam2dFormatError, build_problem, read_slam2d
 from csam_ros.datasets.slam2d_log import (
     convert_slam2d,

@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.model.config_file import load_document, settings
-from csam_ros.core.smoothing.local_map import LocalMapConfig
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.run.params import merger_params, smoother_params
 
 

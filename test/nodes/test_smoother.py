@@ -272,7 +272,7 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
         empty_rendezvous,
     )
     from csam_ros.core.model.motion import dead_reckoning, increment
-    from csam_ros.core.smoothing.local_map import build_local_map
+    from csam_ros.core.smoothing.local_map_build import build_local_map
     from csam_ros.ros.conversions import log_to_messages
 
     rng = np.random.default_rng(8)

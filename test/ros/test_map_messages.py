@@ -16,7 +16,8 @@ from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.warm_start import carried_forward
 from csam_ros.core.model.rendezvous import required_stamps
 from csam_ros.core.sam.factors import Cauchy, Huber
-from csam_ros.core.smoothing.local_map import LocalMapOptions, build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
+from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 from csam_ros.ros.conversions import time_to_ns

@@ -18,7 +18,7 @@ from csam_ros.core.sam.factors import (
 )
 from csam_ros.core.sam.normal_equations import SingularProblemError
 from csam_ros.core.sam.solver import Problem
-from csam_ros.core.smoothing.local_map import LocalMapOptions
+from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 # how a map built from updates is taken back to its sender's optimum (checked_robot_map)

@@ -19,7 +19,7 @@ from csam_ros.core.model.config_file import Section, setting
 from csam_ros.core.model.log import correlation_minors
 from csam_ros.core.model.stamps import nearest_stamp
 from csam_ros.core.sam.factors import ROBUST_KERNELS, singular_sqrt_information
-from csam_ros.core.smoothing.local_map import SMOOTHER
+from csam_ros.core.smoothing.local_map_config import SMOOTHER
 
 # Reasons, as they appear in /csam/status and summary.json.
 NOT_FINITE = "not_finite"

@@ -16,7 +16,7 @@ from csam_ros.core.joining.consistency import ConsistencyOptions
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.model.config_file import from_mapping, load_document, setting
 from csam_ros.core.sam.solver import SolverOptions
-from csam_ros.core.smoothing.local_map import SMOOTHER
+from csam_ros.core.smoothing.local_map_config import SMOOTHER
 
 MERGER = "merger"  # the node that takes most CsamConfig fields as parameters
 _POSITIVE = {"minimum": 0.0, "exclusive": True, "node": MERGER}

@@ -22,7 +22,9 @@ from csam_ros.core.model.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.model.rendezvous import required_stamps
 from csam_ros.core.sam.covariance import factorize_at_estimate
 from csam_ros.core.sam.selected_inverse import SelectedInverse
-from csam_ros.core.smoothing.local_map import LocalMap, LocalMapConfig, build_local_map
+from csam_ros.core.smoothing.local_map import LocalMap
+from csam_ros.core.smoothing.local_map_build import build_local_map
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.core.smoothing.robot_map import RobotMap, find_gauge_factor
 
 

@@ -70,10 +70,10 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
 
 # The top-level sections of parameter and scenario files and who reads them: ``scenario``
 # (datasets.scenario, the simulator), ``csam`` (core.joining.config.CsamConfig: the merger, the
-# smoothers' rendezvous thinning), ``local_map`` (core.local_map.LocalMapConfig: the
-# smoothers), ``merger`` (the merger node's solve_period), ``mrclam`` (the MR.CLAM importer
-# and calibration) and ``input`` (core.validation.InputBounds: bounds on sensor messages, in
-# the smoothers and offline replay). Any other top-level key is an error, so that a misspelt
+# smoothers' rendezvous thinning), ``local_map`` (core.smoothing.local_map_config.LocalMapConfig:
+# the smoothers), ``merger`` (the merger node's solve_period), ``mrclam`` (the MR.CLAM importer
+# and calibration) and ``input`` (core.exchange.validation.InputBounds: bounds on sensor messages,
+# in the smoothers and offline replay). Any other top-level key is an error, so that a misspelt
 # section never leaves its settings at their defaults unnoticed.
 SECTIONS = ("csam", "local_map", "merger", "mrclam", "scenario", "input")
 

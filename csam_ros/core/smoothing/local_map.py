@@ -1,4 +1,5 @@
-"""One robot's local map by square-root smoothing, fed online or built from a whole log.
+"""One robot's local map by square-root smoothing, fed online (offline, from a whole log:
+:func:`csam_ros.core.smoothing.local_map_build.build_local_map`).
 
 The map lives in the robot's frame ``G_r``: its first pose (at the first odometry stamp) is
 the origin, fixed by a pose prior of sigma ``gauge_sigma`` (far below every other sigma).
@@ -30,26 +31,18 @@ odometry have arrived. Measured on the five MR.CLAM robots (about 1,490 s, 95,00
 odometry samples and 3,300-7,100 feature observations each, Cauchy kernel, one update per
 second of data): 35-57x real time on a shared 2-core machine, worst update 0.1-0.25 s
 (``python -m csam_ros.bench.smoothing --mrclam DIR``).
-
-Offline, :func:`build_local_map` builds the same problem from a whole log and solves it to
-convergence, starting from the online policy run on windows of 60 s (one batch solve from
-dead reckoning can end in a poor local minimum on long real runs: on MR.CLAM robot 1 with a
-Cauchy kernel it reached a cost of 24,701 against 3,634). Online and offline maps agree to
-1e-5 m without a kernel or with Huber (convex); with the redescending Cauchy kernel the two
-paths can settle in different local minima (MR.CLAM robots 2-5: 0.1-0.2 m apart).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Hashable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.model import motion, se2, sensor
-from csam_ros.core.model.config_file import Section, setting
 from csam_ros.core.model.log import RobotLog, correlations_valid
 from csam_ros.core.model.stamps import nearest_stamp
 from csam_ros.core.sam.covariance import (
@@ -60,113 +53,18 @@ from csam_ros.core.sam.covariance import (
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
-    ROBUST_KERNELS,
     PointObservation,
     PosePrior,
     RelativePose,
-    RobustKernel,
-    robust_kernel,
     sqrt_information_from_covariance,
 )
 from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
-from csam_ros.core.sam.solver import GAUGE_SIGMA, Problem, SolveReport, SolverOptions
+from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions
+from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-
-@dataclass
-class LocalMapOptions:
-    """Settings of a local map."""
-
-    key_interval: float | None = 1.0  # regular key poses every this many seconds; None: off
-    stamp_tolerance: float = 1e-6  # stamps closer than this share a key pose
-    gauge_sigma: float = GAUGE_SIGMA
-    robust: RobustKernel | None = None  # kernel on feature observations (real data)
-    update_period: float = 1.0  # maybe_update(): seconds of new odometry between solves
-    solver: SolverOptions = field(default_factory=SolverOptions)  # converged solves
-    online_solver: SolverOptions = field(  # every other update: warm-started, capped
-        default_factory=lambda: SolverOptions(relative_tolerance=1e-6, max_iterations=10)
-    )
-
-
-SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
-
-
-@dataclass
-class LocalMapConfig(Section):
-    """The ``local_map:`` section of a parameter file; the smoother node's parameters of the
-    same names (``batch_window`` is for offline builds only, ``publish_period`` for nodes)."""
-
-    section = "local_map"
-
-    key_interval: float = setting(
-        1.0, "s between regular key poses (0: off)", minimum=0.0, node=SMOOTHER
-    )
-    robust_kernel: str = setting(
-        "",
-        "kernel on feature observations ('': none)",
-        choices=("", *ROBUST_KERNELS),
-        node=SMOOTHER,
-    )
-    robust_threshold: float = setting(
-        0.0,
-        "the kernel's threshold or scale, whitened (0: its default)",
-        minimum=0.0,
-        node=SMOOTHER,
-    )
-    batch_window: float = setting(
-        60.0, "offline: s of odometry per warm-started solve (0: one batch)", minimum=0.0
-    )
-    publish_period: float = setting(
-        1.0,
-        "s (node clock) between a smoother's updates when data arrived",
-        minimum=0.0,
-        exclusive=True,
-        node=SMOOTHER,
-    )
-
-    # SolverOptions.max_step_scale of the converged solves (a smoother's ~/flush, the end of
-    # an offline build), not of the online updates (MR.CLAM: another minimum of the robust cost)
-    converged_step_scale: float = setting(
-        1.0,
-        "converged solves: stretch a robust (reweighted) step by up to this factor while the "
-        "cost falls (1: off)",
-        minimum=1.0,
-        node=SMOOTHER,
-    )
-
-    update_tolerance_m: float = setting(
-        0.02,
-        "m a pose moves before a smoother sends it again (0: every change)",
-        minimum=0.0,
-        node=SMOOTHER,
-    )
-    update_tolerance_rad: float = setting(
-        0.02,
-        "rad a pose turns before a smoother sends it again (0: every change)",
-        minimum=0.0,
-        node=SMOOTHER,
-    )
-    update_key_tolerance: float = setting(
-        1e-3,
-        "m (and rad) a feature or rendezvous pose moves before a smoother sends it again",
-        minimum=0.0,
-        node=SMOOTHER,
-    )
-
-    def options(self) -> LocalMapOptions:
-        return LocalMapOptions(
-            key_interval=self.key_interval or None,
-            robust=robust_kernel(self.robust_kernel, self.robust_threshold),
-            solver=SolverOptions(max_step_scale=self.converged_step_scale),
-        )
-
-    @property
-    def window(self) -> float | None:
-        """``build_local_map``'s window."""
-        return self.batch_window or None
 
 
 @dataclass
@@ -750,67 +648,3 @@ def _regular_keys(stamps: Array, interval: float, t0: float) -> Array:
     k = np.concatenate([np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
     k = np.unique(k[(k >= 0) & (k <= np.floor(scaled[-1]))])
     return t0 + interval * k
-
-
-# Offline, a 2D SLAM file's robot (Cartesian feature points only, no robust kernel; its stamps
-# count poses, so a window of seconds means nothing there) is built in chunks of this many
-# odometry samples, each solved to CHUNK_SOLVER's tolerance: the benchmark's incremental
-# build (csam_ros.bench.smoothing). On Victoria Park (6,969 poses) it reaches the optimum of
-# 60 s windows (cost 3,092; one batch solve from dead reckoning ends at 259,472) in 0.56 s
-# instead of 4.0 s; chunks of 200, 500 and 2,000 samples reach it too, in 1.4, 0.8, 1.5 s.
-FILE_CHUNK = 1000
-CHUNK_SOLVER = SolverOptions(relative_tolerance=1e-6, max_iterations=200)
-
-
-def build_local_map(
-    log: RobotLog,
-    extra_pose_stamps: ArrayLike = (),
-    options: LocalMapOptions | None = None,
-    window: float | None = 60.0,
-) -> LocalMap:
-    """Offline: the local map of a whole robot log, solved to convergence.
-
-    The problem is the same as online. Its initial values come from the online policy run
-    on windows of ``window`` seconds of odometry (each window added and solved warm-started,
-    as :meth:`LocalMap.update` does), which keeps long, drifting real runs (and robust
-    kernels) out of the poor local minima that one batch solve from dead reckoning can end
-    in; ``window=None`` starts the one batch solve from dead reckoning instead. A 2D SLAM
-    file's robot is built in chunks of :data:`FILE_CHUNK` odometry samples instead, each
-    solved to :data:`CHUNK_SOLVER`'s tolerance.
-    """
-    local = LocalMap(log.name, options)
-    if window is None or len(log.odometry.stamps) == 0:
-        local.add_log(log, extra_pose_stamps)
-        local.update(converge=True)
-        return local
-    odo, f, p = log.odometry, log.features, log.points
-    local.request_poses(log.rendezvous.stamps)
-    local.request_poses(extra_pose_stamps)
-    if not window > 0:
-        raise ValueError(f"window must be positive or None, got {window}")
-    chunked = len(p.stamps) > 0 and len(f.stamps) == 0 and local.options.robust is None
-    own_options = local.options
-    if chunked:
-        edges = odo.stamps[FILE_CHUNK : len(odo.stamps) - 1 : FILE_CHUNK]
-        local.options = replace(local.options, online_solver=CHUNK_SOLVER)
-    else:
-        # the window ends t0 + k * window after data (no empty windows across a gap)
-        t0, last = odo.stamps[0], int((odo.stamps[-1] - odo.stamps[0]) // window)
-        k = np.ceil((np.concatenate([odo.stamps, f.stamps, p.stamps]) - t0) / window)
-        k = np.unique(np.concatenate([k, k + 1]))
-        edges = t0 + window * k[(k >= 1) & (k <= last)]
-    o_cut = [*np.searchsorted(odo.stamps, edges, side="right").tolist(), len(odo.stamps)]
-    orders, cuts = [], []
-    for stamps in (f.stamps, p.stamps):
-        order = np.argsort(stamps, kind="stable")
-        orders.append(order)
-        cuts.append([*np.searchsorted(stamps[order], edges, side="right").tolist(), len(order)])
-    o_start, f_start, p_start = 0, 0, 0
-    for oc, fc, pc in zip(o_cut, *cuts, strict=True):
-        local.add_log_part(log, slice(o_start, oc), orders[0][f_start:fc], orders[1][p_start:pc])
-        o_start, f_start, p_start = oc, fc, pc
-        if not (oc == len(odo.stamps) and fc == len(f.stamps) and pc == len(p.stamps)):
-            local.update()
-    local.options = own_options
-    local.update(converge=True)
-    return local

@@ -19,7 +19,8 @@ from csam_ros.core.exchange.validation import (
     InputBounds,
     MeasurementFilter,
 )
-from csam_ros.core.smoothing.local_map import LocalMap, LocalMapOptions
+from csam_ros.core.smoothing.local_map import LocalMap
+from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 
 U, S = np.array([0.5, 0.0, 0.1]), np.array([0.02, 0.01, 0.01])
 

@@ -23,7 +23,7 @@ from csam_ros.core.joining.association import (
 from csam_ros.core.joining.local_views import local_view, map_features
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.rendezvous import collect, required_stamps
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 

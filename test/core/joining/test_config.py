@@ -8,7 +8,7 @@ import pytest
 from csam_ros.core.joining.config import MERGER, CsamConfig
 from csam_ros.core.model.config_file import settings
 from csam_ros.core.sam.factors import Cauchy
-from csam_ros.core.smoothing.local_map import SMOOTHER, LocalMapConfig
+from csam_ros.core.smoothing.local_map_config import SMOOTHER, LocalMapConfig
 from csam_ros.datasets.scenario import load_document
 
 

@@ -12,7 +12,7 @@ from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import build_robot_maps
 from csam_ros.core.model.log import MultiRobotLog
-from csam_ros.core.smoothing.local_map import LocalMapConfig
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

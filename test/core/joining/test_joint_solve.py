@@ -15,7 +15,7 @@ from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.core.sam.factors import POSE, PosePrior, RelativePose
 from csam_ros.core.sam.selected_inverse import SelectedInverse
 from csam_ros.core.sam.solver import GAUGE_SIGMA, Problem
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

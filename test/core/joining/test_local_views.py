@@ -18,7 +18,7 @@ from csam_ros.core.joining.local_views import (
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.sam.covariance import factorize_at_estimate
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

@@ -17,7 +17,7 @@ from csam_ros.core.model.log import (
     empty_rendezvous,
 )
 from csam_ros.core.sam.covariance import factorize_at_estimate
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 

@@ -3,14 +3,10 @@
 import numpy as np
 import pytest
 
-from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.model import se2
-from csam_ros.core.smoothing.local_map import (
-    LocalMap,
-    LocalMapConfig,
-    LocalMapOptions,
-    build_local_map,
-)
+from csam_ros.core.smoothing.local_map import LocalMap
+from csam_ros.core.smoothing.local_map_build import build_local_map
+from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.datasets.simulation import simulate_robot_log
 
 
@@ -169,21 +165,3 @@ def test_maybe_update_follows_the_update_period():
         if local.maybe_update() is not None:
             solved += 1
     assert 2 <= solved <= 4
-
-
-def test_config_values_are_checked_against_the_field_settings() -> None:
-    config = LocalMapConfig.from_dict({"key_interval": 2, "robust_kernel": "huber"})
-    assert config.key_interval == 2.0 and isinstance(config.key_interval, float)
-    with pytest.raises(ValueError, match=r"local_map: unknown key\(s\) \['key_intervall'\]"):
-        LocalMapConfig.from_dict({"key_intervall": 1.0})
-    with pytest.raises(ValueError, match="local_map.batch_window: must be at least 0, got -1"):
-        LocalMapConfig.from_dict({"batch_window": -1.0})
-    with pytest.raises(ValueError, match="publish_period: must be greater than 0, got 0"):
-        LocalMapConfig.from_dict({"publish_period": 0})
-    with pytest.raises(ValueError, match="key_interval: must be finite"):
-        LocalMapConfig.from_dict({"key_interval": float("inf")})
-    with pytest.raises(ValueError, match="robust_kernel: 'tukey' is not one of '', 'huber'"):
-        LocalMapConfig.from_dict({"robust_kernel": "tukey"})
-    with pytest.raises(ValueError, match="csam.rendezvous_max_per_pair: expected a whole number"):
-        CsamConfig.from_dict({"rendezvous_max_per_pair": 2.5})
-    assert CsamConfig.from_dict({"rendezvous_max_per_pair": 20.0}).rendezvous_max_per_pair == 20

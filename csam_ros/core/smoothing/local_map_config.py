@@ -1,0 +1,104 @@
+"""A local map's settings: :class:`LocalMapOptions` of the smoothing engine
+(:class:`~csam_ros.core.smoothing.local_map.LocalMap`) and :class:`LocalMapConfig`, the
+``local_map:`` section of a parameter file that gives them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from csam_ros.core.model.config_file import Section, setting
+from csam_ros.core.sam.factors import ROBUST_KERNELS, RobustKernel, robust_kernel
+from csam_ros.core.sam.solver import GAUGE_SIGMA, SolverOptions
+
+
+@dataclass
+class LocalMapOptions:
+    """Settings of a local map."""
+
+    key_interval: float | None = 1.0  # regular key poses every this many seconds; None: off
+    stamp_tolerance: float = 1e-6  # stamps closer than this share a key pose
+    gauge_sigma: float = GAUGE_SIGMA
+    robust: RobustKernel | None = None  # kernel on feature observations (real data)
+    update_period: float = 1.0  # maybe_update(): seconds of new odometry between solves
+    solver: SolverOptions = field(default_factory=SolverOptions)  # converged solves
+    online_solver: SolverOptions = field(  # every other update: warm-started, capped
+        default_factory=lambda: SolverOptions(relative_tolerance=1e-6, max_iterations=10)
+    )
+
+
+SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
+
+
+@dataclass
+class LocalMapConfig(Section):
+    """The ``local_map:`` section of a parameter file; the smoother node's parameters of the
+    same names (``batch_window`` is for offline builds only, ``publish_period`` for nodes)."""
+
+    section = "local_map"
+
+    key_interval: float = setting(
+        1.0, "s between regular key poses (0: off)", minimum=0.0, node=SMOOTHER
+    )
+    robust_kernel: str = setting(
+        "",
+        "kernel on feature observations ('': none)",
+        choices=("", *ROBUST_KERNELS),
+        node=SMOOTHER,
+    )
+    robust_threshold: float = setting(
+        0.0,
+        "the kernel's threshold or scale, whitened (0: its default)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+    batch_window: float = setting(
+        60.0, "offline: s of odometry per warm-started solve (0: one batch)", minimum=0.0
+    )
+    publish_period: float = setting(
+        1.0,
+        "s (node clock) between a smoother's updates when data arrived",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+
+    # SolverOptions.max_step_scale of the converged solves (a smoother's ~/flush, the end of
+    # an offline build), not of the online updates (MR.CLAM: another minimum of the robust cost)
+    converged_step_scale: float = setting(
+        1.0,
+        "converged solves: stretch a robust (reweighted) step by up to this factor while the "
+        "cost falls (1: off)",
+        minimum=1.0,
+        node=SMOOTHER,
+    )
+
+    update_tolerance_m: float = setting(
+        0.02,
+        "m a pose moves before a smoother sends it again (0: every change)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+    update_tolerance_rad: float = setting(
+        0.02,
+        "rad a pose turns before a smoother sends it again (0: every change)",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+    update_key_tolerance: float = setting(
+        1e-3,
+        "m (and rad) a feature or rendezvous pose moves before a smoother sends it again",
+        minimum=0.0,
+        node=SMOOTHER,
+    )
+
+    def options(self) -> LocalMapOptions:
+        return LocalMapOptions(
+            key_interval=self.key_interval or None,
+            robust=robust_kernel(self.robust_kernel, self.robust_threshold),
+            solver=SolverOptions(max_step_scale=self.converged_step_scale),
+        )
+
+    @property
+    def window(self) -> float | None:
+        """``build_local_map``'s window."""
+        return self.batch_window or None
