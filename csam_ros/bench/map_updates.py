@@ -30,9 +30,9 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays  # noqa: E402
 from csam_ros.core.exchange.map_arrays import checked_robot_map, robot_map_arrays  # noqa: E402
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance  # noqa: E402
-from csam_ros.core.exchange.validation import LocalMapArrays  # noqa: E402
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import robot_map_from_local_map, thinned_rendezvous

@@ -30,16 +30,15 @@ from geometry_msgs.msg import Pose2D
 from rclpy.serialization import serialize_message
 from tf2_msgs.msg import TFMessage
 
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays, rendezvous_row_mask
 from csam_ros.core.exchange.map_arrays import checked_robot_map
 from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate
 from csam_ros.core.exchange.validation import (
     MALFORMED_RENDEZVOUS_POSES,
     ROBOT_MISMATCH,
     DropCounter,
-    LocalMapArrays,
     LocalMapError,
     RefusedMessageError,
-    rendezvous_row_mask,
 )
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model import se2

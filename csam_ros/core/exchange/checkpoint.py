@@ -29,8 +29,9 @@ from typing import Any, get_type_hints
 import numpy as np
 from numpy.typing import NDArray
 
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays
 from csam_ros.core.exchange.map_arrays import robot_map_arrays, robot_map_from_arrays
-from csam_ros.core.exchange.validation import LocalMapArrays, MeasurementFilter
+from csam_ros.core.exchange.validation import MeasurementFilter
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog, RobotLog

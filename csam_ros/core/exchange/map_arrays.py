@@ -1,12 +1,14 @@
-"""A solved local map as plain arrays (:class:`~csam_ros.core.exchange.validation.LocalMapArrays`)
-and back: what a LocalMap message carries and a saved merger state holds."""
+"""A solved local map as plain arrays
+(:class:`~csam_ros.core.exchange.local_map_checks.LocalMapArrays`) and back: what a LocalMap
+message carries and a saved merger state holds."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays, local_map_fault
 from csam_ros.core.exchange.map_updates import HeldMap
-from csam_ros.core.exchange.validation import LocalMapArrays, LocalMapError, local_map_fault
+from csam_ros.core.exchange.validation import LocalMapError
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
@@ -133,10 +135,10 @@ def robot_map_from_arrays(name: str, m: LocalMapArrays) -> RobotMap:
 
 def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -> RobotMap:
     """The local problem of ``arrays``: every field is checked first
-    (:func:`~csam_ros.core.exchange.validation.local_map_fault`), then the problem is linearised and
-    factored once at the estimate (non-finite or singular information, which C-SAM would meet
-    at every solve). Raises :class:`LocalMapError` naming the fault, with the reason to count
-    it under (``malformed_local_map``).
+    (:func:`~csam_ros.core.exchange.local_map_checks.local_map_fault`), then the problem is
+    linearised and factored once at the estimate (non-finite or singular information, which
+    C-SAM would meet at every solve). Raises :class:`LocalMapError` naming the fault, with the
+    reason to count it under (``malformed_local_map``).
 
     ``refine``: the estimate is within a tolerance of the sender's optimum (a map built from
     local map updates), so it is taken back to that optimum first by the online smoother's

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core.exchange.validation import LocalMapArrays
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays
 from csam_ros.core.model import se2
 
 Array = NDArray[np.float64]

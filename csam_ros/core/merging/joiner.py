@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from csam_ros.core.exchange.checkpoint import MergerState
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays
 from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map
 from csam_ros.core.exchange.map_updates import HeldMap
-from csam_ros.core.exchange.validation import LocalMapArrays, LocalMapError
+from csam_ros.core.exchange.validation import LocalMapError
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.local_views import LocalViewCache, in_threads

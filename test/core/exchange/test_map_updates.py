@@ -6,6 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import (
     HeldMap,
@@ -15,7 +16,6 @@ from csam_ros.core.exchange.map_updates import (
     UpdateTolerance,
     apply_update,
 )
-from csam_ros.core.exchange.validation import LocalMapArrays
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model import se2
 from csam_ros.core.smoothing.local_map import LocalMap
