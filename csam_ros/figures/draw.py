@@ -219,6 +219,7 @@ class _Robot:
     name: str
     colour: str
     alignment: str
+    aligned: bool  # in the joined map (RobotResult.joined)
     stamps: FloatArray
     poses_local: FloatArray
     poses_joined: FloatArray | None
@@ -228,10 +229,6 @@ class _Robot:
     rendezvous_stamps: FloatArray
     base_node: FloatArray | None
     base_node_cov: FloatArray | None
-
-    @property
-    def aligned(self) -> bool:
-        return self.alignment in ("reference", "aligned")
 
     @property
     def pending_reason(self) -> str:
@@ -245,6 +242,7 @@ def _robot(robot: RobotResult, colour: str) -> _Robot:
         name=robot.name,
         colour=colour,
         alignment=robot.alignment,
+        aligned=robot.joined,
         stamps=robot.stamps,
         poses_local=robot.poses_local,
         poses_joined=robot.poses_joined,
@@ -477,8 +475,7 @@ def draw_local_maps(result: CsamResult, path: str | Path, scenario: str | None =
     drawn_ellipses = drawn_rendezvous = False
     for axes, robot in zip(grid.ravel(), robots, strict=False):
         _map_axes(axes, f"{robot.name}/map")
-        status = "reference" if robot.alignment == "reference" else robot.alignment
-        axes.set_title(f"{robot.name} ({status})", color=robot.colour, fontsize=10)
+        axes.set_title(f"{robot.name} ({robot.alignment})", color=robot.colour, fontsize=10)
         poses = robot.poses_local
         features = robot.features_local
         if poses.shape[0] == 0 and features.xy.shape[0] == 0:

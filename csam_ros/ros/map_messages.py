@@ -40,6 +40,7 @@ from csam_ros.core.exchange.validation import (
     LocalMapError,
     RefusedMessageError,
 )
+from csam_ros.core.joining.alignment import ALIGNED
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import RendezvousLog
@@ -564,7 +565,7 @@ def robot_map_transforms(result: CsamResult, stamp_ns: int) -> TFMessage:
     joint solve bends a local map slightly, so the two differ a little later on."""
     transforms = []
     for name, robot in result.robots.items():
-        if robot.alignment == "aligned" and robot.poses_joined is not None:
+        if robot.alignment == ALIGNED and robot.poses_joined is not None:
             latest = se2.compose(robot.poses_joined[-1], se2.inverse(robot.poses_local[-1]))
             transforms.append((result.reference_frame, f"{name}/map", latest))
     return tf_message(transforms, stamp_ns)

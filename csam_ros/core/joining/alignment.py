@@ -62,6 +62,15 @@ IntArray = NDArray[np.int64]
 # Cholesky of this size takes about a second); larger ones by the generic sparse solver.
 DENSE_NEWTON_LIMIT = 4000
 
+# a robot's alignment status: the reference, aligned, or "pending: <reason>"
+REFERENCE = "reference"
+ALIGNED = "aligned"
+
+
+def joined(status: str) -> bool:
+    """Whether a robot of alignment ``status`` is in the joined map (the reference or aligned)."""
+    return status in (REFERENCE, ALIGNED)
+
 
 @dataclass
 class RendezvousPart:
@@ -151,7 +160,8 @@ class Alignment:
     warm_start: bool = False  # refined from the start given (lower cost), not the cold one
 
     def aligned(self, r: int) -> bool:
-        return self.status[r] in ("reference", "aligned")
+        """Whether robot ``r`` is in the joined map (:func:`joined`)."""
+        return joined(self.status[r])
 
     def state_columns(self, key: tuple) -> IntArray:
         """Rows/columns of ``covariance`` of one state variable."""
@@ -397,7 +407,7 @@ def _place(
     initial = np.full((n_robots, 3), np.nan)
     initial[0] = 0.0
     status = ["pending: never met an aligned robot"] * n_robots
-    status[0] = "reference"
+    status[0] = REFERENCE
     placed = [0]
     parents: dict[int, int] = {}
     methods: dict[int, str] = {}
@@ -413,7 +423,7 @@ def _place(
                 reasons.setdefault(c, []).append(f"with {measurements.robots[a]}: {init.reason}")
                 continue
             initial[c] = se2.compose(initial[a], init.base)
-            status[c] = "aligned"
+            status[c] = ALIGNED
             placed.append(c)
             parents[c] = a
             methods[c] = init.method

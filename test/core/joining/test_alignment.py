@@ -13,6 +13,7 @@ from csam_ros.core.joining.alignment import (
     RendezvousPart,
     align,
     initial_pair_base,
+    joined,
 )
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.pipeline import run_csam
@@ -90,6 +91,8 @@ def test_one_measurement_is_pending(two_robots) -> None:
     result = align(parts, meas)
     assert result.status[1].startswith("pending: ") and "unobservable" in result.status[1]
     assert np.all(np.isnan(result.base_nodes[1]))
+    assert result.aligned(0) and not result.aligned(1)
+    assert joined("reference") and joined("aligned") and not joined(result.status[1])
 
 
 def test_positions_not_spread_are_pending(two_robots) -> None:
