@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from noise_models import noise_model
 
-from csam_ros.core.truth.noise_model import NoiseModel
 from csam_ros.datasets.landmark_swaps import detect_landmark_swaps, exchange_landmarks
 
 
@@ -16,14 +16,7 @@ def test_swapped_landmarks_in_the_truth_are_found_from_the_measurements() -> Non
 
     log = simulate(load_scenario("map_joining"), 1)
     assert log.truth is not None
-    noise = NoiseModel(
-        sigma_range=0.01,
-        sigma_range_per_m=0.0,
-        sigma_bearing=0.012,
-        q_v=0.1,
-        q_vlat=0.1,
-        q_omega=0.1,
-    )
+    noise = noise_model((0.01, 0.0, 0.012), (0.1, 0.1, 0.1))
     assert detect_landmark_swaps(log, noise) == []  # the simulator's truth is right
     # the most observed feature of each area, metres apart
     observed = np.concatenate(

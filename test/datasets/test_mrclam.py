@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mrclam_files import BARCODES, LANDMARKS, clean_odometry, write_dataset
+from noise_models import noise_model
 
-from csam_ros.core.truth.noise_model import NoiseModel
 from csam_ros.datasets.mrclam import (
     AUTO,
     MRCLAM_NOISE,
@@ -203,14 +203,7 @@ def test_piecewise_velocity_uses_the_row_active_before_each_sample(tmp_path: Pat
 def test_noise_sigmas(tmp_path: Path) -> None:
     rows = ["1000.0 0.1 0.0", "1000.25 0.1 0.0", "1001.25 0.1 0.0"]
     d = write_dataset(tmp_path / "ds", {1: rows}, {1: ["1000.5 72 2.0 0.1"]})
-    noise = NoiseModel(
-        sigma_range=0.05,
-        sigma_range_per_m=0.02,
-        sigma_bearing=0.01,
-        q_v=0.1,
-        q_vlat=0.2,
-        q_omega=0.3,
-    )
+    noise = noise_model((0.05, 0.02, 0.01), (0.1, 0.2, 0.3))
     log, _ = import_mrclam(d, noise=noise)
     odo = log.robots["robot1"].odometry
     np.testing.assert_allclose(odo.sigmas[1], np.array([0.1, 0.2, 0.3]) / 0.5)

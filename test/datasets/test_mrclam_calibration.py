@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from noise_models import noise_model
 
 from csam_ros.core.model.config_file import load_document
 from csam_ros.core.truth.calibration import NoiseEstimate
-from csam_ros.core.truth.noise_model import NoiseModel
 from csam_ros.core.truth.snapshots import OdometryNoiseEstimate, SensorNoiseEstimate
 from csam_ros.datasets.mrclam import load_config
 from csam_ros.datasets.mrclam_calibration import calibration_config, range_scales
@@ -17,16 +17,7 @@ BASE = Path(__file__).resolve().parents[2] / "config" / "mrclam.yaml"
 
 
 def estimate() -> NoiseEstimate:
-    noise = NoiseModel(
-        sigma_range=0.0012345678,
-        sigma_range_per_m=0.0401,
-        sigma_bearing=0.0049,
-        q_v=0.025,
-        q_vlat=0.008,
-        q_omega=0.061,
-        rendezvous_range_factor=1.4,
-        rendezvous_bearing_factor=2.1,
-    )
+    noise = noise_model((0.0012345678, 0.0401, 0.0049), (0.025, 0.008, 0.061), (1.4, 2.1))
     return NoiseEstimate(
         noise=noise,
         first_estimate=noise,

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from noise_models import noise_model
 
 from csam_ros.core.truth.range_scale import (
     MutualPairs,
@@ -220,7 +221,6 @@ def test_jackknife_over_meetings_sees_errors_shared_within_a_meeting() -> None:
 
 
 def test_scales_against_a_map_of_its_own_scale_and_frame_are_the_relative_scales() -> None:
-    from csam_ros.core.truth.noise_model import NoiseModel
     from csam_ros.datasets.scenario import load_scenario
     from csam_ros.datasets.simulation import simulate
 
@@ -237,14 +237,7 @@ def test_scales_against_a_map_of_its_own_scale_and_frame_are_the_relative_scales
     c, s = np.cos(0.3), np.sin(0.3)
     moved = 1.01 * log.truth.feature_positions @ np.array([[c, -s], [s, c]]).T + [3.0, -2.0]
     reference = replace(log.truth, feature_positions=moved)
-    noise = NoiseModel(
-        sigma_range=0.01,
-        sigma_range_per_m=0.03,
-        sigma_bearing=0.012,
-        q_v=0.1,
-        q_vlat=0.1,
-        q_omega=0.1,
-    )
+    noise = noise_model((0.01, 0.03, 0.012), (0.1, 0.1, 0.1))
     result = map_range_scales(replace(log, robots=robots), reference, noise)
     expected = _relative(truth)
     assert sorted(result) == names

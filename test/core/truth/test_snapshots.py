@@ -4,10 +4,11 @@ answers."""
 from __future__ import annotations
 
 import numpy as np
+from noise_models import noise_model
 
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import FeatureLog, GroundTruth, OdometryLog, RobotLog, empty_rendezvous
-from csam_ros.core.truth.noise_model import DENSITY_FLOOR, NoiseModel
+from csam_ros.core.truth.noise_model import DENSITY_FLOOR
 from csam_ros.core.truth.snapshots import _fit_densities, snapshot_localisation
 
 
@@ -38,14 +39,7 @@ def test_snapshot_localisation_recovers_poses_despite_an_outlier() -> None:
     )
     odometry = OdometryLog(np.array([0.0, 3.0]), np.zeros((2, 3)), np.ones((2, 3)))
     robot = RobotLog("robot1", odometry, features, empty_rendezvous())
-    noise = NoiseModel(
-        sigma_range=0.01,
-        sigma_range_per_m=0.0,
-        sigma_bearing=0.002,
-        q_v=1.0,
-        q_vlat=1.0,
-        q_omega=1.0,
-    )
+    noise = noise_model((0.01, 0.0, 0.002), (1.0, 1.0, 1.0))
     snapshots = snapshot_localisation(robot, truth, noise)
     np.testing.assert_allclose(snapshots.stamps, [0.0, 1.0, 2.0])
     np.testing.assert_allclose(snapshots.poses[:, :2], poses[:, :2], atol=0.03)
