@@ -475,24 +475,12 @@ class MeasurementFilter:
         stream), or None if the message is dropped."""
         drops = self.counter(robot)
         count = len(np.asarray(points, dtype=float).reshape(-1, 2))
-        if count == 0 or count > self.bounds.max_observations:
-            drops.add(
-                UNKNOWN_ROBOT
-                if not self._known(robot)
-                else EMPTY
-                if count == 0
-                else TOO_MANY_OBSERVATIONS
-            )
-            return None
-        fault = self._stamp_fault(robot, "points", stamp)
+        fault = self._message_fault(robot, "points", stamp, count)
         if fault is not None:
             drops.add(fault)
             return None
         keep = point_mask(points, covariances, self.field_of_view, drops, self.bounds)
-        if not keep.any():
-            return None
-        self._stream(robot, "points").last = float(stamp)
-        return keep
+        return self._accepted(robot, "points", stamp, keep)
 
     def rendezvous(
         self,
@@ -509,8 +497,13 @@ class MeasurementFilter:
             robot, "rendezvous", stamp, ranges, bearings, sigma_range, sigma_bearing, observed
         )
 
-    def _stamp_fault(self, robot: str, stream: str, stamp: float) -> str | None:
-        """Why a features or rendezvous message at ``stamp`` is dropped, or None."""
+    def _message_fault(self, robot: str, stream: str, stamp: float, count: int) -> str | None:
+        """Why a features, points or rendezvous message of ``count`` observations at ``stamp``
+        is dropped as a whole, or None."""
+        if count == 0 or count > self.bounds.max_observations:
+            if not self._known(robot):
+                return UNKNOWN_ROBOT
+            return EMPTY if count == 0 else TOO_MANY_OBSERVATIONS
         if not self._known(robot):
             return UNKNOWN_ROBOT
         if not np.isfinite(stamp):
@@ -538,13 +531,7 @@ class MeasurementFilter:
     ) -> NDArray[np.bool_] | None:
         drops = self.counter(robot)
         r = np.asarray(ranges, dtype=float)
-        if r.size == 0 or r.size > self.bounds.max_observations:
-            if not self._known(robot):
-                drops.add(UNKNOWN_ROBOT)
-            else:
-                drops.add(EMPTY if r.size == 0 else TOO_MANY_OBSERVATIONS)
-            return None
-        fault = self._stamp_fault(robot, stream, stamp)
+        fault = self._message_fault(robot, stream, stamp, r.size)
         if fault is not None:
             drops.add(fault)
             return None
@@ -560,7 +547,14 @@ class MeasurementFilter:
                 unknown = keep & ~np.isin(names, self.robots)
                 drops.add(UNKNOWN_ROBOT, int(unknown.sum()))
                 keep &= ~unknown
-        if not keep.any():  # every observation was counted under its own fault
+        return self._accepted(robot, stream, stamp, keep)
+
+    def _accepted(
+        self, robot: str, stream: str, stamp: float, keep: NDArray[np.bool_]
+    ) -> NDArray[np.bool_] | None:
+        """``keep``, the stamp now the stream's last, or None (the message dropped) when no
+        observation is left: each was counted under its own fault."""
+        if not keep.any():
             return None
         self._stream(robot, stream).last = float(stamp)
         return keep
