@@ -169,6 +169,16 @@ def _scan(file: Path) -> McapScan:
         raise BagError(f"cannot read {file}: {error.strerror or error}") from None
 
 
+def _scan_bag(path: Path) -> tuple[dict[str, Any] | None, list[McapScan], dict[Path, int]]:
+    """A bag's metadata.yaml (None without one), a scan of each of its files (all checked to
+    be MCAP first) and the message count metadata.yaml lists for each file."""
+    metadata = _load_metadata(path) if path.is_dir() else None
+    files = _bag_files(path, metadata)
+    for file in files:
+        _check_magic(file)
+    return metadata, [_scan(file) for file in files], _listed_counts(path, metadata)
+
+
 def _lost(scan: McapScan, lost: dict[int, int] | None) -> str:
     if not lost:
         return "an unknown number of messages"
@@ -249,12 +259,7 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
     Raises BagError for a missing path, a directory without .mcap files, an empty or
     non-MCAP file, and unsupported storage."""
     path = Path(path)
-    metadata = _load_metadata(path) if path.is_dir() else None
-    files = _bag_files(path, metadata)
-    for file in files:
-        _check_magic(file)
-    scans = [_scan(file) for file in files]
-    listed = _listed_counts(path, metadata)
+    metadata, scans, listed = _scan_bag(path)
     warnings = [line for scan in scans for line in file_warnings(scan, listed.get(scan.path))]
 
     counts: dict[str, int] = {}
@@ -299,7 +304,7 @@ def inspect_bag(path: str | os.PathLike[str]) -> BagInfo:
     end = max((span[1] for span in spans), default=0)
     return BagInfo(
         path=path,
-        files=files,
+        files=[scan.path for scan in scans],
         topics=topics,
         message_count=total,
         start_ns=start,
@@ -338,13 +343,8 @@ def read_bag(
     line by line before the first message (default: a warning of the ``csam_ros.bag``
     logger). Raises BagError for a bag that cannot be read at all."""
     path = Path(path)
-    metadata = _load_metadata(path) if path.is_dir() else None
-    files = _bag_files(path, metadata)
-    for file in files:
-        _check_magic(file)
+    _, scans, listed = _scan_bag(path)
     report = on_damage if on_damage is not None else LOGGER.warning
-    scans = [_scan(file) for file in files]
-    listed = _listed_counts(path, metadata)
     for scan in scans:
         for line in file_warnings(scan, listed.get(scan.path)):
             report(line)

@@ -18,12 +18,8 @@ from pathlib import Path
 
 from csam_ros.bag.mcapfile import McapScan
 from csam_ros.bag.reader import (
-    _bag_files,
-    _check_magic,
     _iter_scan,
-    _listed_counts,
-    _load_metadata,
-    _scan,
+    _scan_bag,
     cut_summary,
     file_warnings,
     inspect_bag,
@@ -113,12 +109,7 @@ def recover_bag(
     out = Path(out) if out is not None else default_output(source)
     if os.path.lexists(out):
         raise BagError(f"{out} already exists; not overwriting it")
-    metadata = _load_metadata(source) if source.is_dir() else None
-    files = _bag_files(source, metadata)
-    for file in files:
-        _check_magic(file)
-    scans = [_scan(file) for file in files]
-    listed = _listed_counts(source, metadata)
+    _, scans, listed = _scan_bag(source)
     hashes = {name: topic.type_hash for name, topic in info.topics.items()}
     definitions, dropped = _definitions(scans, hashes)
     if not definitions:
