@@ -66,8 +66,9 @@ from csam_ros.core.model import se2
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.model.rendezvous import RendezvousSet, collect
 from csam_ros.core.sam.covariance import covariance_block, factorize_at_estimate
+from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
-from csam_ros.core.sam.solver import NormalEquations, Problem, SolveReport
+from csam_ros.core.sam.solver import Problem, SolveReport
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 Array = NDArray[np.float64]

@@ -29,8 +29,8 @@ from csam_ros.core.sam.covariance import (
     factorize_at_estimate,
     upper_sqrt_information,
 )
+from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
-from csam_ros.core.sam.solver import NormalEquations
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 Array = NDArray[np.float64]
