@@ -3,18 +3,16 @@ file) and the options of each step derived from them (docs/METHOD.md sections 5-
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from csam_ros.core.joining.alignment import AlignmentOptions
-from csam_ros.core.joining.association import CHI2_2DOF_99
 from csam_ros.core.joining.consistency import ConsistencyOptions
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
-from csam_ros.core.model.config_file import from_mapping, load_document, setting
+from csam_ros.core.model.chi_square import CHI2_2DOF_99
+from csam_ros.core.model.config_file import Section, load_document, setting
 from csam_ros.core.sam.solver import SolverOptions
 from csam_ros.core.smoothing.local_map_config import SMOOTHER
 
@@ -23,12 +21,14 @@ _POSITIVE = {"minimum": 0.0, "exclusive": True, "node": MERGER}
 
 
 @dataclass
-class CsamConfig:
+class CsamConfig(Section):
     """Parameters of C-SAM (the ``csam:`` section of a scenario or merger parameter file).
 
     The merger takes each field as a ROS parameter, but the rendezvous thinning, which decides
     where the local maps hold poses and so belongs to the smoothers (online) and
     :func:`~csam_ros.core.joining.pipeline.run_csam` (offline)."""
+
+    section = "csam"
 
     chi2_gate: float = setting(
         CHI2_2DOF_99, "association gate on the Mahalanobis distance (2 dof)", **_POSITIVE
@@ -112,11 +112,6 @@ class CsamConfig:
         minimum=0.0,
         node=MERGER,
     )
-
-    @classmethod
-    def from_dict(cls, node: Mapping[str, Any] | None, source: str = "csam") -> CsamConfig:
-        """Build from a mapping; unknown keys and bad values are errors naming them."""
-        return from_mapping(cls, node, source)
 
     @classmethod
     def from_file(cls, name_or_path: str | Path) -> CsamConfig:
