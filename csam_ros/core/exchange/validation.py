@@ -68,6 +68,10 @@ class LocalMapError(RefusedMessageError):
         super().__init__(detail, reason)
 
 
+# the rule of most input bounds: positive, and a parameter of the smoother node
+_POSITIVE = {"minimum": 0.0, "exclusive": True, "node": SMOOTHER}
+
+
 @dataclass(frozen=True)
 class InputBounds(Section):
     """The ``input:`` section of a parameter file, and the smoother node's parameters of the
@@ -83,23 +87,17 @@ class InputBounds(Section):
     max_range: float = setting(
         1000.0,
         "m: largest range of a feature or robot observation",
-        minimum=0.0,
-        exclusive=True,
-        node=SMOOTHER,
+        **_POSITIVE,
     )
     min_sigma: float = setting(
         1e-6,
         "smallest sigma of any measurement (m, rad, m/s or rad/s)",
-        minimum=0.0,
-        exclusive=True,
-        node=SMOOTHER,
+        **_POSITIVE,
     )
     max_sigma: float = setting(
         1000.0,
         "largest sigma of any measurement (m, rad, m/s or rad/s)",
-        minimum=0.0,
-        exclusive=True,
-        node=SMOOTHER,
+        **_POSITIVE,
     )
     max_sigma_ratio: float = setting(
         1e6,
@@ -111,19 +109,13 @@ class InputBounds(Section):
     max_speed: float = setting(
         30.0,
         "m/s: largest |v| and |v_lat| of odometry",
-        minimum=0.0,
-        exclusive=True,
-        node=SMOOTHER,
+        **_POSITIVE,
     )
-    max_turn_rate: float = setting(
-        30.0, "rad/s: largest |omega| of odometry", minimum=0.0, exclusive=True, node=SMOOTHER
-    )
+    max_turn_rate: float = setting(30.0, "rad/s: largest |omega| of odometry", **_POSITIVE)
     max_stamp_jump: float = setting(
         60.0,
         "s: largest step of a stream's stamps taken as continuous (beyond: a gap)",
-        minimum=0.0,
-        exclusive=True,
-        node=SMOOTHER,
+        **_POSITIVE,
     )
     max_observations: int = setting(
         1000,

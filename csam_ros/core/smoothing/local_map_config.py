@@ -27,6 +27,7 @@ class LocalMapOptions:
 
 
 SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
+_NON_NEGATIVE = {"minimum": 0.0, "node": SMOOTHER}
 
 
 @dataclass
@@ -36,9 +37,7 @@ class LocalMapConfig(Section):
 
     section = "local_map"
 
-    key_interval: float = setting(
-        1.0, "s between regular key poses (0: off)", minimum=0.0, node=SMOOTHER
-    )
+    key_interval: float = setting(1.0, "s between regular key poses (0: off)", **_NON_NEGATIVE)
     robust_kernel: str = setting(
         "",
         "kernel on feature observations ('': none)",
@@ -48,8 +47,7 @@ class LocalMapConfig(Section):
     robust_threshold: float = setting(
         0.0,
         "the kernel's threshold or scale, whitened (0: its default)",
-        minimum=0.0,
-        node=SMOOTHER,
+        **_NON_NEGATIVE,
     )
     batch_window: float = setting(
         60.0, "offline: s of odometry per warm-started solve (0: one batch)", minimum=0.0
@@ -75,20 +73,17 @@ class LocalMapConfig(Section):
     update_tolerance_m: float = setting(
         0.02,
         "m a pose moves before a smoother sends it again (0: every change)",
-        minimum=0.0,
-        node=SMOOTHER,
+        **_NON_NEGATIVE,
     )
     update_tolerance_rad: float = setting(
         0.02,
         "rad a pose turns before a smoother sends it again (0: every change)",
-        minimum=0.0,
-        node=SMOOTHER,
+        **_NON_NEGATIVE,
     )
     update_key_tolerance: float = setting(
         1e-3,
         "m (and rad) a feature or rendezvous pose moves before a smoother sends it again",
-        minimum=0.0,
-        node=SMOOTHER,
+        **_NON_NEGATIVE,
     )
 
     def options(self) -> LocalMapOptions:
