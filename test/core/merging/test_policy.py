@@ -46,7 +46,7 @@ from csam_ros.core.merging.policy import (
 from csam_ros.core.merging.status import Health
 from csam_ros.core.model.log import MultiRobotLog, RendezvousLog
 from csam_ros.core.model.rendezvous import required_stamps
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
