@@ -329,6 +329,7 @@ class LocalMap:
         cand = np.clip(np.unique(np.concatenate(candidates)), t0, t_end)
         new_keys = self._new_key_stamps(cand, tol)
         inserted = self._insert_keys(new_keys)
+        covered = self._with_key_pose(first_new_feature, covered)
         new_landmarks, new_obs = self._integrate_features(covered)
         solve = self._solve(self.options.solver if converge else self.options.online_solver)
         self._last_solved_odometry = t_end
@@ -349,10 +350,13 @@ class LocalMap:
             near_next = np.abs(self._keys[np.minimum(pos, len(self._keys) - 1)] - candidates)
             near_prev = np.abs(self._keys[np.maximum(pos - 1, 0)] - candidates)
             candidates = candidates[np.minimum(near_next, near_prev) > tol]
-        if len(candidates) == 0:
-            return candidates
-        starts = np.concatenate([[True], np.diff(candidates) > tol])
-        return candidates[starts]
+        # each key starts a cluster and takes the candidates within ``tol`` after it (not a
+        # chain of steps of ``tol`` each, which would leave stamps too far from their key)
+        starts: list[float] = []
+        for stamp in candidates.tolist():
+            if not starts or stamp - starts[-1] > tol:
+                starts.append(stamp)
+        return np.asarray(starts, dtype=float)
 
     def _insert_keys(self, new_keys: Array) -> int:
         """Add key poses, recompute the odometry factors of changed intervals; count inserts."""
@@ -401,6 +405,19 @@ class LocalMap:
             values[a + 1 : b + 1][fill] = chain[1:][fill]
         self._keys, self._key_values, self._rel, self._rel_w = keys, values, rel, rel_w
         return inserted
+
+    def _with_key_pose(self, start: int, covered: int) -> int:
+        """``covered`` less the last features with no key pose within ``stamp_tolerance``:
+        stamped just past the odometry, where the nearest key is more than that away, they wait
+        for the next update (its odometry reaches them)."""
+        t = self._feat_t[start:covered]
+        if len(t) == 0:
+            return covered
+        without = (
+            np.abs(self._keys[nearest_stamp(self._keys, t)] - t) > self.options.stamp_tolerance
+        )
+        with_key = np.flatnonzero(~without)
+        return start + (int(with_key[-1]) + 1 if len(with_key) else 0)
 
     def _integrate_features(self, covered: int) -> tuple[int, int]:
         start = self._integrated_features

@@ -146,6 +146,33 @@ def test_features_before_odometry_are_dropped_and_counted():
     assert 99 not in local.landmark_labels
 
 
+def test_stamps_closer_than_the_tolerance_in_a_row_each_have_a_key_pose_within_it():
+    # 0.6 tol apart, each within the tolerance of the one before: one key for all of them
+    # would leave the last 1.2 tol from it
+    local = LocalMap("r")
+    tol = local.options.stamp_tolerance
+    local.add_odometry([0.0, 1.0], np.ones((2, 3)), np.ones((2, 3)))
+    stamps = 0.5 + tol * np.array([0.0, 0.6, 1.2])
+    local.add_features(stamps, [1, 2, 3], np.ones(3), np.zeros(3), np.ones(3), np.ones(3))
+    local.update()
+    keys = local.stamps[local.pose_index(stamps)]
+    assert np.all(np.abs(keys - stamps) <= tol)
+    assert len(np.unique(keys)) == 2
+
+
+def test_a_feature_just_past_the_odometry_waits_for_a_key_pose():
+    # the last odometry sample is within the tolerance of a key, the feature within it of the
+    # sample, but not of the key: it waits for the odometry to reach it
+    local = LocalMap("r")
+    local.add_odometry([12.0, 12.000000001], np.ones((2, 3)), np.ones((2, 3)))
+    local.add_features([12.000001001], [7], [1.0], [1.0], [1.0], [1.0])
+    local.update()
+    assert 7 not in local.landmark_labels
+    local.add_odometry([12.5], np.ones((1, 3)), np.ones((1, 3)))
+    local.update()
+    assert 7 in local.landmark_labels
+
+
 def test_bad_odometry_is_named():
     local = LocalMap("r")
     with pytest.raises(ValueError, match="odometry sample 1 has a non-positive sigma"):
