@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from csam_ros.core.joining.alignment import joined
 from csam_ros.core.joining.notes import Note, NoteKind
 from csam_ros.core.joining.rendezvous_filters import FilterReport
 
@@ -214,7 +215,7 @@ class RobotResult:
     @property
     def joined(self) -> bool:
         """Whether the robot is in the joined map (the reference or aligned)."""
-        return self.alignment in ("reference", "aligned")
+        return joined(self.alignment)
 
     def to_dict(self) -> dict[str, Any]:
         """The robot's entry of ``summary.json`` (its name is the key of the entry)."""

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from csam_ros.core.joining.notes import Note
 from csam_ros.core.joining.result import CsamResult, FeatureResult, RobotResult
 from csam_ros.core.model import se2
 from csam_ros.core.model.stamps import matching_stamp
@@ -204,5 +205,5 @@ def carried_forward(previous: CsamResult, maps: Sequence[RobotMap], tolerance: f
         features=features,
         associations=[a for a in previous.associations if a.a in carried and a.b in carried],
         timing_s={"carried_forward": time.perf_counter() - start},
-        notes=["provisional: the local maps placed by the last join, not solved"],
+        notes=[Note.provisional("the local maps placed by the last join, not solved")],
     )

@@ -8,9 +8,8 @@ from dataclasses import dataclass
 from enum import Enum
 
 from csam_ros.core.exchange.validation import DropCounter
+from csam_ros.core.joining.alignment import joined
 from csam_ros.core.joining.result import CsamResult
-
-JOINED_ALIGNMENTS = ("reference", "aligned")  # a robot's alignment when its map is joined
 
 
 class Health(Enum):
@@ -39,8 +38,8 @@ class RobotStatus:
 
     @property
     def health(self) -> Health:
-        joined = self.alignment in JOINED_ALIGNMENTS
-        return Health.OK if joined and not self.stale else Health.WARN
+        is_joined = joined(self.alignment)
+        return Health.OK if is_joined and not self.stale else Health.WARN
 
     @property
     def message(self) -> str:
