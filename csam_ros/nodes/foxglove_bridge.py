@@ -288,10 +288,12 @@ class FoxgloveBridge(Node):
                 bridged.channel.log(data, log_time=log_time)
 
     def destroy_node(self) -> None:
+        # the ROS log may be gone already (Ctrl-C shuts rclpy down first): the SDK's shutdown
+        # records are not forwarded
+        logging.getLogger("foxglove").removeHandler(self._sdk_log)
         self.server.stop()
         for bridged in self.bridged.values():
             bridged.channel.close()
-        logging.getLogger("foxglove").removeHandler(self._sdk_log)
         super().destroy_node()
 
 

@@ -12,6 +12,7 @@ import struct
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -267,3 +268,33 @@ def test_a_port_out_of_range_is_refused(ros_context: Any, port: int) -> None:
 
     with pytest.raises(InvalidParameterValueException), _bridge(ros_context, port=port):
         pass
+
+
+def test_the_executable_serves_as_the_demo_starts_it_and_a_taken_port_is_one_error(
+    tmp_path: Path,
+) -> None:
+    import os
+    import sys
+
+    from csam_ros.run.demo import BRIDGE, bridge_url
+    from csam_ros.run.errors import RunError
+    from csam_ros.run.launch import ProcessGroup
+
+    def argv(port: int) -> list[str]:
+        module = [sys.executable, "-m", "csam_ros.nodes.foxglove_bridge"]
+        return [*module, "--ros-args", "-p", f"port:={port}", "-p", "use_sim_time:=true"]
+
+    with ProcessGroup(tmp_path / "first", dict(os.environ)) as first:
+        first.start(BRIDGE, argv(0))
+        url = bridge_url(first)
+        port = int(url.rpartition(":")[2])
+        assert url == f"ws://127.0.0.1:{port}" and port > 0
+        with Client(port) as client:
+            assert client.wait(lambda: JOINED_MAP.name in client.channels)
+            assert "time" in client.server_info["capabilities"]
+        with ProcessGroup(tmp_path / "second", dict(os.environ)) as second:
+            second.start(BRIDGE, argv(port))
+            with pytest.raises(RunError, match="(?s)exited.*Address already in use"):
+                bridge_url(second)
+            assert second.processes[BRIDGE].returncode == 1
+        assert first.stop(BRIDGE) == 0, first.log_tail(BRIDGE)
