@@ -32,6 +32,7 @@ setup(
             "merger = csam_ros.nodes.merger:main",
             "recorder = csam_ros.nodes.recorder:main",
             "player = csam_ros.nodes.player:main",
+            "foxglove_bridge = csam_ros.nodes.foxglove_bridge:main",
             "csam = csam_ros.cli:main",
         ],
     },

@@ -60,7 +60,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     run = demo_live_run(args.scenario, out, seed, args.rate, args.isolated)
     # the figures' worker imports matplotlib while the run goes on, and draws once it has ended
     with figures_drawn_aside() as worker:
-        summary = run_demo(run, links)
+        summary = run_demo(run, links, args.foxglove)
         _finish(out, replace(summary, scenario=scenario.name), worker)
     _print_lines(latency_lines(out / "bag", summary), "  ")
     return 0
@@ -149,6 +149,7 @@ ISOLATED_HELP = (
     "the run)"
 )
 OUT_HELP = "output directory, new or empty (default: runs/<name>-<time>)"
+VIEW_HELP = "serve the run to Foxglove at ws://127.0.0.1:PORT (default 8765; 0: any free port)"
 
 
 def parser() -> argparse.ArgumentParser:
@@ -171,6 +172,7 @@ def parser() -> argparse.ArgumentParser:
         help="simulation speed relative to real time (0: as fast as possible)",
     )
     demo.add_argument("--isolated", action="store_true", help=ISOLATED_HELP)
+    demo.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT", help=VIEW_HELP)
     demo.add_argument(
         "--hosts",
         action="store_true",
