@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
+from straight_logs import straight_log_bag
 
 from csam_ros.bag import MessageTypes
 from csam_ros.core.joining.result import RunSummary
@@ -338,34 +339,10 @@ def test_calibrate_writes_a_config_the_importer_and_replay_read(tmp_path: Path) 
     assert again.returncode == 2 and "never overwrites" in again.stderr
 
 
-def _log_bag(path: Path, samples: dict[str, int], v: float = 0.1) -> Path:
-    """A bag of sensor topics: each robot ``samples`` odometry steps at speed ``v`` and one
-    feature observation per step."""
-    from csam_ros.core.model.log import (
-        FeatureLog,
-        MultiRobotLog,
-        OdometryLog,
-        RobotLog,
-        empty_rendezvous,
-    )
-    from csam_ros.run.bag_io import write_log_bag
-
-    robots = {}
-    for name, n in samples.items():
-        t = 0.5 * np.arange(n)
-        odometry = OdometryLog(t, np.tile([v, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
-        features = FeatureLog(
-            t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
-        )
-        robots[name] = RobotLog(name, odometry, features, empty_rendezvous())
-    write_log_bag(MultiRobotLog(robots), path)
-    return path
-
-
 def _summary_without(tmp: Path, key: str) -> Path:
     """A run directory whose summary.json (of a real offline run) lacks ``key``."""
     run = tmp / "run"
-    done = csam("replay", _log_bag(tmp / "bag", {"robot1": 4}), "--offline", "--out", run)
+    done = csam("replay", straight_log_bag(tmp / "bag", {"robot1": 4}), "--offline", "--out", run)
     assert done.returncode == 0, done.stderr
     document = json.loads((run / "summary.json").read_text())
     del document[key]
@@ -457,11 +434,11 @@ BAD_INPUT = {
         "f.g2o:1: the record converts to a non-finite value",
     ),
     "replay_one_odometry_sample": (
-        lambda t: ["replay", str(_log_bag(t / "bag", {"robot1": 1})), "--offline"],
+        lambda t: ["replay", str(straight_log_bag(t / "bag", {"robot1": 1})), "--offline"],
         "robot1: no local map: ",
     ),
     "replay_speed_beyond_float_range": (  # dropped at the boundary, or its solve fails
-        lambda t: ["replay", str(_log_bag(t / "bag", {"robot1": 4}, v=1e305)), "--offline"],
+        lambda t: ["replay", str(straight_log_bag(t / "bag", {"robot1": 4}, v=1e305)), "--offline"],
         "no robot has a local map: robot1: no local map: ",
     ),
     "replay_binary_config": (
@@ -517,45 +494,6 @@ def test_bad_input_gives_one_line_and_exit_code_2(case: str, tmp_path: Path) -> 
     assert result.returncode == 2, result.stderr
     assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
     assert lines[0].startswith(f"csam {args[0]}: ") and expected in lines[0], lines[0]
-
-
-def test_offline_run_leaves_out_a_robot_without_a_local_map() -> None:
-    """run_csam (the offline replay's core) leaves out, and names in the notes, a robot with
-    one odometry sample and a robot whose solve is not finite (the boundary checks of a
-    replay may drop such input first; the core must not fail on it either)."""
-    from csam_ros.core.joining.pipeline import run_csam
-    from csam_ros.core.model.log import (
-        FeatureLog,
-        MultiRobotLog,
-        OdometryLog,
-        RobotLog,
-        empty_rendezvous,
-    )
-
-    def robot(name: str, n: int, v: float) -> RobotLog:
-        t = 0.5 * np.arange(n)
-        odometry = OdometryLog(t, np.tile([v, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
-        features = FeatureLog(
-            t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
-        )
-        return RobotLog(name, odometry, features, empty_rendezvous())
-
-    log = MultiRobotLog(
-        {"robot1": robot("robot1", 5, 0.1), "robot2": robot("robot2", 1, 0.1)}
-        | {"robot3": robot("robot3", 5, 1e305)}
-    )
-    result = run_csam(log)
-    assert list(result.robots) == ["robot1"]
-    assert result.note_texts[:2] == [
-        "robot2: no local map: 1 usable odometry sample(s), a map needs two",
-        result.note_texts[1],
-    ]
-    assert result.notes[1].text.startswith("robot3: no local map: its solve failed")
-    with pytest.raises(ValueError, match="no robot has a local map: robot2: no local map"):
-        run_csam(MultiRobotLog({"robot2": robot("robot2", 1, 0.1)}))
-
-
-# -- bags: recover, damaged chunks, evaluate's source ----------------------------------------
 
 
 def _killed_counter_bag(path: Path, flushed: int, unflushed: int) -> None:

@@ -29,6 +29,7 @@ LAYERS: dict[str, set[str]] = {
 # (or itself); ``csam_ros`` is the package's own __init__
 PARTS = [
     "csam_ros",
+    "closing",
     "forked",
     "core",
     "bag",

@@ -18,7 +18,6 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import yaml
@@ -28,6 +27,7 @@ from mcap.writer import Writer as McapWriter
 from csam_ros import __version__
 from csam_ros.bag.qos import QosDict, dump_qos_profiles, qos_list
 from csam_ros.bag.types import MessageDefinition, MessageTypes, msgtype_of, normalize_msgtype
+from csam_ros.closing import Closing
 
 METADATA_FILE = "metadata.yaml"
 METADATA_VERSION = 9
@@ -69,7 +69,7 @@ def _write_text_atomically(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-class BagWriter:
+class BagWriter(Closing):
     """Writes a new rosbag2 bag directory; never overwrites an existing path.
 
     Usable without any ROS node: ``add_topic`` then ``write`` serialized CDR bytes (or rclpy
@@ -245,17 +245,6 @@ class BagWriter:
         self._file.close()
         self.closed = True
         self._write_metadata(final=True)
-
-    def __enter__(self) -> BagWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- metadata.yaml --------------------------------------------------------------------
 

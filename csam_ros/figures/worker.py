@@ -17,9 +17,9 @@ import signal
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from types import TracebackType
 from typing import TYPE_CHECKING
 
+from csam_ros.closing import Closing
 from csam_ros.figures import FIGURES
 from csam_ros.forked import Forked, can_fork
 
@@ -78,7 +78,7 @@ def figure_worker() -> FigureWorker | None:
     return FigureWorker()
 
 
-class FigureWorker:
+class FigureWorker(Closing):
     """A forked process that imports matplotlib and waits for a summary to draw from."""
 
     def __init__(self, names: Sequence[str] = FIGURES) -> None:
@@ -113,14 +113,3 @@ class FigureWorker:
         if self._process.is_alive():
             self._process.terminate()
         self._process.join()
-
-    def __enter__(self) -> FigureWorker:
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        value: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()

@@ -24,7 +24,8 @@ import socket
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
+
+from csam_ros.closing import Closing
 
 COORDINATION_PORT_BASE = 32768  # domain_coordinator's scheme: hold port base + domain id
 DOMAIN_IDS = range(1, 101)  # domain_coordinator's range; all valid DDS domains on Linux
@@ -34,7 +35,7 @@ RTPS_DOMAIN_GAIN = 250
 
 
 @dataclass
-class DomainReservation:
+class DomainReservation(Closing):
     """A ROS domain id held for this process until :meth:`release` (or the end of ``with``)."""
 
     domain_id: int
@@ -46,16 +47,7 @@ class DomainReservation:
             self._socket.close()
             self._socket = None
 
-    def __enter__(self) -> DomainReservation:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.release()
+    close = release
 
 
 def _bound_udp_ports() -> set[int]:

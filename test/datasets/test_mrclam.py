@@ -121,19 +121,22 @@ def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
         {1: meas, 2: SEEN},  # robot3, not selected, has no measurement file
     )
     log, report = import_mrclam(d, robots=[1, 2])
+    expected = {
+        "measurement_wrong_columns": 1,
+        "measurement_non_numeric": 1,
+        "measurement_non_finite": 1,
+        "measurement_non_positive_range": 2,
+        "measurement_bad_barcode": 1,
+        "measurement_bearing_out_of_range": 1,
+        "measurement_unknown_barcode": 1,
+        "measurement_self": 1,
+        "measurement_unselected_robot": 1,
+        "measurement_outside_window": 1,
+        "feature_measurements": 1,
+        "rendezvous_measurements": 1,
+    }
     c = report.counts["robot1"]
-    assert c["measurement_wrong_columns"] == 1
-    assert c["measurement_non_numeric"] == 1
-    assert c["measurement_non_finite"] == 1
-    assert c["measurement_non_positive_range"] == 2
-    assert c["measurement_bad_barcode"] == 1
-    assert c["measurement_bearing_out_of_range"] == 1
-    assert c["measurement_unknown_barcode"] == 1
-    assert c["measurement_self"] == 1
-    assert c["measurement_unselected_robot"] == 1
-    assert c["measurement_outside_window"] == 1
-    assert c["feature_measurements"] == 1
-    assert c["rendezvous_measurements"] == 1
+    assert {key: c[key] for key in expected} == expected
     robot1 = log.robots["robot1"]
     assert robot1.features.ranges.tolist() == [2.0]
     assert robot1.rendezvous.observed == ["robot2"]

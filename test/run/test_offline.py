@@ -5,36 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
+from straight_logs import straight_log_bag
 
 from csam_ros.run.errors import RunError
 from csam_ros.run.offline import bag_contents, offline_summary, read_offline_log, reading_ahead
 
 BAG = Path(__file__).resolve().parents[2] / "bags" / "map_joining"
-
-
-def _log_bag(path: Path, samples: dict[str, int]) -> Path:
-    """A bag of sensor topics: each robot ``samples`` odometry steps, a feature at each."""
-    from csam_ros.core.model.log import (
-        FeatureLog,
-        MultiRobotLog,
-        OdometryLog,
-        RobotLog,
-        empty_rendezvous,
-    )
-    from csam_ros.run.bag_io import write_log_bag
-
-    robots = {}
-    for name, n in samples.items():
-        t = 0.5 * np.arange(n)
-        odometry = OdometryLog(t, np.tile([0.1, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
-        features = FeatureLog(
-            t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
-        )
-        robots[name] = RobotLog(name, odometry, features, empty_rendezvous())
-    write_log_bag(MultiRobotLog(robots), path)
-    return path
 
 
 def test_a_bag_names_its_robots_duration_and_topics() -> None:
@@ -65,7 +42,7 @@ def test_reading_ahead_gives_the_replay_read_here() -> None:
 
 def test_what_the_replay_cannot_use_is_one_run_error(tmp_path: Path) -> None:
     with pytest.raises(RunError, match="robot1: no local map: "):
-        offline_summary(_log_bag(tmp_path / "one", {"robot1": 1}))
+        offline_summary(straight_log_bag(tmp_path / "one", {"robot1": 1}))
     with pytest.raises(RunError, match="^csam"):
         offline_summary(BAG, {"csam": {"no_such_key": 1}})
     with pytest.raises(RunError, match="^input"):

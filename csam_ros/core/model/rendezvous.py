@@ -21,7 +21,7 @@ Every function is vectorised over a leading axis of ``K`` measurements.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -182,17 +182,8 @@ class RendezvousSet:
 
     def subset(self, mask: NDArray[np.bool_]) -> RendezvousSet:
         """The measurements selected by a boolean mask."""
-        return RendezvousSet(
-            robots=self.robots,
-            observer=self.observer[mask],
-            observed=self.observed[mask],
-            stamps=self.stamps[mask],
-            observer_pose=self.observer_pose[mask],
-            observed_pose=self.observed_pose[mask],
-            position=self.position[mask],
-            covariance=self.covariance[mask],
-            bearing=self.bearing[mask],
-        )
+        rows = {f.name: getattr(self, f.name)[mask] for f in fields(self) if f.name != "robots"}
+        return RendezvousSet(robots=self.robots, **rows)
 
     def between(self, a: int, c: int) -> NDArray[np.bool_]:
         """Mask of the measurements between robots ``a`` and ``c`` in either direction."""

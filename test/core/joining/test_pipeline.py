@@ -5,16 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from straight_logs import straight_robot
 
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.notes import NoteKind
 from csam_ros.core.joining.pipeline import build_robot_maps, robot_map_from_local_map, run_csam
 from csam_ros.core.model.log import (
-    FeatureLog,
     MultiRobotLog,
-    OdometryLog,
-    RobotLog,
-    empty_rendezvous,
 )
 from csam_ros.core.sam.covariance import factorize_at_estimate
 from csam_ros.core.smoothing.local_map_build import build_local_map
@@ -22,20 +19,10 @@ from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 
 
-def _robot(name: str, n: int, v: float) -> RobotLog:
-    """``n`` odometry samples at ``v`` m/s straight on, one feature seen at each."""
-    t = 0.5 * np.arange(n)
-    odometry = OdometryLog(t, np.tile([v, 0.0, 0.0], (n, 1)), np.full((n, 3), 0.01))
-    features = FeatureLog(
-        t, np.arange(n), np.full(n, 2.0), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01)
-    )
-    return RobotLog(name, odometry, features, empty_rendezvous())
-
-
 def test_a_robot_without_a_local_map_is_left_out_with_a_typed_note() -> None:
     log = MultiRobotLog(
-        {"robot1": _robot("robot1", 5, 0.1), "robot2": _robot("robot2", 1, 0.1)}
-        | {"robot3": _robot("robot3", 5, 1e305)}
+        {"robot1": straight_robot("robot1", 5, 0.1), "robot2": straight_robot("robot2", 1, 0.1)}
+        | {"robot3": straight_robot("robot3", 5, 1e305)}
     )
     built = build_robot_maps(log)
     assert [m.name for m in built.maps] == ["robot1"]
@@ -48,7 +35,7 @@ def test_a_robot_without_a_local_map_is_left_out_with_a_typed_note() -> None:
     assert list(result.robots) == ["robot1"]
     assert result.notes_of(NoteKind.NO_LOCAL_MAP) == built.left_out == result.notes[:2]
     with pytest.raises(ValueError, match="^no robot has a local map: robot2: no local map: 1 "):
-        run_csam(MultiRobotLog({"robot2": _robot("robot2", 1, 0.1)}))
+        run_csam(MultiRobotLog({"robot2": straight_robot("robot2", 1, 0.1)}))
 
 
 def test_the_thinning_is_reported_when_it_thins_and_the_maps_are_timed() -> None:
