@@ -23,7 +23,7 @@ from csam_ros.core.merging.robot_poses import (
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.core.sam.covariance import marginal_covariance
-from csam_ros.core.smoothing.local_map import build_local_map
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
