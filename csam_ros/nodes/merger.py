@@ -15,11 +15,12 @@ reference (``reference``, else the first of ``robots``, else the first robot hea
 (``provisional_quiet``, ``provisional_period``), smoother restarts, stale robots
 (``stale_after``) and what ``/csam/status`` says. A worker thread hands each solve to the
 solve process (:mod:`csam_ros.solve_process`; at most one runs and one is pending), then
-publishes ``/csam/joined_map`` (transient local) and ``/tf`` ``<reference>/map -> <robot>/map``
-of each aligned robot, writes ``summary_path`` (when set) and publishes ``/csam/markers``, both
-built by the message process (:mod:`csam_ros.message_process`). A thread of its own publishes
-``/csam/joined_map/provisional``: the newest local maps placed by the last join, unsolved
-(:func:`~csam_ros.core.joining.warm_start.carried_forward`). ``~/flush`` (std_srvs/Trigger;
+publishes ``/csam/joined_map`` (transient local), ``/tf`` ``<reference>/map -> <robot>/map``
+of each aligned robot and ``/<robot>/pose`` of each joined one (nodes/merger_output.py), writes
+``summary_path`` (when set) and publishes ``/csam/markers``, both built by the message process
+(:mod:`csam_ros.message_process`). A thread of its own publishes ``/csam/joined_map/provisional``
+(the newest local maps placed by the last join, unsolved) and the poses it places; the status
+goes out on ``/csam/status`` and ``/diagnostics``. ``~/flush`` (std_srvs/Trigger;
 the data has ended) solves the newest inputs at once, giving up a running solve of older ones;
 after it each robot's next local map gives up a running solve once more.
 
@@ -55,14 +56,14 @@ from csam_ros.core.merging.policy import (
     read_state,
 )
 from csam_ros.core.merging.status import SharedDropCounter
-from csam_ros.nodes.common import guarded, publisher, run_node, steady_clock, subscribe
+from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe
 from csam_ros.nodes.merger_output import MergerOutput
 from csam_ros.nodes.merger_parameters import declare_merger_parameters
 from csam_ros.nodes.merger_resync import ResyncClients
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import map_update_from_message, rendezvous_log_from_message
 from csam_ros.ros.merger_reports import log_notice, status_array
-from csam_ros.ros.topics import FLUSH, LOCAL_MAP_UPDATES, MERGER_NODE, RENDEZVOUS_POSES, STATUS
+from csam_ros.ros.topics import FLUSH, LOCAL_MAP_UPDATES, MERGER_NODE, RENDEZVOUS_POSES
 from csam_ros.solve_process import SolveProcess
 
 DISCOVERY_PERIOD_S = 1.0  # s between looks at the ROS graph for new robots
@@ -98,15 +99,15 @@ class Merger(Node):
         self._stopping = threading.Event()  # set under _lock
         self._on_map = guarded(self, self.drops, self.on_local_map_update)
         self._on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
+        self.output = MergerOutput(
+            self, params.summary_path, self._publish_lock, self._stopping, self.drops
+        )
         resumed = self.state_path is not None and self.resume(self.state_path)
         for robot in settings.robots:  # listed robots' latched maps may come before discovery
             if robot not in self.policy.robots:
                 self._subscribe(robot)
-        self.output = MergerOutput(self, params.summary_path, self._publish_lock, self._stopping)
-        self.status_pub = publisher(self, STATUS)
-        if resumed and self.policy.last_result is not None:
-            stamps = dict(self.policy.local_map_stamps)
-            self.output.joined_map(self.policy.last_result, stamps, tuple(self.policy.robots))
+        if resumed:
+            self.output.resumed(self.policy)
         self._timer(settings.solve_check_period, self.on_timer)
         self._timer(DISCOVERY_PERIOD_S, self.discover)
         provisional_period = settings.provisional_check_period
@@ -170,7 +171,8 @@ class Merger(Node):
         return True
 
     def _subscribe(self, robot: str) -> None:
-        """Subscribe to ``robot``'s local map updates and rendezvous poses (its topics)."""
+        """Subscribe to ``robot``'s local map updates and rendezvous poses; publish its pose."""
+        self.output.add_robot(robot)
         subscribe(
             self, LOCAL_MAP_UPDATES, lambda m: self._on_map(robot, m), LOCAL_MAP_UPDATES.of(robot)
         )
@@ -325,7 +327,7 @@ class Merger(Node):
         with self._lock:
             notices = self.policy.solve_done(inputs, reply, seconds)
             self._writing_state = reply.state_pending  # only a solve that succeeded writes
-            stats = self.policy.stats()
+            stats, maps = self.policy.stats(), self.policy.local_maps  # the newest maps held
         for notice in notices:
             self._note(notice)
         result = reply.result
@@ -336,7 +338,7 @@ class Merger(Node):
             for note in result.notes:
                 if note.not_converged:
                     self.get_logger().warning(note.text)
-        self.output.joined_map(result, dict(inputs.stamps), inputs.robots, stats)
+        self.output.joined_map(result, dict(inputs.stamps), inputs.robots, stats, maps)
         try:
             written = self.solve_process.state_written()
         finally:
@@ -378,10 +380,10 @@ class Merger(Node):
                 self.policy.provisional_published()
 
     def publish_status(self) -> None:
-        """Publish ``/csam/status``: per robot, and the merger's counts and solve state."""
+        """Publish the status (``/csam/status``, ``/diagnostics``): robots, counts, solves."""
         with self._lock:
-            array = self._status()
-        self.status_pub.publish(array)
+            status = self.policy.status()
+        self.output.status(status, self.get_clock().now().to_msg())
 
     def _status(self) -> DiagnosticArray:
         """The status message of the node's state now (call under the lock)."""

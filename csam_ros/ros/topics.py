@@ -21,6 +21,7 @@ from csam_msgs.msg import (
     RendezvousPoses,
 )
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.qos import (
     DurabilityPolicy,
@@ -49,6 +50,7 @@ LATCHED = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
 )
 SHALLOW = QoSProfile(depth=10)  # reliable, volatile: only the latest values matter
+LATEST = QoSProfile(depth=1)  # reliable, volatile: only the newest value is wanted
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,10 @@ JOINED_MAP = Topic("/csam/joined_map", JoinedMap, LATCHED)
 PROVISIONAL_MAP = Topic("/csam/joined_map/provisional", JoinedMap, LATCHED)
 MARKERS = Topic("/csam/markers", MarkerArray, LATCHED)
 STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
+# the merger's status as ROS's diagnostics tools read it (csam/<robot> per robot, csam)
+DIAGNOSTICS = Topic("/diagnostics", DiagnosticArray, SHALLOW)
+# each joined robot's latest pose in <reference>/map with its covariance, from the merger
+POSE = Topic("pose", PoseWithCovarianceStamped, LATEST)
 # REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/base_link
 # (smoothers); reliable and volatile with a deep queue, as tf2's broadcasters
 TF = Topic("/tf", TFMessage, QoSProfile(depth=100))
@@ -121,6 +127,8 @@ CLOCK = Topic("/clock", Clock, SHALLOW)
 
 # what each robot sends to the base station (the merger subscribes to these)
 MERGER_INPUTS: tuple[Topic, ...] = (LOCAL_MAP_UPDATES, RENDEZVOUS_POSES)
+# what the merger publishes for each robot (recorded where it is published, the base station)
+MERGER_ROBOT_OUTPUTS: tuple[Topic, ...] = (POSE,)
 
 TOPICS: tuple[Topic, ...] = (
     ODOM,
@@ -137,6 +145,8 @@ TOPICS: tuple[Topic, ...] = (
     PROVISIONAL_MAP,
     MARKERS,
     STATUS,
+    DIAGNOSTICS,
+    POSE,
     TF,
     CLOCK,
 )
@@ -205,12 +215,16 @@ def recorded_topics(robots: Iterable[str]) -> list[str]:
 
 def base_station_topics(robots: Iterable[str]) -> list[str]:
     """What the base station records when every robot is on a host of its own: what reaches
-    it anyway (the merger's inputs) and the global topics. Each robot records the rest of its
-    own topics (:func:`robot_host_topics`), so its raw data never crosses its link."""
+    it anyway (the merger's inputs), what the merger publishes for each robot, and the global
+    topics. Each robot records the rest of its own topics (:func:`robot_host_topics`), so its
+    raw data never crosses its link."""
     recorded = [t for t in TOPICS if t.recorded]
-    return robot_topics(robots, MERGER_INPUTS) + [t.name for t in recorded if not t.per_robot]
+    at_base = MERGER_INPUTS + MERGER_ROBOT_OUTPUTS
+    return robot_topics(robots, at_base) + [t.name for t in recorded if not t.per_robot]
 
 
 def robot_host_topics(robot: str) -> list[str]:
-    """What a robot's own host records: its recorded topics that are not the merger's inputs."""
-    return robot_topics([robot], [t for t in TOPICS if t.recorded and t not in MERGER_INPUTS])
+    """What a robot's own host records: its recorded topics that the base station does not
+    (:func:`base_station_topics`)."""
+    at_base = MERGER_INPUTS + MERGER_ROBOT_OUTPUTS
+    return robot_topics([robot], [t for t in TOPICS if t.recorded and t not in at_base])

@@ -16,16 +16,20 @@ from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 from csam_ros.ros.conversions import log_to_messages
 from csam_ros.ros.topics import (
+    DIAGNOSTICS,
     FEATURE_POINTS,
     FEATURES_TRUTH,
     LATCHED,
     ODOM,
+    POSE,
     SENSOR_DATA,
     TOPICS,
+    base_station_topics,
     declaration,
     parse,
     qos_of,
     recorded_topics,
+    robot_host_topics,
     sensor_topics,
 )
 from csam_ros.run.bag_io import write_log_bag
@@ -101,3 +105,13 @@ def test_messages_and_bags_take_type_and_qos_from_the_declarations(tmp_path) -> 
         assert topic.offered_qos_profiles == [qos_to_dict(qos_of(name))], name
     assert info.topics[ODOM.of("robot1")].offered_qos_profiles == [qos_to_dict(SENSOR_DATA)]
     assert info.topics[FEATURES_TRUTH.name].offered_qos_profiles == [qos_to_dict(LATCHED)]
+
+
+def test_with_robots_on_hosts_every_topic_is_recorded_once_the_mergers_at_the_base() -> None:
+    """A robot's host records its own data; the base station what the merger takes and
+    publishes (a robot's pose too: it is made there), and the global topics."""
+    base = base_station_topics(ROBOTS)
+    hosts = [name for robot in ROBOTS for name in robot_host_topics(robot)]
+    assert sorted(base + hosts) == sorted(recorded_topics(ROBOTS))
+    assert {POSE.of(r) for r in ROBOTS} | {DIAGNOSTICS.name} <= set(base)
+    assert ODOM.of("robot1") in robot_host_topics("robot1")
