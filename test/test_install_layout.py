@@ -13,7 +13,7 @@ import pytest
 
 PREFIX = Path(sys.prefix)
 REPO = Path(__file__).resolve().parents[1]
-EXECUTABLES = ["simulator", "smoother", "merger", "recorder", "player", "csam"]
+EXECUTABLES = ["simulator", "smoother", "merger", "recorder", "player", "detections", "csam"]
 
 
 @pytest.fixture
