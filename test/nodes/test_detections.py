@@ -466,3 +466,30 @@ def test_bad_parameters_are_refused_by_name(ros_context: Any) -> None:
         _adapter(ros_context, "robot1", [Parameter("robot_tags", value=["5"])])
     with pytest.raises(ValueError, match="sigma_bearing: must be greater than 0"):
         _adapter(ros_context, "robot1", [Parameter("sigma_bearing", value=0.0)])
+
+
+def test_every_model_field_is_a_parameter_with_its_description(ros_context: Any) -> None:
+    from csam_ros.core.model.config_file import settings
+    from csam_ros.nodes.detections import Detections
+
+    plain = Detections(context=ros_context, namespace="robot3")
+    adapter = _adapter(ros_context, "robot1")
+    try:
+        assert plain.model == DetectionModel() and adapter.model == MODEL
+        assert plain.camera_frame == "robot3/camera_optical_frame"
+        assert plain.robot_tags == {} and adapter.robot_tags == {1001: "robot1", 1002: "robot2"}
+        for name, (rule, default) in settings(DetectionModel).items():
+            assert rule.node == "detections"
+            assert plain.describe_parameter(name).description == rule.description
+            assert plain.get_parameter(name).value == default
+            if rule.minimum is not None:
+                ranges = plain.describe_parameter(name).floating_point_range
+                assert [r.from_value for r in ranges] == [rule.minimum], name
+    finally:
+        plain.destroy_node()
+        adapter.destroy_node()
+    body = _adapter(ros_context, "robot1", [Parameter("camera_axes", value=det.BODY)])
+    try:
+        assert body.camera_frame == "robot1/camera_link"
+    finally:
+        body.destroy_node()
