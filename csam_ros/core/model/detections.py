@@ -28,13 +28,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.model import se2
-from csam_ros.core.model.config_file import from_mapping, setting
+from csam_ros.core.model.config_file import Section, setting
 from csam_ros.core.model.log import FeatureLog, RendezvousLog
 
 DETECTIONS_NODE = "detections"  # the node that takes DetectionModel's fields as parameters
@@ -53,9 +53,11 @@ DUPLICATE_ROBOT = "duplicate_robot"  # a second tag of one robot in the same fra
 
 
 @dataclass(frozen=True)
-class DetectionModel:
+class DetectionModel(Section):
     """Where the camera is on the robot, which frame its detections are in, and the noise
     model of the observations made of them (the ``detections`` node's parameters)."""
+
+    section: ClassVar[str] = DETECTIONS_NODE  # names the node's parameters in errors
 
     camera_x: float = setting(
         0.0, "m: the camera's position in base_link, forward of the centre", node=DETECTIONS_NODE
@@ -96,13 +98,6 @@ class DetectionModel:
         "family of the tags taken, as in '<family>:<id>' ('': every family, ids shared)",
         node=DETECTIONS_NODE,
     )
-
-    @classmethod
-    def from_dict(
-        cls, node: Mapping[str, Any] | None, source: str = DETECTIONS_NODE
-    ) -> DetectionModel:
-        """Build from a mapping; unknown keys and bad values are errors naming them."""
-        return from_mapping(cls, node, source)
 
     @property
     def camera_pose(self) -> NDArray[np.float64]:
