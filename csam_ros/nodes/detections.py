@@ -1,6 +1,7 @@
 """detections: a camera's tag detections as the smoother's observations, in the robot's namespace.
 
-Takes either input (or both, from different detectors):
+Takes the camera's tags by one of two inputs (subscribed both; a frame that came by the other
+already, at the same stamp, would be dropped as stale):
 
 - ``detections`` (vision_msgs/Detection3DArray, relative: ``/<robot>/detections``): each
   detection's tag is the class id of its best-scoring hypothesis (``7`` or ``tag36h11:7``),
@@ -22,10 +23,9 @@ camera frame's axes ``camera_axes``, the noise model ``sigma_range_base``,
 A detection that cannot be taken (a NaN pose, a tag name that does not parse or of another
 family, behind the camera, the robot's own tag, a tag or robot seen twice in one frame, an
 array in another frame than ``camera_frame``, a frame stamped at or before the last one
-published) is dropped and counted by reason; the first drop
-of each reason is logged with its tag. Counts go to ``/csam/status`` (``detections/<robot>``)
-every ``status_period`` s while they change. Every callback is guarded: the node never dies of
-its input.
+published) is dropped and counted by reason; the first drop of each reason is logged with its
+tag. Counts go to ``/csam/status`` (``detections/<robot>``) every ``status_period`` s while
+they change. Every callback is guarded: the node never dies of its input.
 """
 
 from __future__ import annotations
