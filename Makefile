@@ -13,6 +13,8 @@ BUILD := build/csam_msgs
 MSG_SOURCES := $(wildcard msg_defs/msg/*.msg) msg_defs/CMakeLists.txt msg_defs/package.xml
 TF2_BUILD := build/tf2_msgs
 TF2_SOURCES := $(wildcard tf2_msg_defs/msg/*.msg) tf2_msg_defs/CMakeLists.txt tf2_msg_defs/package.xml
+VISION_BUILD := build/vision_msgs
+VISION_SOURCES := $(wildcard vision_msg_defs/msg/*.msg) vision_msg_defs/CMakeLists.txt vision_msg_defs/package.xml
 RUN_ARGS ?=
 PYTEST_ARGS ?=
 # MR.CLAM Dataset 1 for the tests on real data (skipped without it): CSAM_MRCLAM_DIR, by
@@ -71,7 +73,15 @@ $(VENV)/.tf2-msgs-installed: $(VENV)/.deps-installed $(TF2_SOURCES) scripts/buil
 	else scripts/build_msgs.sh $(VENV) $(TF2_BUILD) tf2_msg_defs; fi
 	@touch $@
 
-$(VENV)/.csam-installed: $(VENV)/.msgs-installed $(VENV)/.tf2-msgs-installed setup.py setup.cfg package.xml scripts/install_layout.sh
+# the detections node's input type: built from vision_msg_defs/ only where no vision_msgs is
+# installed (the wheels have none)
+$(VENV)/.vision-msgs-installed: $(VENV)/.deps-installed $(VISION_SOURCES) scripts/build_msgs.sh
+	@if $(PY) -c "import vision_msgs.msg" 2>/dev/null && [ ! -f $(VISION_BUILD)/install_manifest.txt ]; \
+	then echo "vision_msgs: installed already, not built"; \
+	else scripts/build_msgs.sh $(VENV) $(VISION_BUILD) vision_msg_defs; fi
+	@touch $@
+
+$(VENV)/.csam-installed: $(VENV)/.msgs-installed $(VENV)/.tf2-msgs-installed $(VENV)/.vision-msgs-installed setup.py setup.cfg package.xml scripts/install_layout.sh
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . $(QUIET_PIP)
 	scripts/install_layout.sh $(VENV)
 	@touch $@

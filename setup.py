@@ -33,6 +33,7 @@ setup(
             "recorder = csam_ros.nodes.recorder:main",
             "player = csam_ros.nodes.player:main",
             "foxglove_bridge = csam_ros.nodes.foxglove_bridge:main",
+            "detections = csam_ros.nodes.detections:main",
             "csam = csam_ros.cli:main",
         ],
     },

@@ -10,7 +10,7 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 mkdir -p "$venv/share/ament_index/resource_index/packages" "$venv/share/csam_ros"
 cp "$root/resource/csam_ros" "$venv/share/ament_index/resource_index/packages/csam_ros"
 cp "$root/package.xml" "$venv/share/csam_ros/package.xml"
-for exe in simulator smoother merger recorder player foxglove_bridge csam; do
+for exe in simulator smoother merger recorder player foxglove_bridge detections csam; do
   if [ ! -x "$venv/lib/csam_ros/$exe" ]; then
     echo "install_layout: $venv/lib/csam_ros/$exe is missing" >&2
     exit 1

@@ -13,7 +13,16 @@ import pytest
 
 PREFIX = Path(sys.prefix)
 REPO = Path(__file__).resolve().parents[1]
-EXECUTABLES = ["simulator", "smoother", "merger", "recorder", "player", "foxglove_bridge", "csam"]
+EXECUTABLES = [
+    "simulator",
+    "smoother",
+    "merger",
+    "recorder",
+    "player",
+    "foxglove_bridge",
+    "detections",
+    "csam",
+]
 
 
 @pytest.fixture

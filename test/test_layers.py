@@ -44,7 +44,16 @@ PARTS = [
     "cli",
     "bench",
 ]
-ROS_MODULES = ("rclpy", "rosidl", "rosbags", "csam_msgs", "builtin_interfaces", "std_msgs")
+ROS_MODULES = (
+    "rclpy",
+    "rosidl",
+    "rosbags",
+    "csam_msgs",
+    "builtin_interfaces",
+    "std_msgs",
+    "tf2_msgs",
+    "vision_msgs",
+)
 
 
 def module_name(path: Path) -> str:

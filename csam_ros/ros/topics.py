@@ -32,6 +32,7 @@ from rclpy.qos import (
 )
 from rosgraph_msgs.msg import Clock
 from tf2_msgs.msg import TFMessage
+from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
 
 SENSOR_DATA = qos_profile_sensor_data
@@ -102,6 +103,11 @@ FEATURES = Topic("features", FeatureObservations, RELIABLE, sensor=True)
 FEATURE_POINTS = Topic("feature_points", FeaturePoints, RELIABLE, sensor=True)
 RENDEZVOUS = Topic("rendezvous", RendezvousObservations, RELIABLE, sensor=True)
 GROUND_TRUTH = Topic("ground_truth", Odometry, SENSOR_DATA)
+# a detector's tags in the camera frame, for the detections node (nodes/detections.py), which
+# publishes them as features and rendezvous; read best effort, so any publisher matches
+DETECTIONS = Topic(
+    "detections", Detection3DArray, SENSOR_DATA, SENSOR_DATA_BUFFERED, recorded=False
+)
 FEATURES_TRUTH = Topic("/sim/features_truth", FeaturesTruth, LATCHED)
 # the whole local map, for a look on the robot (published only while subscribed, not recorded)
 LOCAL_MAP = Topic("local_map", LocalMap, LATCHED, recorded=False)
@@ -136,6 +142,7 @@ TOPICS: tuple[Topic, ...] = (
     FEATURE_POINTS,
     RENDEZVOUS,
     GROUND_TRUTH,
+    DETECTIONS,
     FEATURES_TRUTH,
     LOCAL_MAP,
     LOCAL_MAP_UPDATES,
