@@ -112,7 +112,8 @@ class LocalMapState:
     odometry_calibration: Array = field(default_factory=lambda: np.zeros(0))
 
 
-CALIBRATION_KEY = ("c", 0)  # the calibration variable of a calibrating local map's problem
+CALIBRATION_KEY = ("c", 0)
+CALIBRATION_ROUNDS = 5  # converged solves: recompositions at most
 
 
 @dataclass
@@ -355,7 +356,9 @@ class LocalMap:
         inserted = self._insert_keys(new_keys)
         covered = self._with_key_pose(first_new_feature, covered)
         new_landmarks, new_obs = self._integrate_features(covered)
-        solve = self._solve(self.options.solver if converge else self.options.online_solver)
+        solve = self._solve(
+            self.options.solver if converge else self.options.online_solver, converge
+        )
         self._last_solved_odometry = t_end
         self.last_report = UpdateReport(
             new_poses=len(new_keys),
@@ -564,21 +567,28 @@ class LocalMap:
                 )
         return problem
 
-    def _solve(self, options: SolverOptions) -> SolveReport:
+    def _solve(self, options: SolverOptions, converge: bool = False) -> SolveReport:
+        """Solve; when calibrating, the odometry is recomposed at the new calibration if it
+        moved (and, with ``converge``, solved again until it stays: at most
+        ``CALIBRATION_ROUNDS`` rounds)."""
         calibrating = self.options.odometry_calibration and len(self._keys) > 1
-        problem = self._build_problem(calibrated=calibrating)
-        report = problem.solve(options)
-        n = len(self._keys)
-        self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
-        end = 3 * n + 2 * len(self._landmark_labels)
-        self._landmark_values = problem.values[3 * n : end].reshape(-1, 2).copy()
-        if calibrating:
+        for _ in range(CALIBRATION_ROUNDS if calibrating and converge else 1):
+            problem = self._build_problem(calibrated=calibrating)
+            report = problem.solve(options)
+            n = len(self._keys)
+            self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
+            end = 3 * n + 2 * len(self._landmark_labels)
+            self._landmark_values = problem.values[3 * n : end].reshape(-1, 2).copy()
+            if not calibrating:
+                break
             self._calibration = problem.value(CALIBRATION_KEY).copy()
             self._calibrated_problem = problem
             self._calibration_sigma = None
             moved = np.abs(self._calibration - self._calibration_lin).max()
-            if moved > self.options.calibration_relinearise:
-                self._recompose_odometry()
+            if moved <= self.options.calibration_relinearise:
+                break
+            self._recompose_odometry()
+        if calibrating:
             problem = self._build_problem()
         self._problem = problem
         self._system = None
