@@ -65,9 +65,9 @@ def stress_odometry(odometry: OdometryLog, stress: OdometryStress) -> OdometryLo
     """The odometry as a robot miscalibrated by ``stress`` would report it."""
     t = np.asarray(odometry.stamps, dtype=float)
     u = np.array(odometry.inputs, dtype=float)
-    driving = np.abs(u[:, 0]) > stress.driving_speed
-    u[:, 2] *= np.where(driving, stress.turn_driving, stress.turn_spot)
     u[:, :2] *= stress.distance
+    driving = np.abs(u[:, 0]) > stress.driving_speed  # as reported, as the calibration sees it
+    u[:, 2] *= np.where(driving, stress.turn_driving, stress.turn_spot)
     if not stress.resample_hz or len(t) < 2:
         return OdometryLog(t.copy(), u, np.array(odometry.sigmas), odometry.correlations)
     window = np.floor((t - t[0]) * stress.resample_hz - 1e-9).astype(np.int64)
