@@ -577,10 +577,12 @@ class LocalMap:
             report = problem.solve(options)
             n = len(self._keys)
             self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
-            end = 3 * n + 2 * len(self._landmark_labels)
-            self._landmark_values = problem.values[3 * n : end].reshape(-1, 2).copy()
             if not calibrating:
+                self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
                 break
+            if self._landmark_labels:  # the calibration variable sits between
+                ids = problem.indices([("l", lab) for lab in self._landmark_labels])
+                self._landmark_values = problem.values_of(ids).reshape(-1, 2).copy()
             self._calibration = problem.value(CALIBRATION_KEY).copy()
             self._calibrated_problem = problem
             self._calibration_sigma = None

@@ -5,7 +5,7 @@ import pytest
 
 from csam_ros.core.model import motion, se2
 from csam_ros.core.model.log import OdometryLog, RobotLog
-from csam_ros.core.sam.factors import RelativePose
+from csam_ros.core.sam.factors import PointObservation, RelativePose
 from csam_ros.core.smoothing.local_map import LocalMap
 from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
@@ -229,6 +229,11 @@ def test_odometry_calibration_recovers_the_scales_online():
     np.testing.assert_allclose(published.measured, at_estimate.relative_poses, atol=1e-6)
     heading = se2.wrap_angle(local.poses[:, 2] - truth[np.searchsorted(stamps, local.stamps), 2])
     assert np.abs(heading).max() < 0.1
+    # the landmarks are the solve's: their observations fit (whitened errors within the gate)
+    observed = [f for f in local.problem.factors if isinstance(f, PointObservation)][0]
+    blocks = [local.problem.values_of(ids) for ids in observed.variables.T]
+    whitened, _, _ = observed.whitened(blocks, jacobians=False)
+    assert np.median(np.linalg.norm(whitened, axis=1)) < 3.0
     # saved and restored: the same estimate, the same published odometry
     again = LocalMap.from_state("r", local.state(), LocalMapOptions(odometry_calibration=True))
     np.testing.assert_array_equal(again.odometry_calibration.scale, cal.scale)
