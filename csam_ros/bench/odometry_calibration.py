@@ -90,7 +90,7 @@ def mrclam(directory: str, duration: float | None, stress: OdometryStress) -> No
         robots = result.robots.values()
         passed = sum(r.local_check is not None and r.local_check.passed for r in robots)
         aligned = sum(r.joined for r in robots)
-        landmark = metrics.get("landmarks", metrics.get("landmark", {}))
+        landmark = metrics["landmark_error"]
         print(
             f"  calibration {'on ' if on else 'off'}: consistency check passed {passed}/"
             f"{len(result.robots)}, joined {aligned}, landmark rmse "
