@@ -127,7 +127,7 @@ def cmd_import(a: argparse.Namespace) -> int:
     from csam_ros.run.importing import import_dataset
 
     count, robots = import_dataset(
-        a.format, a.source, a.out, a.robots, a.start, a.duration, a.config, a.occlude
+        a.format, a.source, a.out, a.robots, a.start, a.duration, a.config, a.occlude, a.stress
     )
     print(f"wrote {count} messages of {robots} robot(s) to {a.out}")
     return 0
@@ -255,6 +255,7 @@ def parser() -> argparse.ArgumentParser:
         "landmarks least often, every other 90 s window from 90 s after its start (half its "
         "run)",
     )
+    imp.add_argument("--odometry-stress", dest="stress", help="MR.CLAM: e.g. turn_driving=1.5")
     imp.set_defaults(func=cmd_import)
 
     ev = sub.add_parser("evaluate", help="compare a run with its ground truth: metrics.json")

@@ -18,6 +18,8 @@ Layout (see ``config/map_joining.yaml`` for a commented example)::
                          sigma_range: 0.01, sigma_bearing: 0.012}   # min_range: 0.1
         rendezvous_sensor: {...same keys...}   # or null: this robot observes no robot
         rendezvous_every: 1
+        odometry_stress: {turn_driving: 1.5, distance: 0.9, resample_hz: 8}  # optional:
+                               # reported odometry miscalibrated (datasets/odometry_stress.py)
       robots:
         - name: robot1
           start: {x: 0.0, y: 0.0, phi_deg: 0.0}
@@ -33,12 +35,14 @@ silently falls back to a default.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from csam_ros.core.model.config_file import ConfigFileError, load_document, resolve_config_path
+from csam_ros.datasets.odometry_stress import OdometryStress
 from csam_ros.datasets.simulation import (
     RangeBearingSensor,
     RobotSpec,
@@ -127,6 +131,7 @@ def _odometry_sigma(node: Any, where: str) -> tuple[float, float, float]:
 
 _ROBOT_KEYS = {
     "name",
+    "odometry_stress",
     "start",
     "program",
     "observes",
@@ -191,7 +196,22 @@ def _robot(node: Any, where: str, defaults: Mapping[str, Any]) -> RobotSpec:
         ),
         observes=tuple(observes) if observes is not None else None,
         rendezvous_every=every,
+        odometry_stress=_odometry_stress(merged.get("odometry_stress"), f"{where}.odometry_stress"),
     )
+
+
+def _odometry_stress(node: Any, where: str) -> OdometryStress | None:
+    """``odometry_stress: {turn_driving: 1.5, distance: 0.9, resample_hz: 8}`` (the robot's
+    reported odometry miscalibrated, csam_ros.datasets.odometry_stress); None: absent."""
+    if node is None:
+        return None
+    node = _mapping(node, where)
+    names = {f.name for f in fields(OdometryStress)}
+    _check_keys(node, names, where)
+    try:
+        return OdometryStress(**{k: _number(node, k, where) for k in node})
+    except ValueError as err:
+        raise ScenarioError(f"{where}: {err}") from None
 
 
 def _world(node: Any, where: str) -> np.ndarray:

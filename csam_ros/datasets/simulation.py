@@ -35,6 +35,7 @@ from csam_ros.core.model.log import (
     empty_rendezvous,
 )
 from csam_ros.core.model.sensor import cartesian_to_polar
+from csam_ros.datasets.odometry_stress import OdometryStress, stress_odometry
 
 FloatArray = NDArray[np.float64]
 
@@ -79,6 +80,7 @@ class RobotSpec:
     rendezvous_sensor: RangeBearingSensor | None = RangeBearingSensor()
     observes: tuple[str, ...] | None = None  # robots it may observe; None: every other robot
     rendezvous_every: int = 1  # observe other robots at every n-th sample
+    odometry_stress: OdometryStress | None = None  # reported odometry miscalibrated
 
 
 @dataclass(frozen=True)
@@ -202,6 +204,8 @@ def simulate(scenario: Scenario, seed: int | None = None) -> MultiRobotLog:
         inputs[1:, 2] = cmd[:, 1]
         inputs[1:] += sigma * rng.standard_normal((n - 1, 3))
         odometry = OdometryLog(stamps[spec.name].copy(), inputs, np.tile(sigma, (n, 1)))
+        if spec.odometry_stress is not None:
+            odometry = stress_odometry(odometry, spec.odometry_stress)
 
         labels = label_base * (index + 1) + rng.permutation(n_features)
         label_to_feature[spec.name] = {int(lab): int(f) for f, lab in enumerate(labels)}

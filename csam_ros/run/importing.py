@@ -31,14 +31,16 @@ def import_dataset(
     duration: float | None = None,
     config: Path | None = None,
     occlude: str | None = None,
+    odometry_stress: str | None = None,
     progress: Callable[[str], None] = print,
 ) -> tuple[int, int]:
     """Write the data set ``source`` as a new bag ``out``; its message and robot counts.
 
     MR.CLAM: ``robots`` (e.g. ``1,2,3``; None: all), ``start`` and ``duration`` [s] pick the
     data, ``config`` (default: the installed mrclam.yaml) its noise model, range scales and
-    truth swaps, ``occlude`` the landmark observations dropped; the import's report goes to
-    ``progress``."""
+    truth swaps, ``occlude`` the landmark observations dropped, ``odometry_stress`` (e.g.
+    ``turn_driving=1.54,resample_hz=8``) the odometry miscalibrated; the import's report goes
+    to ``progress``."""
     from csam_ros.run.bag_io import write_log_bag
 
     if out.exists():
@@ -76,12 +78,21 @@ def import_dataset(
         except (MrclamFormatError, ValueError) as err:
             raise RunError(str(err)) from None
         progress(report.summary())
+        if odometry_stress:
+            from csam_ros.datasets.odometry_stress import parse_odometry_stress, stress_log
+
+            try:
+                log = stress_log(log, parse_odometry_stress(odometry_stress))
+            except ValueError as err:
+                raise RunError(f"--odometry-stress: {err}") from None
     else:
         from csam_ros.datasets.slam2d import Slam2dFormatError
         from csam_ros.datasets.slam2d_log import read_slam2d_log
 
         if occlude is not None:
             raise RunError("--occlude is an option of import mrclam")
+        if odometry_stress:
+            raise RunError("--odometry-stress is an option of import mrclam")
 
         try:
             log = read_slam2d_log(source)

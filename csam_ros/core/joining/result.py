@@ -211,6 +211,8 @@ class RobotResult:
     features_local: Array = field(default_factory=lambda: np.zeros((0, 2)))  # in G_r
     feature_covariances_local: Array = field(default_factory=lambda: np.zeros((0, 2, 2)))
     local_check: LocalMapCheck | None = None  # None: not checked
+    # (2, 3): the local map's odometry calibration (s, k_d, k_s) and its sigmas; None: off
+    odometry_calibration: Array | None = None
 
     @property
     def joined(self) -> bool:
@@ -218,8 +220,9 @@ class RobotResult:
         return joined(self.alignment)
 
     def to_dict(self) -> dict[str, Any]:
-        """The robot's entry of ``summary.json`` (its name is the key of the entry)."""
-        return {
+        """The robot's entry of ``summary.json`` (its name is the key of the entry;
+        ``odometry_calibration`` only when estimated)."""
+        entry = {
             "base_node": _array_list(self.base_node),
             "base_node_cov": _array_list(self.base_node_cov),
             "alignment": self.alignment,
@@ -245,13 +248,29 @@ class RobotResult:
             "sigma_phi_joined_reference": _array_list(self.sigma_phi_joined_reference) or [],
             "local_check": self.local_check.to_dict() if self.local_check else None,
         }
+        if self.odometry_calibration is not None:
+            scale, sigma = np.asarray(self.odometry_calibration, dtype=float).reshape(2, 3)
+            entry["odometry_calibration"] = {"scale": scale.tolist(), "sigma": sigma.tolist()}
+        return entry
 
     @classmethod
     def from_dict(cls, name: str, node: Any, where: str | None = None) -> RobotResult:
         """The inverse of :meth:`to_dict` for the robot ``name``."""
         where = where or f"robots.{name}"
         keys = list(cls(name, "", np.zeros(0), np.zeros((0, 3)), np.zeros(0)).to_dict())
-        node = _object(node, where, keys, optional=("local_check", "alignment_rendezvous_poses"))
+        node = _object(
+            node,
+            where,
+            [*keys, "odometry_calibration"],
+            optional=("local_check", "alignment_rendezvous_poses", "odometry_calibration"),
+        )
+        calibration = None
+        if node.get("odometry_calibration") is not None:
+            at = f"{where}.odometry_calibration"
+            entry = _object(node["odometry_calibration"], at, ("scale", "sigma"))
+            calibration = np.stack(
+                [_array(entry[k], (3,), f"{at}.{k}") for k in ("scale", "sigma")]
+            )
         stamps = _array(node["stamps"], (None,), f"{where}.stamps")
         rendezvous_stamps = _array(node["rendezvous_stamps"], (None,), f"{where}.rendezvous_stamps")
         check = node.get("local_check")
@@ -308,6 +327,7 @@ class RobotResult:
             local_check=None
             if check is None
             else LocalMapCheck.from_dict(check, f"{where}.local_check"),
+            odometry_calibration=calibration,
         )
 
 

@@ -263,3 +263,101 @@ def odometry_poses_at(
     index = np.clip(np.searchsorted(t, q, side="right"), 1, len(t) - 1)
     before = index - 1
     return se2.compose(p[before], increment(u[index], q - t[before]))
+
+
+# ---------------------------------------------------------------------------------------------
+# odometry calibration (docs/METHOD.md, "Calibrating the odometry")
+
+CALIBRATION_NAMES = ("distance", "turn_driving", "turn_on_the_spot")
+
+
+def calibrated_inputs(
+    inputs: ArrayLike, calibration: ArrayLike, driving_speed: float
+) -> tuple[Array, Array]:
+    """True inputs ``(s v, s v_lat, k omega)`` ``(N, 3)`` of logged ``inputs`` under the
+    calibration ``c = (s, k_d, k_s)``, with ``k = k_d`` where ``|v| > driving_speed`` else
+    ``k_s``, and their derivatives ``du/dc`` ``(N, 3, 3)`` (linear in ``c``)."""
+    u = np.asarray(inputs, dtype=float)
+    s, k_driving, k_spot = np.asarray(calibration, dtype=float)
+    driving = np.abs(u[:, 0]) > driving_speed
+    scaled = np.stack(
+        [s * u[:, 0], s * u[:, 1], np.where(driving, k_driving, k_spot) * u[:, 2]], axis=1
+    )
+    du_dc = np.zeros((len(u), 3, 3))
+    du_dc[:, 0, 0] = u[:, 0]
+    du_dc[:, 1, 0] = u[:, 1]
+    du_dc[:, 2, 1] = np.where(driving, u[:, 2], 0.0)
+    du_dc[:, 2, 2] = np.where(driving, 0.0, u[:, 2])
+    return scaled, du_dc
+
+
+def segment_jacobians(increments: ArrayLike, segment_starts: ArrayLike) -> tuple[Array, Array]:
+    """The composed relative pose ``(M, 3)`` of each segment (as :func:`compose_segments`) and
+    the Jacobian ``(K, 3, 3)`` of its segment's composition with respect to each increment."""
+    inc = np.asarray(increments, dtype=float)
+    starts = np.asarray(segment_starts, dtype=np.int64)
+    count = len(inc)
+    seg_len = np.diff(np.append(starts, count))
+    heading_after = np.cumsum(inc[:, 2])
+    heading_before = heading_after - inc[:, 2]
+    theta = heading_before - np.repeat(heading_before[starts], seg_len)
+    c, s = np.cos(theta), np.sin(theta)
+    wx = c * inc[:, 0] - s * inc[:, 1]
+    wy = s * inc[:, 0] + c * inc[:, 1]
+    px, py = np.cumsum(wx), np.cumsum(wy)
+    px -= np.repeat(px[starts] - wx[starts], seg_len)
+    py -= np.repeat(py[starts] - wy[starts], seg_len)
+    ends = np.append(starts[1:], count) - 1
+    total = np.stack([px[ends], py[ends], heading_after[ends] - heading_before[starts]], axis=1)
+    tx = np.repeat(total[:, 0], seg_len) - px
+    ty = np.repeat(total[:, 1], seg_len) - py
+    J = np.zeros((count, 3, 3))
+    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = c, -s, -ty
+    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = s, c, tx
+    J[:, 2, 2] = 1.0
+    return total, J
+
+
+@dataclass
+class CalibratedOdometryFactors(OdometryFactors):
+    """:class:`OdometryFactors` composed at a calibration ``c0`` with ``dz/dc`` at ``c0``."""
+
+    calibration: Array  # (3,) c0
+    calibration_jacobians: Array  # (M-1, 3, 3) dz/dc
+
+
+def calibrated_odometry_between(
+    stamps: ArrayLike,
+    inputs: ArrayLike,
+    sigmas: ArrayLike,
+    key_stamps: ArrayLike,
+    calibration: ArrayLike,
+    driving_speed: float,
+    correlations: ArrayLike | None = None,
+) -> CalibratedOdometryFactors:
+    """:func:`odometry_between` of the inputs corrected by ``calibration`` ``(s, k_d, k_s)``
+    (:func:`calibrated_inputs`; the input noise unchanged), with the Jacobian of each composed
+    relative pose with respect to the calibration, by the chain rule through the pieces and
+    the composition. ``key_stamps`` as for :func:`odometry_between` (checked there)."""
+    t = np.asarray(stamps, dtype=float)
+    keys = np.asarray(key_stamps, dtype=float)
+    c0 = np.asarray(calibration, dtype=float).reshape(3)
+    u, du_dc = calibrated_inputs(inputs, c0, driving_speed)
+    plain = odometry_between(t, u, sigmas, keys, check=False, correlations=correlations)
+    if len(keys) == 1:
+        return CalibratedOdometryFactors(
+            keys, plain.relative_poses, plain.covariances, c0, np.zeros((0, 3, 3))
+        )
+    lo = np.searchsorted(t, keys[0], side="right")
+    hi = np.searchsorted(t, keys[-1], side="left")
+    piece_end = np.union1d(t[lo:hi], keys)
+    dt = np.diff(piece_end)
+    piece_end = piece_end[1:]
+    sample = np.searchsorted(t, piece_end, side="left")
+    U, G = increment_and_jacobian(u[sample], dt)
+    segment = np.searchsorted(keys, piece_end, side="left") - 1
+    starts = np.flatnonzero(np.diff(np.concatenate([[-1], segment])))
+    _, J = segment_jacobians(U, starts)
+    per_piece = J @ G @ du_dc[sample]
+    dz_dc = np.add.reduceat(per_piece.reshape(len(U), 9), starts, axis=0).reshape(-1, 3, 3)
+    return CalibratedOdometryFactors(keys, plain.relative_poses, plain.covariances, c0, dz_dc)

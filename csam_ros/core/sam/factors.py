@@ -17,6 +17,9 @@ Error conventions (``e = prediction - measurement``):
 - ``RelativePose`` (odometry, docs/METHOD.md section 2): ``between(x_a, x_b) - z`` with the angle
   wrapped, i.e. the pose of ``x_b`` in the frame of ``x_a`` minus the measured one; the
   covariance is expressed in the frame of ``x_a`` (independent of heading).
+- ``CalibratedRelativePose`` (odometry with calibration unknowns ``c``):
+  ``between(x_a, x_b) - (z0 + J (c - c0))``, the composed odometry linearised in ``c`` at
+  ``c0`` (as IMU preintegration corrects for a bias).
 - ``PointObservation`` (paper eq. 11-17): ``R(phi)^T (l - t) - z``.
 - ``RelativePosition`` (rendezvous in global parametrisation): translation of
   ``(-)x_a (+) x_b`` minus ``z``, i.e. ``R(phi_a)^T (t_b - t_a) - z``.
@@ -53,6 +56,7 @@ class VariableKind:
 
 POSE = VariableKind("pose", 3, 2)
 POINT = VariableKind("point", 2, None)
+CALIBRATION = VariableKind("odometry calibration", 3, None)  # (s, k_d, k_s), motion.py
 
 
 # ---------------------------------------------------------------------------------------------
@@ -396,6 +400,26 @@ class PointPrior(Factor):
         return e, [np.broadcast_to(np.eye(2), (len(e), 2, 2))]
 
 
+def _between_error(xa: Array, xb: Array, z: Array, jacobians: bool) -> tuple[Array, Array | None]:
+    """``between(x_a, x_b) - z`` (angle wrapped) and its Jacobian ``(K, 3, 6)`` in ``x_a, x_b``."""
+    c, s = np.cos(xa[:, 2]), np.sin(xa[:, 2])
+    dx = xb[:, 0] - xa[:, 0]
+    dy = xb[:, 1] - xa[:, 1]
+    lx = c * dx + s * dy
+    ly = -s * dx + c * dy
+    e = np.stack([lx - z[:, 0], ly - z[:, 1], se2.wrap_angle(xb[:, 2] - xa[:, 2] - z[:, 2])], 1)
+    if not jacobians:
+        return e, None
+    jac = np.zeros((len(c), 3, 6))
+    jac[:, 0, 0], jac[:, 0, 1], jac[:, 0, 2] = -c, -s, ly
+    jac[:, 1, 0], jac[:, 1, 1], jac[:, 1, 2] = s, -c, -lx
+    jac[:, 2, 2] = -1.0
+    jac[:, 0, 3], jac[:, 0, 4] = c, s
+    jac[:, 1, 3], jac[:, 1, 4] = -s, c
+    jac[:, 2, 5] = 1.0
+    return e, jac
+
+
 class RelativePose(Factor):
     """Relative pose (odometry): ``e = between(x_a, x_b) - z``, angle wrapped, frame of ``x_a``."""
 
@@ -429,24 +453,55 @@ class RelativePose(Factor):
         return e, jac  # type: ignore[return-value]
 
     def _evaluate(self, blocks: Sequence[Array], jacobians: bool) -> tuple[Array, Array | None]:
-        xa, xb = blocks
-        c, s = np.cos(xa[:, 2]), np.sin(xa[:, 2])
-        dx = xb[:, 0] - xa[:, 0]
-        dy = xb[:, 1] - xa[:, 1]
-        lx = c * dx + s * dy
-        ly = -s * dx + c * dy
-        z = self.measured
-        e = np.stack([lx - z[:, 0], ly - z[:, 1], se2.wrap_angle(xb[:, 2] - xa[:, 2] - z[:, 2])], 1)
-        if not jacobians:
-            return e, None
-        jac = np.zeros((len(c), 3, 6))
-        jac[:, 0, 0], jac[:, 0, 1], jac[:, 0, 2] = -c, -s, ly
-        jac[:, 1, 0], jac[:, 1, 1], jac[:, 1, 2] = s, -c, -lx
-        jac[:, 2, 2] = -1.0
-        jac[:, 0, 3], jac[:, 0, 4] = c, s
-        jac[:, 1, 3], jac[:, 1, 4] = -s, c
-        jac[:, 2, 5] = 1.0
-        return e, jac
+        return _between_error(blocks[0], blocks[1], self.measured, jacobians)
+
+
+class CalibratedRelativePose(Factor):
+    """Odometry with calibration unknowns: ``e = between(x_a, x_b) - (z0 + J (c - c0))``,
+    angle wrapped, frame of ``x_a``; ``J = dz/dc`` ``(K, 3, 3)`` at ``c0`` ``(K, 3)``."""
+
+    kinds = (POSE, POSE, CALIBRATION)
+    residual_dim = 3
+
+    def __init__(
+        self,
+        first: ArrayLike,
+        second: ArrayLike,
+        calibration: ArrayLike,
+        measured: ArrayLike,
+        calibration_jacobians: ArrayLike,
+        linearisation: ArrayLike,
+        sqrt_information: ArrayLike | None = None,
+        *,
+        covariance: ArrayLike | None = None,
+        robust: RobustKernel | None = None,
+        name: str = "CalibratedRelativePose",
+    ) -> None:
+        a = _as_ids(first, name)
+        w = _as_sqrt_information(sqrt_information, covariance, len(a), 3, name)
+        super().__init__([a, second, calibration], w, robust, name)
+        self.measured = _as_measurements(measured, len(a), 3, name)
+        jac = np.asarray(calibration_jacobians, dtype=float)
+        if jac.shape != (len(a), 3, 3):
+            raise ValueError(f"{name}: calibration_jacobians must be ({len(a)}, 3, 3)")
+        _check_finite(jac.reshape(len(a), -1), f"{name} calibration_jacobians")
+        self.calibration_jacobians = jac
+        lin = np.asarray(linearisation, dtype=float)
+        self.linearisation = _as_measurements(
+            np.broadcast_to(lin, (len(a), 3)) if lin.shape == (3,) else lin, len(a), 3, name
+        )
+
+    def evaluate(
+        self, blocks: Sequence[Array], jacobians: bool = True
+    ) -> tuple[Array, list[Array]]:
+        xa, xb, cal = blocks
+        z = self.measured + np.einsum(
+            "kij,kj->ki", self.calibration_jacobians, cal - self.linearisation
+        )
+        e, jac = _between_error(xa, xb, z, jacobians)
+        if jac is None:
+            return e, []
+        return e, [jac[:, :, :3], jac[:, :, 3:], -self.calibration_jacobians]
 
 
 def _point_in_body(

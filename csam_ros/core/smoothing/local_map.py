@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Hashable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -51,8 +51,11 @@ from csam_ros.core.sam.covariance import (
     marginal_sqrt_information,
 )
 from csam_ros.core.sam.factors import (
+    CALIBRATION,
     POINT,
     POSE,
+    CalibratedRelativePose,
+    LinearPrior,
     PointObservation,
     PosePrior,
     RelativePose,
@@ -105,6 +108,21 @@ class LocalMapState:
     dropped_features: int
     last_solved_odometry: float  # -inf: never solved
     solved: bool  # whether the map has a solved problem (poses to publish)
+    # (3,) estimated odometry calibration (s, k_d, k_s); (0,): none (calibration off)
+    odometry_calibration: Array = field(default_factory=lambda: np.zeros(0))
+
+
+CALIBRATION_KEY = ("c", 0)
+CALIBRATION_ROUNDS = 5  # converged solves: recompositions at most
+
+
+@dataclass
+class OdometryCalibration:
+    """A local map's estimate of its odometry calibration ``(s, k_d, k_s)``
+    (:func:`csam_ros.core.model.motion.calibrated_inputs`) and its marginal sigmas."""
+
+    scale: Array  # (3,)
+    sigma: Array  # (3,)
 
 
 class LocalMap:
@@ -130,6 +148,13 @@ class LocalMap:
         self._key_values = np.zeros((0, 3))
         self._rel = np.zeros((0, 3))
         self._rel_w = np.zeros((0, 3, 3))
+        # odometry calibration (options.odometry_calibration): the estimate, the point the
+        # odometry factors were composed at and their Jacobians dz/dc there
+        self._calibration = np.ones(3)
+        self._calibration_lin = np.ones(3)
+        self._rel_dc = np.zeros((0, 3, 3))
+        self._calibrated_problem: Problem | None = None
+        self._calibration_sigma: Array | None = None
         self._landmark_index: dict[int, int] = {}
         self._landmark_labels: list[int] = []
         self._landmark_values = np.zeros((0, 2))
@@ -331,7 +356,9 @@ class LocalMap:
         inserted = self._insert_keys(new_keys)
         covered = self._with_key_pose(first_new_feature, covered)
         new_landmarks, new_obs = self._integrate_features(covered)
-        solve = self._solve(self.options.solver if converge else self.options.online_solver)
+        solve = self._solve(
+            self.options.solver if converge else self.options.online_solver, converge
+        )
         self._last_solved_odometry = t_end
         self.last_report = UpdateReport(
             new_poses=len(new_keys),
@@ -383,28 +410,65 @@ class LocalMap:
             inserted = int(is_new[: old_pos[-1]].sum())
         rel = np.zeros((len(keys) - 1, 3))
         rel_w = np.zeros((len(keys) - 1, 3, 3))
+        rel_dc = np.zeros((len(keys) - 1, 3, 3))
         if len(old) > 1:
             # unchanged intervals keep their factors: map old interval i -> new index
             old_pos = np.flatnonzero(~is_new)
             same = np.flatnonzero(np.diff(old_pos) == 1)
             rel[old_pos[same]] = self._rel[same]
             rel_w[old_pos[same]] = self._rel_w[same]
+            if self.options.odometry_calibration:
+                rel_dc[old_pos[same]] = self._rel_dc[same]
         for a, b in changed_runs:
-            odo = motion.odometry_between(
-                self._odo_t,
-                self._odo_u,
-                self._odo_q,
-                keys[a : b + 1],
-                check=False,
-                correlations=self._odo_rho if self._odo_rho.any() else None,
-            )
+            odo = self._odometry_between(keys[a : b + 1])
             rel[a:b] = odo.relative_poses
             rel_w[a:b] = sqrt_information_from_covariance(odo.covariances, f"{self.name} odometry")
+            if isinstance(odo, motion.CalibratedOdometryFactors):
+                rel_dc[a:b] = odo.calibration_jacobians
             chain = motion.dead_reckoning(odo.relative_poses, values[a])
             fill = is_new[a + 1 : b + 1]
             values[a + 1 : b + 1][fill] = chain[1:][fill]
         self._keys, self._key_values, self._rel, self._rel_w = keys, values, rel, rel_w
+        if self.options.odometry_calibration:
+            self._rel_dc = rel_dc
         return inserted
+
+    def _odometry_between(self, keys: Array) -> motion.OdometryFactors:
+        """The odometry composed between consecutive ``keys`` (at the calibration's
+        linearisation point, with ``dz/dc``, when calibrating)."""
+        rho = self._odo_rho if self._odo_rho.any() else None
+        if not self.options.odometry_calibration:
+            return motion.odometry_between(
+                self._odo_t, self._odo_u, self._odo_q, keys, check=False, correlations=rho
+            )
+        return motion.calibrated_odometry_between(
+            self._odo_t,
+            self._odo_u,
+            self._odo_q,
+            keys,
+            self._calibration_lin,
+            self.options.driving_speed,
+            correlations=rho,
+        )
+
+    def _recompose_odometry(self) -> None:
+        """Compose every odometry factor anew at the current calibration estimate."""
+        self._calibration_lin = self._calibration.copy()
+        if len(self._keys) < 2:
+            return
+        odo = self._odometry_between(self._keys)
+        assert isinstance(odo, motion.CalibratedOdometryFactors)
+        self._rel = odo.relative_poses
+        self._rel_w = sqrt_information_from_covariance(odo.covariances, f"{self.name} odometry")
+        self._rel_dc = odo.calibration_jacobians
+
+    def _calibrated_relative(self) -> Array:
+        """The odometry factors' relative poses at the calibration estimate (to first order
+        from where they were composed): what the map's published problem carries."""
+        if not self.options.odometry_calibration or len(self._rel) == 0:
+            return self._rel
+        shift = self._calibration - self._calibration_lin
+        return self._rel + np.einsum("kij,j->ki", self._rel_dc, shift)
 
     def _with_key_pose(self, start: int, covered: int) -> int:
         """``covered`` less the last features with no key pose within ``stamp_tolerance``:
@@ -444,15 +508,42 @@ class LocalMap:
             raise RuntimeError(f"{self.name}: no key pose at stamp {stamps[bad]}")
         return pick
 
-    def _build_problem(self) -> Problem:
+    def _build_problem(self, calibrated: bool = False) -> Problem:
+        """The map's problem; ``calibrated``: with the calibration unknowns (and odometry
+        factors in them), else with the odometry at the calibration estimate."""
         problem = Problem()
         n = len(self._keys)
         poses = problem.add_variables(POSE, [("x", i) for i in range(n)], self._key_values)
         gauge = np.eye(3) / self.options.gauge_sigma
         problem.add_factor(PosePrior(poses[:1], np.zeros((1, 3)), gauge, name="gauge prior"))
-        if n > 1:
+        if n > 1 and calibrated:
+            cal = problem.add_variable(CALIBRATION, CALIBRATION_KEY, self._calibration)
             problem.add_factor(
-                RelativePose(poses[:-1], poses[1:], self._rel, self._rel_w, name="odometry")
+                LinearPrior(
+                    [cal],
+                    [CALIBRATION],
+                    np.ones(3),
+                    np.diag(1.0 / np.asarray(self.options.calibration_sigmas, dtype=float)),
+                    name="calibration prior",
+                )
+            )
+            problem.add_factor(
+                CalibratedRelativePose(
+                    poses[:-1],
+                    poses[1:],
+                    np.full(n - 1, cal),
+                    self._rel,
+                    self._rel_dc,
+                    self._calibration_lin,
+                    self._rel_w,
+                    name="odometry",
+                )
+            )
+        elif n > 1:
+            problem.add_factor(
+                RelativePose(
+                    poses[:-1], poses[1:], self._calibrated_relative(), self._rel_w, name="odometry"
+                )
             )
         if self._landmark_labels:
             lms = problem.add_variables(
@@ -476,12 +567,31 @@ class LocalMap:
                 )
         return problem
 
-    def _solve(self, options: SolverOptions) -> SolveReport:
-        problem = self._build_problem()
-        report = problem.solve(options)
-        n = len(self._keys)
-        self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
-        self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
+    def _solve(self, options: SolverOptions, converge: bool = False) -> SolveReport:
+        """Solve; when calibrating, the odometry is recomposed at the new calibration if it
+        moved (and, with ``converge``, solved again until it stays: at most
+        ``CALIBRATION_ROUNDS`` rounds)."""
+        calibrating = self.options.odometry_calibration and len(self._keys) > 1
+        for _ in range(CALIBRATION_ROUNDS if calibrating and converge else 1):
+            problem = self._build_problem(calibrated=calibrating)
+            report = problem.solve(options)
+            n = len(self._keys)
+            self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
+            if not calibrating:
+                self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
+                break
+            if self._landmark_labels:  # the calibration variable sits between
+                ids = problem.indices([("l", lab) for lab in self._landmark_labels])
+                self._landmark_values = problem.values_of(ids).reshape(-1, 2).copy()
+            self._calibration = problem.value(CALIBRATION_KEY).copy()
+            self._calibrated_problem = problem
+            self._calibration_sigma = None
+            moved = np.abs(self._calibration - self._calibration_lin).max()
+            if moved <= self.options.calibration_relinearise:
+                break
+            self._recompose_odometry()
+        if calibrating:
+            problem = self._build_problem()
         self._problem = problem
         self._system = None
         self._inverse = None
@@ -513,6 +623,7 @@ class LocalMap:
             self._dropped_features,
             float(self._last_solved_odometry),
             self._problem is not None,
+            self._calibration.copy() if self.options.odometry_calibration else np.zeros(0),
         )
 
     @classmethod
@@ -566,6 +677,12 @@ class LocalMap:
         local._integrated_features = int(s.integrated_features)
         local._dropped_features = int(s.dropped_features)
         local._last_solved_odometry = float(s.last_solved_odometry)
+        if local.options.odometry_calibration:
+            calibration = np.asarray(s.odometry_calibration, dtype=float).reshape(-1)
+            if len(calibration) not in (0, 3) or not np.all(np.isfinite(calibration)):
+                raise ValueError(f"{name}: odometry_calibration {calibration.tolist()}")
+            local._calibration = calibration.copy() if len(calibration) else np.ones(3)
+            local._recompose_odometry()
         if s.solved:
             local._problem = local._build_problem()
         return local
@@ -590,6 +707,24 @@ class LocalMap:
     def landmarks(self) -> Array:
         """Landmark positions ``(L, 2)`` in ``G_r``, in the order of :attr:`landmark_labels`."""
         return self._landmark_values.copy()
+
+    @property
+    def odometry_calibration(self) -> OdometryCalibration | None:
+        """The calibration estimate and its marginal sigmas (``None``: calibration off or not
+        solved yet; after :meth:`from_state` the sigmas wait for the next solve: NaN)."""
+        if not self.options.odometry_calibration or self._problem is None:
+            return None
+        if self._calibration_sigma is None:
+            if self._calibrated_problem is None:
+                self._calibration_sigma = np.full(3, np.nan)
+            else:
+                cov = marginal_covariance(
+                    self._calibrated_problem,
+                    [CALIBRATION_KEY],
+                    factorize_at_estimate(self._calibrated_problem),
+                )
+                self._calibration_sigma = np.sqrt(np.diag(cov))
+        return OdometryCalibration(self._calibration.copy(), self._calibration_sigma.copy())
 
     @property
     def dropped_features(self) -> int:

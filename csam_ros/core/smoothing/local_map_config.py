@@ -24,6 +24,10 @@ class LocalMapOptions:
     online_solver: SolverOptions = field(  # every other update: warm-started, capped
         default_factory=lambda: SolverOptions(relative_tolerance=1e-6, max_iterations=10)
     )
+    odometry_calibration: bool = False  # unknowns (s, k_d, k_s) scaling the odometry
+    driving_speed: float = 0.02  # m/s: |v| above it turns with k_d, else k_s
+    calibration_sigmas: tuple[float, float, float] = (0.1, 0.5, 0.5)  # prior at (1, 1, 1)
+    calibration_relinearise: float = 1e-4  # recompose the odometry when c moved this much
 
 
 SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
@@ -86,11 +90,38 @@ class LocalMapConfig(Section):
         **_NON_NEGATIVE,
     )
 
+    odometry_calibration: bool = setting(
+        False,
+        "estimate per robot the odometry's distance scale and turn-rate scales while driving "
+        "and on the spot (docs/METHOD.md, calibrating the odometry)",
+        node=SMOOTHER,
+    )
+    driving_speed: float = setting(
+        0.02, "m/s: odometry faster than this turns with the driving scale", **_NON_NEGATIVE
+    )
+    calibration_sigma_distance: float = setting(
+        0.1, "prior sigma of the distance scale (at 1)", minimum=0.0, exclusive=True, node=SMOOTHER
+    )
+    calibration_sigma_turn: float = setting(
+        0.5,
+        "prior sigma of the turn-rate scales, driving and on the spot (at 1)",
+        minimum=0.0,
+        exclusive=True,
+        node=SMOOTHER,
+    )
+
     def options(self) -> LocalMapOptions:
         return LocalMapOptions(
             key_interval=self.key_interval or None,
             robust=robust_kernel(self.robust_kernel, self.robust_threshold),
             solver=SolverOptions(max_step_scale=self.converged_step_scale),
+            odometry_calibration=self.odometry_calibration,
+            driving_speed=self.driving_speed,
+            calibration_sigmas=(
+                self.calibration_sigma_distance,
+                self.calibration_sigma_turn,
+                self.calibration_sigma_turn,
+            ),
         )
 
     @property

@@ -247,3 +247,19 @@ def test_notes_of_summaries_written_before_notes_were_typed_still_read(
         NoteKind.NOT_CONVERGED_JOINT,
     ]
     assert back.to_dict()["notes"] == document["notes"]
+
+
+def test_odometry_calibration_is_an_optional_key(joined: CsamResult) -> None:
+    joined = copy.deepcopy(joined)
+    name = next(iter(joined.robots))
+    assert "odometry_calibration" not in joined.to_dict()["robots"][name]  # off: as before
+    joined.robots[name].odometry_calibration = np.array([[1.1, 0.66, 1.0], [0.01, 0.02, 0.5]])
+    document = json.loads(json.dumps(joined.to_dict()))
+    assert document["robots"][name]["odometry_calibration"]["scale"] == [1.1, 0.66, 1.0]
+    back = CsamResult.from_dict(document)
+    np.testing.assert_array_equal(
+        back.robots[name].odometry_calibration, joined.robots[name].odometry_calibration
+    )
+    document["robots"][name]["odometry_calibration"]["sigma"] = [0.1]
+    with pytest.raises(SummaryError, match="odometry_calibration.sigma"):
+        CsamResult.from_dict(document)

@@ -224,3 +224,54 @@ def test_compose_segments_is_sequential_compounding(inc, cuts, noise):
         )
         assert_poses_close(total[k], want, atol=1e-12)
         np.testing.assert_allclose(total_cov[k], want_cov, atol=1e-13)
+
+
+def calibration_log(rng, count=400):
+    """Odometry with driving, turning on the spot and standing still, jittered stamps."""
+    stamps = np.cumsum(rng.uniform(0.01, 0.03, count))
+    inputs = np.column_stack(
+        [rng.uniform(-0.1, 0.4, count), rng.normal(0, 0.02, count), rng.normal(0, 0.6, count)]
+    )
+    inputs[50:90, 0] = 0.0  # on the spot
+    inputs[120:140] = 0.0  # standing still
+    return stamps, inputs, np.tile([0.03, 0.01, 0.05], (count, 1))
+
+
+def test_calibrated_odometry_jacobian_against_finite_differences():
+    rng = np.random.default_rng(7)
+    t, u, q = calibration_log(rng)
+    keys = np.sort(rng.uniform(t[0], t[-1], 12))
+    keys = np.concatenate([[t[0]], keys, t[[100, 200]], [t[-1]]])
+    keys = np.unique(keys)
+    c0 = np.array([1.07, 0.64, 0.98])
+    odo = motion.calibrated_odometry_between(t, u, q, keys, c0, 0.02)
+
+    def composed(c):
+        return np.stack(
+            [
+                motion.calibrated_odometry_between(t, u, q, keys, ci, 0.02).relative_poses
+                for ci in c.reshape(-1, 3)
+            ]
+        ).reshape(c.shape[:-1] + (len(keys) - 1, 3))
+
+    numeric = numeric_jacobian(lambda c: composed(c).reshape(-1), c0)
+    np.testing.assert_allclose(odo.calibration_jacobians.reshape(-1, 3), numeric, atol=1e-7)
+    # the inputs scaled by the calibration, then composed as without it
+    scaled, _ = motion.calibrated_inputs(u, c0, 0.02)
+    plain = motion.odometry_between(t, scaled, q, keys)
+    np.testing.assert_allclose(odo.relative_poses, plain.relative_poses, atol=1e-12)
+    np.testing.assert_allclose(odo.covariances, plain.covariances, atol=1e-15)
+
+
+def test_calibration_at_one_is_the_logged_odometry():
+    rng = np.random.default_rng(8)
+    t, u, q = calibration_log(rng)
+    keys = np.linspace(t[0], t[-1], 9)
+    plain = motion.odometry_between(t, u, q, keys)
+    odo = motion.calibrated_odometry_between(t, u, q, keys, np.ones(3), 0.02)
+    np.testing.assert_array_equal(odo.relative_poses, plain.relative_poses)
+    np.testing.assert_array_equal(odo.covariances, plain.covariances)
+    # the turn of a driving sample scales with k_d, of one on the spot with k_s
+    scaled, du_dc = motion.calibrated_inputs(u[[0, 60]], [2.0, 3.0, 5.0], 0.02)
+    np.testing.assert_allclose(scaled[:, 2], u[[0, 60], 2] * [3.0, 5.0])
+    np.testing.assert_allclose(np.einsum("kij,j->ki", du_dc, [2.0, 3.0, 5.0]), scaled)

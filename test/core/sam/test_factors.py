@@ -13,6 +13,7 @@ from csam_ros.core.sam.factors import (
     POINT,
     POSE,
     ROBUST_KERNELS,
+    CalibratedRelativePose,
     Cauchy,
     Huber,
     LinearPrior,
@@ -76,6 +77,21 @@ def test_relative_pose_jacobians_and_error():
     f = RelativePose(np.arange(12), np.arange(12, 24), z, unit_w(12, 3))
     check_jacobians(f, [a, b], angles=[2])
     np.testing.assert_allclose(f.evaluate([a, b], False)[0], 0, atol=1e-12)
+
+
+def test_calibrated_relative_pose_jacobians_and_error():
+    rng = np.random.default_rng(12)
+    a, b = random_poses(rng, 9), random_poses(rng, 9)
+    cal = 1.0 + 0.2 * rng.normal(size=(9, 3))
+    lin = np.array([1.1, 0.7, 0.95])
+    dz_dc = rng.normal(size=(9, 3, 3))
+    z = se2.between(a, b) - np.einsum("kij,kj->ki", dz_dc, cal - lin)
+    f = CalibratedRelativePose(
+        np.arange(9), np.arange(9, 18), np.full(9, 18), z, dz_dc, lin, unit_w(9, 3)
+    )
+    check_jacobians(f, [a, b, cal], angles=[2])
+    np.testing.assert_allclose(f.evaluate([a, b, cal], False)[0], 0, atol=1e-12)
+    np.testing.assert_array_equal(f.evaluate([a, b, cal])[1][2], -dz_dc)
 
 
 @pytest.mark.parametrize("distance", [3.0, 1e-3, 0.0])

@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from csam_ros.core.model import se2
+from csam_ros.core.model import motion, se2
+from csam_ros.core.model.log import OdometryLog, RobotLog
+from csam_ros.core.sam.factors import PointObservation, RelativePose
 from csam_ros.core.smoothing.local_map import LocalMap
 from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
@@ -192,3 +194,59 @@ def test_maybe_update_follows_the_update_period():
         if local.maybe_update() is not None:
             solved += 1
     assert 2 <= solved <= 4
+
+
+def miscalibrated(log, distance, turn_driving, turn_spot=1.0, driving_speed=0.02):
+    """The log with its odometry reporting ``distance`` x the distance and the turn rate
+    scaled while driving and on the spot (the truth unchanged)."""
+    o = log.odometry
+    u = o.inputs.copy()
+    driving = np.abs(u[:, 0]) > driving_speed
+    u[:, 2] *= np.where(driving, turn_driving, turn_spot)
+    u[:, :2] *= distance
+    return RobotLog(log.name, OdometryLog(o.stamps, u, o.sigmas), log.features, log.rendezvous)
+
+
+def test_odometry_calibration_recovers_the_scales_online():
+    log, truth, stamps, _ = make_log(duration=90.0, seed=1)
+    bad = miscalibrated(log, distance=0.9, turn_driving=1.5)
+    local = feed_online(bad, chunk=3.0, options=LocalMapOptions(odometry_calibration=True))
+    cal = local.odometry_calibration
+    applied = np.array([1 / 0.9, 1 / 1.5])
+    np.testing.assert_allclose(cal.scale[:2], applied, rtol=0.03)
+    assert np.all(np.abs(cal.scale[:2] - applied) < 4 * cal.sigma[:2])
+    assert cal.sigma[2] == pytest.approx(0.5, rel=1e-3)  # never on the spot: the prior
+    # the published problem carries the odometry at the estimate: plain relative poses
+    at_estimate = motion.calibrated_odometry_between(
+        bad.odometry.stamps,
+        bad.odometry.inputs,
+        bad.odometry.sigmas,
+        local.stamps,
+        cal.scale,
+        0.02,
+    )
+    published = [f for f in local.problem.factors if isinstance(f, RelativePose)][0]
+    np.testing.assert_allclose(published.measured, at_estimate.relative_poses, atol=1e-6)
+    heading = se2.wrap_angle(local.poses[:, 2] - truth[np.searchsorted(stamps, local.stamps), 2])
+    assert np.abs(heading).max() < 0.1
+    # the landmarks are the solve's: their observations fit (whitened errors within the gate)
+    observed = [f for f in local.problem.factors if isinstance(f, PointObservation)][0]
+    blocks = [local.problem.values_of(ids) for ids in observed.variables.T]
+    whitened, _, _ = observed.whitened(blocks, jacobians=False)
+    assert np.median(np.linalg.norm(whitened, axis=1)) < 3.0
+    # saved and restored: the same estimate, the same published odometry
+    again = LocalMap.from_state("r", local.state(), LocalMapOptions(odometry_calibration=True))
+    np.testing.assert_array_equal(again.odometry_calibration.scale, cal.scale)
+    restored = [f for f in again.problem.factors if isinstance(f, RelativePose)][0]
+    np.testing.assert_allclose(restored.measured, published.measured, atol=1e-6)
+
+
+def test_odometry_calibration_off_leaves_the_map_as_before():
+    log = miscalibrated(make_log(duration=30.0, seed=2)[0], distance=0.95, turn_driving=1.3)
+    before = feed_online(log, chunk=2.0)
+    off = feed_online(log, chunk=2.0, options=LocalMapOptions(odometry_calibration=False))
+    on = feed_online(log, chunk=2.0, options=LocalMapOptions(odometry_calibration=True))
+    np.testing.assert_allclose(off.poses, before.poses, atol=1e-12, rtol=0)
+    np.testing.assert_allclose(off.landmarks, before.landmarks, atol=1e-12, rtol=0)
+    assert off.odometry_calibration is None and len(off.state().odometry_calibration) == 0
+    assert np.abs(on.poses - off.poses).max() > 1e-3
