@@ -35,7 +35,7 @@ from csam_ros.core.exchange.validation import MeasurementFilter
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog, RobotLog
-from csam_ros.core.smoothing.local_map import LocalMapState
+from csam_ros.core.smoothing.local_map_state import LocalMapState
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 FORMAT = "csam_ros state"
@@ -333,6 +333,8 @@ class SmootherCheckpoint:
                 **{
                     f.name: r.array(f"map/{f.name}", _DTYPES.get(f.name, float))
                     for f in _ARRAY_FIELDS
+                    # a field added since (it has a default) may be absent from older files
+                    if f"map/{f.name}" in r.arrays or f.default_factory is MISSING
                 },
                 integrated_features=int(scalars["integrated_features"]),
                 dropped_features=int(scalars["dropped_features"]),

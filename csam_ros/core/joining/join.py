@@ -458,6 +458,7 @@ def robot_results(
             features_local=m.feature_positions,
             feature_covariances_local=views[r].feature_covariances,
             local_check=checks.get(r),
+            odometry_calibration=m.odometry_calibration,
         )
         if alignment.aligned(r):
             _add_joined(result, r, m, alignment, solution, marginals)

@@ -35,6 +35,7 @@ def robot_map_from_local_map(local: LocalMap, with_covariances: bool = False) ->
     pose_ids = problem.indices([("x", i) for i in range(len(local.stamps))])
     labels = local.landmark_labels
     feature_ids = problem.indices([("l", int(lab)) for lab in labels])
+    calibration = local.odometry_calibration
     return RobotMap(
         name=local.name,
         problem=problem,
@@ -47,6 +48,9 @@ def robot_map_from_local_map(local: LocalMap, with_covariances: bool = False) ->
             SelectedInverse(factorize_at_estimate(problem)).blocks(problem, feature_ids)
             if with_covariances
             else None
+        ),
+        odometry_calibration=(
+            None if calibration is None else np.stack([calibration.scale, calibration.sigma])
         ),
     )
 

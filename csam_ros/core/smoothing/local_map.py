@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Hashable, Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -51,11 +50,8 @@ from csam_ros.core.sam.covariance import (
     marginal_sqrt_information,
 )
 from csam_ros.core.sam.factors import (
-    CALIBRATION,
     POINT,
     POSE,
-    CalibratedRelativePose,
-    LinearPrior,
     PointObservation,
     PosePrior,
     RelativePose,
@@ -65,64 +61,15 @@ from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
 from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
+from csam_ros.core.smoothing.local_map_state import LocalMapState, UpdateReport, check_state
+from csam_ros.core.smoothing.odometry_calibration import (
+    CALIBRATION_ROUNDS,
+    OdometryCalibration,
+    OdometryCalibrator,
+)
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-
-@dataclass
-class UpdateReport:
-    """What one :meth:`LocalMap.update` did."""
-
-    new_poses: int
-    inserted_poses: int  # of which inserted in the past (splitting an odometry factor)
-    new_landmarks: int
-    new_observations: int
-    solve: SolveReport | None
-    seconds: float
-
-
-@dataclass
-class LocalMapState:
-    """Everything a :class:`LocalMap` holds: its data (odometry, feature observations as
-    Cartesian points with square-root information, requested stamps) and its solved state
-    (key poses, odometry factors, landmarks), so that :meth:`LocalMap.from_state` gives back
-    the same map, estimate included, with no solve."""
-
-    odometry_stamps: Array  # (N,)
-    odometry_inputs: Array  # (N, 3)
-    odometry_sigmas: Array  # (N, 3)
-    odometry_correlations: Array  # (N, 3) of the input noise (log.CORRELATION_PAIRS)
-    feature_stamps: Array  # (K,) the first ``integrated_features`` integrated, in stamp order
-    feature_labels: IntArray  # (K,)
-    feature_points: Array  # (K, 2)
-    feature_sqrt_information: Array  # (K, 2, 2)
-    requested: Array  # (R,) requested pose stamps
-    keys: Array  # (P,) key pose stamps
-    key_values: Array  # (P, 3)
-    relative: Array  # (P - 1, 3) odometry between keys
-    relative_sqrt_information: Array  # (P - 1, 3, 3)
-    landmark_labels: IntArray  # (L,)
-    landmark_values: Array  # (L, 2)
-    integrated_features: int
-    dropped_features: int
-    last_solved_odometry: float  # -inf: never solved
-    solved: bool  # whether the map has a solved problem (poses to publish)
-    # (3,) estimated odometry calibration (s, k_d, k_s); (0,): none (calibration off)
-    odometry_calibration: Array = field(default_factory=lambda: np.zeros(0))
-
-
-CALIBRATION_KEY = ("c", 0)
-CALIBRATION_ROUNDS = 5  # converged solves: recompositions at most
-
-
-@dataclass
-class OdometryCalibration:
-    """A local map's estimate of its odometry calibration ``(s, k_d, k_s)``
-    (:func:`csam_ros.core.model.motion.calibrated_inputs`) and its marginal sigmas."""
-
-    scale: Array  # (3,)
-    sigma: Array  # (3,)
 
 
 class LocalMap:
@@ -148,13 +95,9 @@ class LocalMap:
         self._key_values = np.zeros((0, 3))
         self._rel = np.zeros((0, 3))
         self._rel_w = np.zeros((0, 3, 3))
-        # odometry calibration (options.odometry_calibration): the estimate, the point the
-        # odometry factors were composed at and their Jacobians dz/dc there
-        self._calibration = np.ones(3)
-        self._calibration_lin = np.ones(3)
-        self._rel_dc = np.zeros((0, 3, 3))
-        self._calibrated_problem: Problem | None = None
-        self._calibration_sigma: Array | None = None
+        self._calibrator = (
+            OdometryCalibrator(self.options) if self.options.odometry_calibration else None
+        )
         self._landmark_index: dict[int, int] = {}
         self._landmark_labels: list[int] = []
         self._landmark_values = np.zeros((0, 2))
@@ -417,8 +360,8 @@ class LocalMap:
             same = np.flatnonzero(np.diff(old_pos) == 1)
             rel[old_pos[same]] = self._rel[same]
             rel_w[old_pos[same]] = self._rel_w[same]
-            if self.options.odometry_calibration:
-                rel_dc[old_pos[same]] = self._rel_dc[same]
+            if self._calibrator is not None:
+                rel_dc[old_pos[same]] = self._calibrator.jacobians[same]
         for a, b in changed_runs:
             odo = self._odometry_between(keys[a : b + 1])
             rel[a:b] = odo.relative_poses
@@ -429,46 +372,35 @@ class LocalMap:
             fill = is_new[a + 1 : b + 1]
             values[a + 1 : b + 1][fill] = chain[1:][fill]
         self._keys, self._key_values, self._rel, self._rel_w = keys, values, rel, rel_w
-        if self.options.odometry_calibration:
-            self._rel_dc = rel_dc
+        if self._calibrator is not None:
+            self._calibrator.jacobians = rel_dc
         return inserted
 
     def _odometry_between(self, keys: Array) -> motion.OdometryFactors:
         """The odometry composed between consecutive ``keys`` (at the calibration's
         linearisation point, with ``dz/dc``, when calibrating)."""
         rho = self._odo_rho if self._odo_rho.any() else None
-        if not self.options.odometry_calibration:
-            return motion.odometry_between(
-                self._odo_t, self._odo_u, self._odo_q, keys, check=False, correlations=rho
-            )
-        return motion.calibrated_odometry_between(
+        if self._calibrator is not None:
+            return self._calibrator.compose(self._odo_t, self._odo_u, self._odo_q, keys, rho)
+        return motion.odometry_between(
+            self._odo_t, self._odo_u, self._odo_q, keys, check=False, correlations=rho
+        )
+
+    def _recompose_odometry(self, calibrator: OdometryCalibrator) -> None:
+        """Compose every odometry factor anew at the current calibration estimate."""
+        calibrator.linearised_at = calibrator.estimate.copy()
+        if len(self._keys) < 2:
+            return
+        odo = calibrator.compose(
             self._odo_t,
             self._odo_u,
             self._odo_q,
-            keys,
-            self._calibration_lin,
-            self.options.driving_speed,
-            correlations=rho,
+            self._keys,
+            self._odo_rho if self._odo_rho.any() else None,
         )
-
-    def _recompose_odometry(self) -> None:
-        """Compose every odometry factor anew at the current calibration estimate."""
-        self._calibration_lin = self._calibration.copy()
-        if len(self._keys) < 2:
-            return
-        odo = self._odometry_between(self._keys)
-        assert isinstance(odo, motion.CalibratedOdometryFactors)
         self._rel = odo.relative_poses
         self._rel_w = sqrt_information_from_covariance(odo.covariances, f"{self.name} odometry")
-        self._rel_dc = odo.calibration_jacobians
-
-    def _calibrated_relative(self) -> Array:
-        """The odometry factors' relative poses at the calibration estimate (to first order
-        from where they were composed): what the map's published problem carries."""
-        if not self.options.odometry_calibration or len(self._rel) == 0:
-            return self._rel
-        shift = self._calibration - self._calibration_lin
-        return self._rel + np.einsum("kij,j->ki", self._rel_dc, shift)
+        calibrator.jacobians = odo.calibration_jacobians
 
     def _with_key_pose(self, start: int, covered: int) -> int:
         """``covered`` less the last features with no key pose within ``stamp_tolerance``:
@@ -516,34 +448,14 @@ class LocalMap:
         poses = problem.add_variables(POSE, [("x", i) for i in range(n)], self._key_values)
         gauge = np.eye(3) / self.options.gauge_sigma
         problem.add_factor(PosePrior(poses[:1], np.zeros((1, 3)), gauge, name="gauge prior"))
-        if n > 1 and calibrated:
-            cal = problem.add_variable(CALIBRATION, CALIBRATION_KEY, self._calibration)
-            problem.add_factor(
-                LinearPrior(
-                    [cal],
-                    [CALIBRATION],
-                    np.ones(3),
-                    np.diag(1.0 / np.asarray(self.options.calibration_sigmas, dtype=float)),
-                    name="calibration prior",
-                )
-            )
-            problem.add_factor(
-                CalibratedRelativePose(
-                    poses[:-1],
-                    poses[1:],
-                    np.full(n - 1, cal),
-                    self._rel,
-                    self._rel_dc,
-                    self._calibration_lin,
-                    self._rel_w,
-                    name="odometry",
-                )
-            )
+        if n > 1 and calibrated and self._calibrator is not None:
+            self._calibrator.add_factors(problem, poses, self._rel, self._rel_w)
         elif n > 1:
+            relative = (
+                self._rel if self._calibrator is None else self._calibrator.at_estimate(self._rel)
+            )
             problem.add_factor(
-                RelativePose(
-                    poses[:-1], poses[1:], self._calibrated_relative(), self._rel_w, name="odometry"
-                )
+                RelativePose(poses[:-1], poses[1:], relative, self._rel_w, name="odometry")
             )
         if self._landmark_labels:
             lms = problem.add_variables(
@@ -571,25 +483,22 @@ class LocalMap:
         """Solve; when calibrating, the odometry is recomposed at the new calibration if it
         moved (and, with ``converge``, solved again until it stays: at most
         ``CALIBRATION_ROUNDS`` rounds)."""
-        calibrating = self.options.odometry_calibration and len(self._keys) > 1
+        calibrator = self._calibrator if len(self._keys) > 1 else None
+        calibrating = calibrator is not None
         for _ in range(CALIBRATION_ROUNDS if calibrating and converge else 1):
             problem = self._build_problem(calibrated=calibrating)
             report = problem.solve(options)
             n = len(self._keys)
             self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
-            if not calibrating:
+            if calibrator is None:
                 self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
                 break
             if self._landmark_labels:  # the calibration variable sits between
                 ids = problem.indices([("l", lab) for lab in self._landmark_labels])
                 self._landmark_values = problem.values_of(ids).reshape(-1, 2).copy()
-            self._calibration = problem.value(CALIBRATION_KEY).copy()
-            self._calibrated_problem = problem
-            self._calibration_sigma = None
-            moved = np.abs(self._calibration - self._calibration_lin).max()
-            if moved <= self.options.calibration_relinearise:
+            if not calibrator.take(problem):
                 break
-            self._recompose_odometry()
+            self._recompose_odometry(calibrator)
         if calibrating:
             problem = self._build_problem()
         self._problem = problem
@@ -623,7 +532,7 @@ class LocalMap:
             self._dropped_features,
             float(self._last_solved_odometry),
             self._problem is not None,
-            self._calibration.copy() if self.options.odometry_calibration else np.zeros(0),
+            np.zeros(0) if self._calibrator is None else self._calibrator.estimate.copy(),
         )
 
     @classmethod
@@ -632,27 +541,9 @@ class LocalMap:
     ) -> LocalMap:
         """The map of :meth:`state`, at its saved estimate (its problem rebuilt, not
         solved). ValueError when the arrays do not fit together."""
+        check_state(name, state)
         s = state
-        p, k, n_lm = len(s.keys), len(s.feature_stamps), len(s.landmark_labels)
-        shapes = {
-            "odometry_inputs": (s.odometry_inputs, (len(s.odometry_stamps), 3)),
-            "odometry_sigmas": (s.odometry_sigmas, (len(s.odometry_stamps), 3)),
-            "odometry_correlations": (s.odometry_correlations, (len(s.odometry_stamps), 3)),
-            "feature_labels": (s.feature_labels, (k,)),
-            "feature_points": (s.feature_points, (k, 2)),
-            "feature_sqrt_information": (s.feature_sqrt_information, (k, 2, 2)),
-            "key_values": (s.key_values, (p, 3)),
-            "relative": (s.relative, (max(p - 1, 0), 3)),
-            "relative_sqrt_information": (s.relative_sqrt_information, (max(p - 1, 0), 3, 3)),
-            "landmark_values": (s.landmark_values, (n_lm, 2)),
-        }
-        for field_name, (value, shape) in shapes.items():
-            if np.shape(value) != shape:
-                raise ValueError(f"{name}: {field_name} has shape {np.shape(value)}, not {shape}")
-        if not 0 <= s.integrated_features <= k:
-            raise ValueError(f"{name}: {s.integrated_features} integrated of {k} features")
-        if s.solved and p == 0:
-            raise ValueError(f"{name}: a solved map without key poses")
+        n_lm = len(s.landmark_labels)
         local = cls(name, options)
         local._odo_t, local._odo_u, local._odo_q = (
             np.asarray(s.odometry_stamps, dtype=float),
@@ -677,12 +568,9 @@ class LocalMap:
         local._integrated_features = int(s.integrated_features)
         local._dropped_features = int(s.dropped_features)
         local._last_solved_odometry = float(s.last_solved_odometry)
-        if local.options.odometry_calibration:
-            calibration = np.asarray(s.odometry_calibration, dtype=float).reshape(-1)
-            if len(calibration) not in (0, 3) or not np.all(np.isfinite(calibration)):
-                raise ValueError(f"{name}: odometry_calibration {calibration.tolist()}")
-            local._calibration = calibration.copy() if len(calibration) else np.ones(3)
-            local._recompose_odometry()
+        if local._calibrator is not None:
+            local._calibrator.restore(s.odometry_calibration, name)
+            local._recompose_odometry(local._calibrator)
         if s.solved:
             local._problem = local._build_problem()
         return local
@@ -712,19 +600,9 @@ class LocalMap:
     def odometry_calibration(self) -> OdometryCalibration | None:
         """The calibration estimate and its marginal sigmas (``None``: calibration off or not
         solved yet; after :meth:`from_state` the sigmas wait for the next solve: NaN)."""
-        if not self.options.odometry_calibration or self._problem is None:
+        if self._calibrator is None or self._problem is None:
             return None
-        if self._calibration_sigma is None:
-            if self._calibrated_problem is None:
-                self._calibration_sigma = np.full(3, np.nan)
-            else:
-                cov = marginal_covariance(
-                    self._calibrated_problem,
-                    [CALIBRATION_KEY],
-                    factorize_at_estimate(self._calibrated_problem),
-                )
-                self._calibration_sigma = np.sqrt(np.diag(cov))
-        return OdometryCalibration(self._calibration.copy(), self._calibration_sigma.copy())
+        return self._calibrator.result()
 
     @property
     def dropped_features(self) -> int:

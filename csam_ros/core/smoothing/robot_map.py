@@ -32,6 +32,8 @@ class RobotMap:
     feature_ids: IntArray
     gauge_factor: int
     feature_covariances: Array | None = None
+    # (2, 3): the local map's odometry calibration (s, k_d, k_s) and its sigmas, when estimated
+    odometry_calibration: Array | None = None
 
     def __post_init__(self) -> None:
         if len(self.stamps) != len(self.pose_ids) or len(self.pose_ids) == 0:

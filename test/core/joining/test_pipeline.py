@@ -10,11 +10,13 @@ from straight_logs import straight_robot
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.notes import NoteKind
 from csam_ros.core.joining.pipeline import build_robot_maps, robot_map_from_local_map, run_csam
+from csam_ros.core.joining.result import RunSummary
 from csam_ros.core.model.log import (
     MultiRobotLog,
 )
 from csam_ros.core.sam.covariance import factorize_at_estimate
 from csam_ros.core.smoothing.local_map_build import build_local_map
+from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 
@@ -64,3 +66,28 @@ def test_csams_view_of_a_local_map_has_its_poses_features_and_their_covariances(
     expected = dense[xy[:, :, None], xy[:, None, :]]
     np.testing.assert_allclose(m.feature_covariances, expected, rtol=1e-6, atol=1e-12)
     assert robot_map_from_local_map(local).feature_covariances is None
+
+
+def test_a_calibrated_local_map_reports_its_odometry_calibration_in_the_result() -> None:
+    import dataclasses
+
+    from csam_ros.datasets.odometry_stress import OdometryStress
+
+    scenario = load_scenario("map_joining")
+    stress = OdometryStress(turn_driving=1.5, distance=0.9)
+    robots = tuple(dataclasses.replace(r, odometry_stress=stress) for r in scenario.robots)
+    log = simulate(dataclasses.replace(scenario, robots=robots), seed=1)
+    calibrated = run_csam(log, local_map=LocalMapConfig(odometry_calibration=True))
+    for robot in calibrated.robots.values():
+        assert robot.joined
+        scale, sigma = robot.odometry_calibration
+        assert np.all(sigma > 0)
+        # true = scale * reported: the distance scale undoes 0.9
+        assert abs(scale[0] * 0.9 - 1.0) < 0.03
+    plain = run_csam(log)
+    assert all(r.odometry_calibration is None for r in plain.robots.values())
+    again = RunSummary.from_dict(RunSummary(calibrated).to_dict()).result
+    np.testing.assert_array_equal(
+        again.robots["robot1"].odometry_calibration,
+        calibrated.robots["robot1"].odometry_calibration,
+    )
