@@ -24,6 +24,7 @@ import json
 import math
 import sys
 import textwrap
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -314,6 +315,45 @@ def write_files(directory: Path = CONFIG_DIR) -> list[Path]:
         path.write_text(render(setup))
         written.append(path)
     return written
+
+
+# -- the launch files' use ---------------------------------------------------------------------
+
+
+def merger_robots(params_file: str | Path) -> list[str]:
+    """The merger's ``robots`` in a params file (its ``merger`` or ``/merger`` section; none:
+    an empty list); a file that cannot be read is a ValueError naming it."""
+    path = Path(params_file)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as error:
+        raise ValueError(f"{path}: cannot read it as a params file: {error}") from None
+    key = NODES["merger"][0]
+    for name in (key, f"/{key}"):
+        section = document.get(name) if isinstance(document, dict) else None
+        if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
+            robots = section["ros__parameters"].get("robots") or []
+            if isinstance(robots, list) and all(isinstance(r, str) and r for r in robots):
+                return list(robots)
+            raise ValueError(f"{path}: merger robots: expected a list of names, got {robots!r}")
+    return []
+
+
+def base_station_recorder_arguments(
+    params_file: str | Path, robots: str = "", bag: str = ""
+) -> list[str]:
+    """The base station recorder's arguments (launch/base_station.launch.py): ``-o BAG --topics
+    ...`` of what reaches the base station from ``robots`` (comma-separated; '': the params
+    file's merger robots) into ``bag`` ('': runs/base_station-<time>)."""
+    from csam_ros.ros.topics import base_station_topics
+
+    names = [r.strip() for r in robots.split(",") if r.strip()] or merger_robots(params_file)
+    if not names:
+        raise ValueError(
+            f"{params_file} names no merger robots: give them as robots:=robot1,robot2"
+        )
+    out = bag or str(Path("runs") / f"base_station-{time.strftime('%Y%m%d-%H%M%S')}")
+    return ["-o", out, "--topics", *base_station_topics(names)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -11,9 +11,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from parameter_services import Parameters, client_node
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.parameter import Parameter, parameter_value_to_python
-from rclpy.parameter_client import AsyncParameterClient
 from waiting import wait_until
 
 from csam_ros.nodes.common import START_ONLY, UNKNOWN_PARAMETER
@@ -22,45 +21,10 @@ from csam_ros.run.params_files import CONFIG_DIR
 TEAM = CONFIG_DIR / "team.params.yaml"
 
 
-class Parameters:
-    """A node's parameter services, called from a client node of the test over DDS."""
-
-    def __init__(self, client_node: Any, executor: SingleThreadedExecutor, node: str) -> None:
-        self.client = AsyncParameterClient(client_node, node)
-        self.executor = executor
-        self.node = node
-        ready = wait_until(
-            self.client.services_are_ready, 60.0, lambda: executor.spin_once(timeout_sec=0.05)
-        )
-        assert ready, f"{node}: no parameter services"
-
-    def _wait(self, future: Any) -> Any:
-        self.executor.spin_until_future_complete(future, timeout_sec=30.0)
-        assert future.done(), f"{self.node}: no answer"
-        return future.result()
-
-    def get(self, *names: str) -> list[Any]:
-        values = self._wait(self.client.get_parameters(list(names))).values
-        assert len(values) == len(names)
-        return [parameter_value_to_python(value) for value in values]
-
-    def set(self, name: str, value: Any) -> Any:
-        """The SetParametersResult of setting one parameter (as `ros2 param set` does)."""
-        results = self._wait(self.client.set_parameters([Parameter(name, value=value)])).results
-        assert len(results) == 1
-        return results[0]
-
-
 @pytest.fixture
 def client(ros_context: Any) -> Iterator[tuple[Any, SingleThreadedExecutor]]:
-    from rclpy.node import Node
-
-    node = Node("parameter_test_client", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    yield node, executor
-    executor.shutdown()
-    node.destroy_node()
+    with client_node(ros_context) as made:
+        yield made
 
 
 def test_nodes_started_with_the_team_file_answer_with_its_values_and_apply_or_refuse_sets(
