@@ -53,7 +53,7 @@ class FileParameter:
 def _smoother() -> tuple[str, list[FileParameter]]:
     from csam_ros.core.exchange.validation import InputBounds
     from csam_ros.core.joining.config import CsamConfig
-    from csam_ros.core.smoothing.local_map import SMOOTHER, LocalMapConfig
+    from csam_ros.core.smoothing.local_map_config import SMOOTHER, LocalMapConfig
     from csam_ros.nodes.smoother import SMOOTHER_PARAMETERS
 
     own = _own(SMOOTHER_PARAMETERS)
