@@ -145,7 +145,7 @@ def declare_each(
 @dataclass(frozen=True)
 class Live:
     """A parameter its node applies while it runs: ``apply`` takes the value once it is set;
-    ``check`` first, whose ValueError refuses the value with its message."""
+    ``check`` first, whose ValueError (or TypeError) refuses the value with its message."""
 
     apply: Callable[[Any], None]
     check: Callable[[Any], object] | None = None
@@ -202,7 +202,7 @@ def watch_parameters(
             if entry.check is not None:
                 try:
                     entry.check(parameter.value)
-                except ValueError as error:
+                except (TypeError, ValueError) as error:
                     return SetParametersResult(successful=False, reason=str(error))
         return SetParametersResult(successful=True)
 
