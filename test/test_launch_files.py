@@ -152,6 +152,8 @@ def test_the_robot_launch_file_starts_its_smoother_with_the_params_file(
     with client_node(ros_context) as (node, executor):
         at_smoother = Parameters(node, executor, "/robot2/smoother")
         assert at_smoother.get("robot", "robots") == ["robot2", ["robot1", "robot2"]]
+        at_detections = Parameters(node, executor, "/robot2/detections")
+        assert at_detections.get("robot", "robot_tags") == ["robot2", ["1:robot1", "2:robot2"]]
     _ended_cleanly(launches, name, process)
 
 

@@ -2,7 +2,7 @@
 
 ``config/<setup>.params.yaml`` holds a ``ros__parameters`` section for each node of a setup
 (``/**/smoother`` for every robot's smoother, whatever its namespace; ``merger``;
-``simulator``), so that every node starts as ROS users start theirs::
+``simulator``; ``/**/detections``), so that every node starts as ROS users start theirs::
 
     smoother --ros-args -r __ns:=/robot1 --params-file config/team.params.yaml
     merger --ros-args --params-file config/team.params.yaml
@@ -10,7 +10,8 @@
 Each section lists every parameter its node declares, with the declaration's description
 above it: the node's own table (:data:`~csam_ros.nodes.smoother.SMOOTHER_PARAMETERS`,
 :data:`~csam_ros.nodes.merger_parameters.MERGER_PARAMETERS`,
-:data:`~csam_ros.nodes.simulator.SIMULATOR_PARAMETERS`) and the fields of the settings
+:data:`~csam_ros.nodes.simulator.SIMULATOR_PARAMETERS`,
+:data:`~csam_ros.nodes.detections.DETECTIONS_PARAMETERS`) and the fields of the settings
 dataclasses whose Setting names the node. The setup's values come from where its runs take
 them (:func:`setup_values`); a value other than the default says so. The files are written by
 ``python -m csam_ros.run.params_files --write`` and test/run/test_params_files.py checks that
@@ -73,6 +74,15 @@ def _simulator() -> tuple[str, list[FileParameter]]:
     return SIMULATOR_NODE, _own(SIMULATOR_PARAMETERS)
 
 
+def _detections() -> tuple[str, list[FileParameter]]:
+    from csam_ros.core.model.detections import DETECTIONS_NODE, DetectionModel
+    from csam_ros.nodes.detections import DETECTIONS_PARAMETERS
+
+    return DETECTIONS_NODE, _own(DETECTIONS_PARAMETERS) + _settings(
+        DETECTIONS_NODE, DetectionModel()
+    )
+
+
 def _own(table: Sequence[Any]) -> list[FileParameter]:
     """A node's own parameters (a table of :class:`~csam_ros.nodes.common.Declared`)."""
     return [FileParameter(d.name, d.default, d.description, d.made_at_start) for d in table]
@@ -96,6 +106,7 @@ NODES: dict[str, tuple[str, Callable[[], tuple[str, list[FileParameter]]]]] = {
     "smoother": ("/**/smoother", _smoother),
     "merger": ("merger", _merger),
     "simulator": ("simulator", _simulator),
+    "detections": ("/**/detections", _detections),
 }
 
 
@@ -111,6 +122,7 @@ def node_parameters(node: str) -> list[FileParameter]:
 
 DEMO_SCENARIO = "map_joining"
 TEAM_ROBOTS = ["robot1", "robot2"]
+TEAM_ROBOT_TAGS = ["1:robot1", "2:robot2"]  # the tag each robot carries (docs/DETECTIONS.md)
 
 
 @dataclass(frozen=True)
@@ -165,10 +177,12 @@ def _mrclam_values() -> dict[str, dict[str, Any]]:
 
 
 def _team_values() -> dict[str, dict[str, Any]]:
-    """A real team: its robots' names, every other parameter at its default."""
+    """A real team: its robots' names and the tags they carry, every other parameter (the
+    detections' sigmas among them) at its default."""
     from csam_ros.run.params import merger_params
 
     return {
+        "detections": {"robot_tags": TEAM_ROBOT_TAGS},
         "smoother": {"robots": TEAM_ROBOTS},
         "merger": {"robots": TEAM_ROBOTS, **merger_params({})},
     }
@@ -202,12 +216,15 @@ SETUPS: tuple[Setup, ...] = (
     ),
     Setup(
         "team",
-        "A real two-robot team, robot1 and robot2, each on its own computer, the merger on a "
-        "base station: a starting point (every value but the robots' names is the default). "
-        "Copy it, then give your robots' names and sensors' bounds.",
+        "A real two-robot team, robot1 and robot2 (carrying tags 1 and 2), each on its own "
+        "computer with a camera whose tag detections the detections node turns into "
+        "observations, the merger on a base station: a starting point (every value but the "
+        "robots' names and tags is the default; the detections' sigmas are placeholders). Copy "
+        "it, then give your robots' names, tags, camera mountings, sigmas and sensors' bounds.",
         (
-            "on robot1: smoother --ros-args -r __ns:=/robot1 --params-file team.params.yaml",
-            "on robot2: smoother --ros-args -r __ns:=/robot2 --params-file team.params.yaml",
+            "on robot1: detections --ros-args -r __ns:=/robot1 --params-file team.params.yaml",
+            "           smoother --ros-args -r __ns:=/robot1 --params-file team.params.yaml",
+            "on robot2: the same in /robot2",
             "on the base station: merger --ros-args --params-file team.params.yaml",
             "or: ros2 launch csam_ros robot.launch.py namespace:=robot1 (base_station.launch.py)",
         ),

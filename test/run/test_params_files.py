@@ -121,6 +121,8 @@ def test_the_mrclam_and_demo_files_take_what_their_runs_give_the_nodes() -> None
     assert {s["use_sim_time"] for s in demo.values()} == {True}
     team = _sections(CONFIG_DIR / "team.params.yaml")
     assert team["merger"]["robots"] == ["robot1", "robot2"] == team["smoother"]["robots"]
+    assert team["detections"]["robot_tags"] == ["1:robot1", "2:robot2"]
+    assert team["detections"]["sigma_range_base"] == 0.02  # the default sigmas
     assert {s["use_sim_time"] for s in team.values()} == {False}
 
 
@@ -130,6 +132,7 @@ def _node_with_file(node: str, path: Path, *extra: str) -> Iterator[Any]:
     import rclpy
     from rclpy.context import Context
 
+    from csam_ros.nodes.detections import Detections
     from csam_ros.nodes.merger import Merger
     from csam_ros.nodes.simulator import Simulator
     from csam_ros.nodes.smoother import Smoother
@@ -142,6 +145,8 @@ def _node_with_file(node: str, path: Path, *extra: str) -> Iterator[Any]:
             made = Smoother(context=context, namespace="robot1")
         elif node == "merger":
             made = Merger(context=context)
+        elif node == "detections":
+            made = Detections(context=context, namespace="robot1")
         else:
             made = Simulator(context=context)
         yield made
@@ -171,6 +176,9 @@ def test_real_nodes_take_every_value_of_their_section(setup: Any, ros_domain: in
             assert drops is None or UNKNOWN_PARAMETER not in drops.as_dict()
             if node == "smoother":
                 assert made.robot == "robot1" and made.publish_period == section["publish_period"]
+            if node == "detections":
+                assert made.robot == "robot1" and made.model.sigma_bearing == 0.01
+                assert made.robot_tags == {1: "robot1", 2: "robot2"}
             if node == "merger":
                 assert made.config.chi2_gate == section["chi2_gate"]
                 assert made.policy.settings.robots == tuple(section["robots"])
