@@ -16,7 +16,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
         (f"share/{package_name}", ["package.xml", f"{package_name}/run/fastdds_profile.xml"]),
+        # scenario, config and ROS 2 params files (config/<setup>.params.yaml)
         (f"share/{package_name}/config", glob("config/*.yaml")),
+        # ros2 launch csam_ros robot.launch.py / base_station.launch.py
+        (f"share/{package_name}/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -2,8 +2,8 @@
 # Complete the editable install in VENV to the layout colcon gives an ament_python package.
 # `pip install -e .` (setuptools develop, honouring setup.cfg's script_dir) has put the
 # executables in VENV/lib/csam_ros, where `ros2 run csam_ros <exe>` looks for them; this adds
-# what develop skips: the ament index marker and share/csam_ros/package.xml, and puts the
-# executables on the environment's PATH (VENV/bin). Usage: install_layout.sh VENV
+# what develop skips: the ament index marker, share/csam_ros/package.xml, config/ and launch/,
+# and puts the executables on the environment's PATH (VENV/bin). Usage: install_layout.sh VENV
 set -euo pipefail
 venv=$(cd "$1" && pwd)
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -17,6 +17,8 @@ for exe in simulator smoother merger recorder player foxglove_bridge detections 
   fi
   ln -sfn "../lib/csam_ros/$exe" "$venv/bin/$exe"
 done
-# parameter and scenario files, where csam_ros.core.model.config_file looks first (colcon installs
-# a copy from setup.py's data_files; here a link keeps the source tree's files in use)
+# parameter, params and scenario files, where csam_ros.core.model.config_file looks first, and
+# the launch files, where `ros2 launch csam_ros FILE` looks (colcon installs a copy of each
+# from setup.py's data_files; here a link keeps the source tree's files in use)
 ln -sfn "$root/config" "$venv/share/csam_ros/config"
+ln -sfn "$root/launch" "$venv/share/csam_ros/launch"

@@ -63,3 +63,57 @@ def test_executable_is_installed_where_ros2_run_looks(name: str) -> None:
     assert result.returncode == 0, result.stderr
     assert "usage" in result.stdout.lower()
     assert "Traceback" not in result.stderr
+
+
+def _same_files(installed: Path, source: Path, pattern: str) -> None:
+    names = sorted(p.name for p in source.glob(pattern))
+    assert names and sorted(p.name for p in installed.glob(pattern)) == names, installed
+    for name in names:
+        assert (installed / name).read_text() == (source / name).read_text(), name
+
+
+def test_setup_py_installs_the_params_and_launch_files_to_the_share_folder(
+    tmp_path: Path,
+) -> None:
+    """What colcon installs from setup.py's data_files: config/ (params files among them) and
+    launch/ in share/csam_ros, where `ros2 launch csam_ros FILE` looks."""
+    result = subprocess.run(
+        [sys.executable, "setup.py", "-q", "install_data", f"--install-dir={tmp_path}"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    share = tmp_path / "share" / "csam_ros"
+    _same_files(share / "launch", REPO / "launch", "*.launch.py")
+    _same_files(share / "config", REPO / "config", "*.yaml")
+    assert (share / "config" / "team.params.yaml").is_file()
+
+
+def test_install_layout_puts_the_config_and_launch_folders_in_the_share_folder(
+    tmp_path: Path,
+) -> None:
+    """scripts/install_layout.sh on an environment whose executables are installed (links to
+    this one's): share/csam_ros/config and share/csam_ros/launch are the source tree's."""
+    venv = tmp_path / "venv"
+    (venv / "lib" / "csam_ros").mkdir(parents=True)
+    (venv / "bin").mkdir()
+    for name in EXECUTABLES:
+        (venv / "lib" / "csam_ros" / name).symlink_to(PREFIX / "lib" / "csam_ros" / name)
+    result = subprocess.run(
+        ["bash", str(REPO / "scripts" / "install_layout.sh"), str(venv)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    share = venv / "share" / "csam_ros"
+    assert (share / "launch").resolve() == REPO / "launch"
+    assert (share / "config").resolve() == REPO / "config"
+    _same_files(share / "launch", REPO / "launch", "*.launch.py")
+    assert (share / "package.xml").read_text() == (REPO / "package.xml").read_text()
+    for name in EXECUTABLES:
+        assert (venv / "bin" / name).resolve() == (PREFIX / "lib" / "csam_ros" / name).resolve()

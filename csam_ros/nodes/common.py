@@ -1,24 +1,36 @@
-"""Small pieces every csam_ros node shares: parameter declaration, signals, main().
+"""Small pieces every csam_ros node shares: parameter declaration, parameters set at run time,
+signals, main().
 
-Topics and their QoS are declared in :mod:`csam_ros.ros.topics`.
+Topics and their QoS are declared in :mod:`csam_ros.ros.topics`. A node declares its own
+parameters as a table of :class:`Declared` (what :mod:`csam_ros.run.params_files` writes into
+the params files) and those of its settings dataclasses from their fields; once all are
+declared, :func:`watch_parameters` refuses parameters given that it has none of, and applies or
+refuses each parameter set while it runs.
 """
 
 from __future__ import annotations
 
+import difflib
 import functools
 import math
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
-from dataclasses import replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
@@ -29,6 +41,9 @@ from csam_ros.ros.topics import Topic
 T = TypeVar("T")
 N = TypeVar("N", bound=Node)
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+# a drop reason: a parameter given to a node (params file, -p) that the node has none of
+UNKNOWN_PARAMETER = "unknown_parameter"
+START_ONLY = "takes effect only at start"  # why a parameter set at run time is refused
 
 
 def stop_on_signals() -> threading.Event:
@@ -92,6 +107,124 @@ def declare_settings(node: Node, cls: type[T], defaults: T | None = None) -> T:
     }
     checked = cls.from_dict(values, f"{node.get_name()} parameters")  # type: ignore[attr-defined]
     return replace(base, **{name: getattr(checked, name) for name in values})
+
+
+@dataclass(frozen=True)
+class Declared:
+    """One of a node's own parameters (its settings dataclasses' fields declare theirs): what
+    :func:`declare_each` declares and a params file lists."""
+
+    name: str
+    default: Any  # None: a parameter of any type, unset by default
+    description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    made_at_start: str = ""  # the default is made at start from this (params files leave it out)
+
+
+def declare_each(
+    node: Node,
+    table: Sequence[Declared],
+    made: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
+) -> dict[str, Any]:
+    """Declare a node's own parameters in the table's order; their values by name. ``made``
+    gives the defaults made at start, each from the values declared before it."""
+    values: dict[str, Any] = {}
+    for entry in table:
+        if entry.default is None:
+            descriptor = ParameterDescriptor(description=entry.description, dynamic_typing=True)
+            values[entry.name] = node.declare_parameter(entry.name, None, descriptor).value
+            continue
+        default = made[entry.name](values) if made and entry.name in made else entry.default
+        values[entry.name] = declare(
+            node, entry.name, default, entry.description, entry.minimum, entry.maximum
+        )
+    return values
+
+
+@dataclass(frozen=True)
+class Live:
+    """A parameter its node applies while it runs: ``apply`` takes the value once it is set;
+    ``check`` first, whose ValueError (or TypeError) refuses the value with its message."""
+
+    apply: Callable[[Any], None]
+    check: Callable[[Any], object] | None = None
+
+
+def setting_check(cls: type, name: str) -> Callable[[Any], object]:
+    """The check of a settings dataclass field's value by its Setting (ValueError naming it)."""
+    rule, default = settings(cls)[name]
+    return lambda value: rule.check(value, default, name)
+
+
+def given_parameters(node: Node) -> list[str]:
+    """The names of the parameters given to ``node``: its params files' sections that match
+    it, ``-p`` and the ``parameter_overrides`` it was made with (rclpy keeps them in
+    ``Node._parameter_overrides`` and has no public accessor)."""
+    return sorted(getattr(node, "_parameter_overrides", {}))
+
+
+def watch_parameters(
+    node: Node, live: Mapping[str, Live] | None = None, drops: DropCounter | None = None
+) -> list[str]:
+    """Call once ``node`` has declared all its parameters. A parameter given to it that it has
+    none of (a misspelt or misplaced key: rclpy would ignore it silently) is refused in one
+    logged error line and counted under ``unknown_parameter`` in ``drops``; returns those
+    names. From now on a parameter set while the node runs (``ros2 param set``) is applied
+    when ``live`` names it, else refused: "NAME takes effect only at start"."""
+    live = dict(live or {})
+    declared = sorted(node.get_parameters_by_prefix(""))
+    unknown = [name for name in given_parameters(node) if not node.has_parameter(name)]
+    if unknown:
+        hints = []
+        for name in unknown:
+            close = difflib.get_close_matches(name, declared, n=1)
+            hints.append(f"{name} (did you mean {close[0]}?)" if close else name)
+        node.get_logger().error(
+            f"unknown parameter(s) refused: {', '.join(hints)}; "
+            f"{node.get_fully_qualified_name()} has none of that name (see its params file)"
+        )
+        if drops is not None:
+            drops.add(UNKNOWN_PARAMETER, len(unknown))
+    settable = ", ".join(sorted(live)) or "none"
+
+    def refuse_at_run_time(parameters: list[Parameter]) -> SetParametersResult:
+        for parameter in parameters:
+            if not node.has_parameter(parameter.name):  # being declared, not set
+                continue
+            entry = live.get(parameter.name)
+            if entry is None:
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"{parameter.name} {START_ONLY} (restart the node with it); "
+                    f"set at run time: {settable}",
+                )
+            if entry.check is not None:
+                try:
+                    entry.check(parameter.value)
+                except (TypeError, ValueError) as error:
+                    return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+
+    def apply(parameters: list[Parameter]) -> None:
+        for parameter in parameters:
+            entry = live.get(parameter.name)
+            if entry is None:
+                continue
+            try:
+                entry.apply(parameter.value)
+            except Exception as error:  # noqa: BLE001 - the boundary of a node: nothing escapes
+                if drops is not None:
+                    drops.add(CALLBACK_ERROR)
+                node.get_logger().error(
+                    f"parameter {parameter.name}: {type(error).__name__}: {error}"
+                )
+                continue
+            node.get_logger().info(f"parameter {parameter.name} set to {parameter.value!r}")
+
+    node.add_on_set_parameters_callback(refuse_at_run_time)
+    node.add_post_set_parameters_callback(apply)
+    return unknown
 
 
 def publisher(node: Node, topic: Topic, name: str | None = None) -> Publisher:

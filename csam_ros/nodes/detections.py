@@ -49,13 +49,15 @@ from csam_ros.core.model.detections import (
     parse_robot_tags,
 )
 from csam_ros.nodes.common import (
-    declare,
+    Declared,
+    declare_each,
     declare_settings,
     guarded,
     publisher,
     run_node,
     steady_clock,
     subscribe,
+    watch_parameters,
 )
 from csam_ros.ros.conversions import features_message, rendezvous_message, time_to_ns
 from csam_ros.ros.topics import DETECTIONS, FEATURES, RENDEZVOUS, STATUS, TF
@@ -67,6 +69,28 @@ WRONG_FRAME = "wrong_frame"
 STALE_STAMP = "stale_stamp"
 
 Tag = tuple[str, tuple[float, float, float]]  # a tag's name and its position in the camera frame
+# the node's own parameters (DetectionModel's fields are declared from their Settings)
+DETECTIONS_PARAMETERS = (
+    Declared(
+        "robot",
+        "",
+        "this robot's name (default: namespace)",
+        made_at_start="the namespace: robot1 under -r __ns:=/robot1",
+    ),
+    Declared(
+        "camera_frame",
+        "",
+        "the camera's frame: parent of the tag frames on /tf, frame of the detections arrays "
+        "('': <robot>/camera_optical_frame, <robot>/camera_link for body axes)",
+    ),
+    Declared(
+        "robot_tags",
+        [""],
+        "tags mounted on robots, '<tag id>:<robot>' each (e.g. '5:robot2'): their detections "
+        "are rendezvous observations of that robot",
+    ),
+    Declared("status_period", 2.0, "s between /csam/status reports while counts change", 0.1),
+)
 
 
 class Detections(Node):
@@ -75,34 +99,15 @@ class Detections(Node):
     def __init__(self, **node_options: Any) -> None:
         super().__init__("detections", **node_options)
         ns = self.get_namespace().strip("/")
-        self.robot = declare(
-            self, "robot", ns or "robot1", "this robot's name (default: namespace)"
-        )
+        own = declare_each(self, DETECTIONS_PARAMETERS, {"robot": lambda _: ns or "robot1"})
+        self.robot = own["robot"]
         self.model = declare_settings(self, DetectionModel)
         default_frame = (
             "camera_optical_frame" if self.model.camera_axes == OPTICAL else "camera_link"
         )
-        self.camera_frame = (
-            declare(
-                self,
-                "camera_frame",
-                "",
-                "the camera's frame: parent of the tag frames on /tf, frame of the detections "
-                f"arrays ('': <robot>/{default_frame})",
-            )
-            or f"{self.robot}/{default_frame}"
-        )
-        entries = declare(
-            self,
-            "robot_tags",
-            [""],
-            "tags mounted on robots, '<tag id>:<robot>' each (e.g. '5:robot2'): their "
-            "detections are rendezvous observations of that robot",
-        )
-        self.robot_tags = parse_robot_tags(e for e in entries if e)
-        self.status_period = declare(
-            self, "status_period", 2.0, "s between /csam/status reports while counts change", 0.1
-        )
+        self.camera_frame = own["camera_frame"] or f"{self.robot}/{default_frame}"
+        self.robot_tags = parse_robot_tags(e for e in own["robot_tags"] if e)
+        self.status_period = own["status_period"]
         self.drops = DropCounter()
         self.frames = 0  # frames with at least one tag of this camera
         self.features = 0  # observations published
@@ -116,6 +121,7 @@ class Detections(Node):
         subscribe(self, DETECTIONS, guarded(self, self.drops, self.on_detections))
         subscribe(self, TF, guarded(self, self.drops, self.on_tf))
         self.create_timer(self.status_period, self.publish_status, clock=steady_clock())
+        watch_parameters(self, drops=self.drops)  # none is set live
         tags = ", ".join(f"{t}:{r}" for t, r in sorted(self.robot_tags.items())) or "none"
         self.get_logger().info(
             f"{self.robot}: tags seen by {self.camera_frame} ({self.model.camera_axes} axes) at "

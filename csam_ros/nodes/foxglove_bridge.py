@@ -43,7 +43,7 @@ from rclpy.serialization import deserialize_message
 
 from csam_ros.bag.types import MessageTypes
 from csam_ros.core.exchange.validation import DropCounter
-from csam_ros.nodes.common import declare, guarded, run_node, steady_clock
+from csam_ros.nodes.common import declare, guarded, run_node, steady_clock, watch_parameters
 from csam_ros.ros.topics import CLOCK, LOCAL_MAP_UPDATES, TOPICS, Topic, parse
 
 NODE_NAME = "foxglove_bridge"
@@ -164,6 +164,7 @@ class FoxgloveBridge(Node):
         )
         robots = _robot_names(self)
         self.drops = DropCounter()
+        watch_parameters(self, drops=self.drops)  # none is set live; before the server's thread
         self._drops_lock = threading.Lock()
         self.sim_time: bool = self.get_parameter("use_sim_time").value
         self.types = MessageTypes()

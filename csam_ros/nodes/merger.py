@@ -35,12 +35,14 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from csam_msgs.msg import LocalMapUpdate, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from rclpy.timer import Timer
 from std_srvs.srv import Trigger
 
 from csam_ros.core.exchange.checkpoint import MergerState
@@ -56,9 +58,9 @@ from csam_ros.core.merging.policy import (
     read_state,
 )
 from csam_ros.core.merging.status import SharedDropCounter
-from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe
+from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe, watch_parameters
 from csam_ros.nodes.merger_output import MergerOutput
-from csam_ros.nodes.merger_parameters import declare_merger_parameters
+from csam_ros.nodes.merger_parameters import declare_merger_parameters, live_merger_parameters
 from csam_ros.nodes.merger_resync import ResyncClients
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import map_update_from_message, rendezvous_log_from_message
@@ -108,11 +110,14 @@ class Merger(Node):
                 self._subscribe(robot)
         if resumed:
             self.output.resumed(self.policy)
-        self._timer(settings.solve_check_period, self.on_timer)
+        self._solve_timer = self._timer(settings.solve_check_period, self.on_timer)
         self._timer(DISCOVERY_PERIOD_S, self.discover)
         provisional_period = settings.provisional_check_period
-        if provisional_period is not None:
+        self._provisional_timer = (
             self._timer(provisional_period, self.publish_provisional)
+            if provisional_period is not None
+            else None
+        )
         self.create_service(Trigger, f"~/{FLUSH}", self.on_flush)
         self.solve_process.start()  # its imports overlap the wait for the first maps
         self.output.message_process.start()
@@ -122,9 +127,21 @@ class Merger(Node):
             target=self._publish_provisionals, name="merger-provisional", daemon=True
         )
         self._provisional_worker.start()
+        live = live_merger_parameters(self.set_setting, self._provisional_timer is not None)
+        watch_parameters(self, live, self.drops)
 
-    def _timer(self, period: float, callback: Any) -> None:
-        self.create_timer(period, guarded(self, self.drops, callback), clock=steady_clock())
+    def _timer(self, period: float, callback: Any) -> Timer:
+        return self.create_timer(period, guarded(self, self.drops, callback), clock=steady_clock())
+
+    def set_setting(self, name: str, value: Any) -> None:
+        """Put a parameter set at run time into the policy's settings, and the solve and
+        provisional timers' periods."""
+        with self._lock:
+            self.policy.settings = settings = replace(self.policy.settings, **{name: value})
+        self._solve_timer.timer_period_ns = round(settings.solve_check_period * 1e9)
+        provisional = settings.provisional_check_period
+        if self._provisional_timer is not None and provisional is not None:
+            self._provisional_timer.timer_period_ns = round(provisional * 1e9)
 
     # the policy's state that tests and tools read on the node
     local_maps = property(lambda self: self.policy.local_maps, doc="MergerPolicy.local_maps")

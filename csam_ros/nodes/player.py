@@ -37,7 +37,7 @@ from rosgraph_msgs.msg import Clock
 
 from csam_ros.bag import BagError, BagInfo, BagMessage, inspect_bag, publisher_qos, read_bag
 from csam_ros.bag.types import UnknownMessageTypeError, message_class
-from csam_ros.nodes.common import run_rclpy, stop_on_signals
+from csam_ros.nodes.common import run_rclpy, stop_on_signals, watch_parameters
 from csam_ros.ros.topics import CLOCK
 
 
@@ -71,6 +71,7 @@ class PlayerNode(Node):
             self.create_publisher(CLOCK.msgtype, CLOCK.name, CLOCK.qos) if publish_clock else None
         )
         self._last_clock = -1
+        watch_parameters(self)  # its options are command-line arguments: none is set live
 
     @property
     def topics(self) -> list[str]:

@@ -41,7 +41,7 @@ from rclpy.utilities import remove_ros_args
 
 from csam_ros.bag import BagError, BagWriter, message_class, subscription_qos
 from csam_ros.bag.types import UnknownMessageTypeError
-from csam_ros.nodes.common import run_rclpy, stop_on_signals
+from csam_ros.nodes.common import run_rclpy, stop_on_signals, watch_parameters
 
 MAX_HELD_BACK = 100_000  # messages kept while waiting for the first /clock under sim time
 
@@ -75,6 +75,7 @@ class RecorderNode(Node):
         self.create_timer(flush_period_s, self.writer.flush, clock=steady)
         what = "every topic" if self._wanted is None else ", ".join(sorted(self._wanted))
         self.get_logger().info(f"recording {what} to {writer.path}")
+        watch_parameters(self)  # its options are command-line arguments: none is set live
 
     def _wants(self, topic: str) -> bool:
         if self._wanted is not None:

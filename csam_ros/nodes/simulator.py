@@ -22,7 +22,15 @@ from rosgraph_msgs.msg import Clock
 
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
-from csam_ros.nodes.common import declare, publisher, run_node, steady_clock
+from csam_ros.nodes.common import (
+    Declared,
+    Live,
+    declare_each,
+    publisher,
+    run_node,
+    steady_clock,
+    watch_parameters,
+)
 from csam_ros.ros.conversions import log_to_messages, ns_to_time
 from csam_ros.ros.topics import (
     CLOCK,
@@ -37,87 +45,74 @@ from csam_ros.ros.topics import (
 LOG_PUBLISHING = "publishing"  # the first message goes out
 LOG_ALL_PUBLISHED = "all messages published"
 DRAIN_TIMEOUT_S = 30.0  # the longest wait for acknowledgements before exiting when done
+SIMULATOR_NODE = "simulator"
+# the simulator's parameters, in the order they are declared
+SIMULATOR_PARAMETERS = (
+    Declared("scenario", "map_joining", "scenario name in config/ or path to a YAML file"),
+    Declared("seed", -1, "noise seed; -1 uses the scenario's", -1, 2**31 - 1),
+    Declared(
+        "rate", 1.0, "speed relative to real time; 0 publishes as fast as possible", 0.0, 1000.0
+    ),
+    Declared(
+        "wait_for_subscribers",
+        True,
+        "start only once every robot's sensor topics have a subscriber",
+    ),
+    Declared("min_subscribers", 1, "subscribers each sensor topic needs before the start", 1, 100),
+    Declared(
+        "start_delay",
+        1.0,
+        "seconds between seeing the subscribers and the start: a best-effort subscriber "
+        "may see the publisher later than the publisher sees it",
+        0.0,
+        60.0,
+    ),
+    Declared(
+        "required_subscriber_nodes",
+        [""],
+        "node names that must subscribe to every topic before the start (a recorder)",
+    ),
+    Declared("exit_when_done", False, "shut down once everything is published"),
+    Declared(
+        "emit_robots",
+        [""],
+        "robots whose topics this simulator publishes (robots on their own hosts); "
+        "empty: every robot of the scenario",
+    ),
+    Declared(
+        "publish_clock",
+        True,
+        "publish /clock and the features' truth: one simulator per run does, the run's "
+        "single source of sim time",
+    ),
+    Declared(
+        "clock_period",
+        0.01,
+        "wall-clock s between /clock messages (longer on slow links: every node of every "
+        "host gets each one)",
+        0.001,
+        1.0,
+    ),
+)
 
 
 class Simulator(Node):
     """Publishes a simulated run at ``rate`` times real time (0: as fast as possible)."""
 
     def __init__(self, **node_options: Any) -> None:
-        super().__init__("simulator", **node_options)
-        scenario_name = declare(
-            self, "scenario", "map_joining", "scenario name in config/ or path to a YAML file"
-        )
-        seed = declare(self, "seed", -1, "noise seed; -1 uses the scenario's", -1, 2**31 - 1)
-        self.rate = declare(
-            self,
-            "rate",
-            1.0,
-            "speed relative to real time; 0 publishes as fast as possible",
-            0.0,
-            1000.0,
-        )
-        self.wait_for_subscribers = declare(
-            self,
-            "wait_for_subscribers",
-            True,
-            "start only once every robot's sensor topics have a subscriber",
-        )
-        self.min_subscribers = declare(
-            self,
-            "min_subscribers",
-            1,
-            "subscribers each sensor topic needs before the start",
-            1,
-            100,
-        )
-        self.start_delay = declare(
-            self,
-            "start_delay",
-            1.0,
-            "seconds between seeing the subscribers and the start: a best-effort subscriber "
-            "may see the publisher later than the publisher sees it",
-            0.0,
-            60.0,
-        )
+        super().__init__(SIMULATOR_NODE, **node_options)
+        own = declare_each(self, SIMULATOR_PARAMETERS)
+        scenario_name, seed = own["scenario"], own["seed"]
+        self.rate = own["rate"]
+        self.wait_for_subscribers = own["wait_for_subscribers"]
+        self.min_subscribers = own["min_subscribers"]
+        self.start_delay = own["start_delay"]
         self.ready_since: float | None = None
-        self.required_nodes = list(
-            declare(
-                self,
-                "required_subscriber_nodes",
-                [""],
-                "node names that must subscribe to every topic before the start (a recorder)",
-            )
-        )
-        self.exit_when_done = declare(
-            self, "exit_when_done", False, "shut down once everything is published"
-        )
-        emit = [
-            r
-            for r in declare(
-                self,
-                "emit_robots",
-                [""],
-                "robots whose topics this simulator publishes (robots on their own hosts); "
-                "empty: every robot of the scenario",
-            )
-            if r
-        ]
-        publish_clock = declare(
-            self,
-            "publish_clock",
-            True,
-            "publish /clock and the features' truth: one simulator per run does, the run's "
-            "single source of sim time",
-        )
-        self.clock_period = declare(
-            self,
-            "clock_period",
-            0.01,
-            "wall-clock s between /clock messages (longer on slow links: every node of every "
-            "host gets each one)",
-            0.001,
-            1.0,
-        )
+        self.required_nodes = list(own["required_subscriber_nodes"])
+        self.exit_when_done = own["exit_when_done"]
+        emit = [r for r in own["emit_robots"] if r]
+        publish_clock = own["publish_clock"]
+        self.clock_period = own["clock_period"]
         self._clock_sent = float("-inf")
         scenario = load_scenario(scenario_name)
         names = [r.name for r in scenario.robots]
@@ -146,6 +141,11 @@ class Simulator(Node):
         )
         # the simulator is the clock source: pace by the steady wall clock, never by /clock
         self.timer = self.create_timer(0.01, self._tick, clock=steady_clock())
+        watch_parameters(self, {"clock_period": Live(self.set_clock_period)})
+
+    def set_clock_period(self, seconds: float) -> None:
+        """Publish /clock every ``seconds`` of the wall clock from now on (set at run time)."""
+        self.clock_period = seconds
 
     def _subscribers_ready(self) -> bool:
         # matched subscriptions of this node's publishers, not the graph's count (which can

@@ -78,12 +78,16 @@ from csam_ros.core.smoothing.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.nodes.common import (
-    declare,
+    Declared,
+    Live,
+    declare_each,
     declare_settings,
     guarded,
     publisher,
     run_node,
+    setting_check,
     subscribe,
+    watch_parameters,
 )
 from csam_ros.ros.conversions import (
     feature_points_from_message,
@@ -119,6 +123,27 @@ from csam_ros.ros.topics import (
 # a drop reason: a rendezvous stamp before this robot's first pose (e.g. clocks that differ)
 OUTSIDE_TRAJECTORY = "outside_trajectory"
 NO_WAIT = Duration(seconds=0)  # asking whether every reliable subscriber acknowledged
+# the smoother's own parameters (its settings dataclasses' fields are declared from them)
+SMOOTHER_PARAMETERS = (
+    Declared(
+        "robot",
+        "",
+        "this robot's name (default: namespace)",
+        made_at_start="the namespace: robot1 under -r __ns:=/robot1",
+    ),
+    Declared(
+        "robots",
+        [""],
+        "every robot's name (peers' rendezvous)",
+        made_at_start="this robot alone",
+    ),
+    Declared("field_of_view_deg", 360.0, "feature sensor field of view (drops beyond)", 0.0, 360.0),
+    Declared(
+        "checkpoint_path",
+        "",
+        "write a checkpoint here at every publication and resume from it at start ('': off)",
+    ),
+)
 
 
 class Smoother(Node):
@@ -127,24 +152,13 @@ class Smoother(Node):
     def __init__(self, **node_options: Any) -> None:
         super().__init__("smoother", **node_options)
         ns = self.get_namespace().strip("/")
-        self.robot = declare(
-            self, "robot", ns or "robot1", "this robot's name (default: namespace)"
-        )
-        peers = declare(self, "robots", [self.robot], "every robot's name (peers' rendezvous)")
-        fov = declare(
+        own = declare_each(
             self,
-            "field_of_view_deg",
-            360.0,
-            "feature sensor field of view (drops beyond)",
-            0.0,
-            360.0,
+            SMOOTHER_PARAMETERS,
+            {"robot": lambda _: ns or "robot1", "robots": lambda values: [values["robot"]]},
         )
-        checkpoint = declare(
-            self,
-            "checkpoint_path",
-            "",
-            "write a checkpoint here at every publication and resume from it at start ('': off)",
-        )
+        self.robot, peers = own["robot"], own["robots"]
+        fov, checkpoint = own["field_of_view_deg"], own["checkpoint_path"]
         self.checkpoint_path = pathlib.Path(checkpoint) if checkpoint else None
         local_map = declare_settings(self, LocalMapConfig)
         self.publish_period = local_map.publish_period
@@ -210,9 +224,20 @@ class Smoother(Node):
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
         self.create_service(Trigger, f"~/{RESYNC}", self.on_resync)
-        self.create_timer(self.publish_period, guarded(self, self.drops, self.on_timer))
+        self.publish_timer = self.create_timer(
+            self.publish_period, guarded(self, self.drops, self.on_timer)
+        )
+        publish_period = Live(
+            self.set_publish_period, setting_check(LocalMapConfig, "publish_period")
+        )
+        watch_parameters(self, {"publish_period": publish_period}, self.drops)
         if self.restarts and self.published_ns >= 0 and len(self.map.stamps) >= 2:
             guarded(self, self.drops, self.publish)(0)  # the resumed map, latched, at once
+
+    def set_publish_period(self, seconds: float) -> None:
+        """Publish every ``seconds`` from now on (the parameter set at run time)."""
+        self.publish_period = seconds
+        self.publish_timer.timer_period_ns = round(seconds * 1e9)
 
     # -- input ----------------------------------------------------------------------------------
 
