@@ -10,7 +10,6 @@ the global topics (csam_ros.ros.topics.base_station_topics), of the robots named
 default runs/base_station-<time>); ``record:=false`` leaves it out.
 """
 
-# ruff: noqa: I001 - `launch` is ROS 2's package, not this launch/ folder (ruff takes it for ours)
 from launch import LaunchContext, LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition

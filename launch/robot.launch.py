@@ -10,7 +10,6 @@ observations; ``detections:=false`` leaves it out where the robot's drivers publ
 two-robot team, robot1 and robot2).
 """
 
-# ruff: noqa: I001 - `launch` is ROS 2's package, not this launch/ folder (ruff takes it for ours)
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition

@@ -1,33 +1,22 @@
 """merger: joins every robot's local map by C-SAM and publishes the joined map.
 
-Subscribes to ``/<robot>/local_map_updates`` and ``/<robot>/rendezvous_poses`` (transient
-local) of every robot found on the ROS graph publishing local map updates (checked every
-second), or of those in ``robots`` when that allow-list is set. It holds each robot's local map
-by applying its updates in turn (:mod:`csam_ros.core.exchange.map_updates`); while it holds
-none of a robot, or an update does not apply to the one it holds, it asks that robot's smoother
-for the whole map (``/<robot>/smoother/resync``). Every message is checked whole when it
-arrives (``ros/map_messages.py``; its topic names its robot): a malformed one is dropped and
-counted under its reason, and the robot's last valid inputs stay in use.
+Subscribes to ``/<robot>/local_map_updates`` and ``/<robot>/rendezvous_poses`` of every robot
+found publishing local map updates (or of those in ``robots``), holds each robot's local map by
+applying its updates (:mod:`csam_ros.core.exchange.map_updates`) and asks a smoother for its
+whole map (``/<robot>/smoother/resync``) when it holds none or an update does not apply. Every
+message is checked whole when it arrives (``ros/map_messages.py``): a malformed one is dropped
+and counted, and the robot's last valid inputs stay in use.
 
-Its decisions are :class:`~csam_ros.core.merging.policy.MergerPolicy`'s (see there): the
-reference (``reference``, else the first of ``robots``, else the first robot heard from;
-``reference_wait``), when to solve (``solve_period``), when the provisional map goes out
-(``provisional_quiet``, ``provisional_period``), smoother restarts, stale robots
-(``stale_after``) and what ``/csam/status`` says. A worker thread hands each solve to the
-solve process (:mod:`csam_ros.solve_process`; at most one runs and one is pending), then
-publishes ``/csam/joined_map`` (transient local), ``/tf`` ``<reference>/map -> <robot>/map``
-of each aligned robot and ``/<robot>/pose`` of each joined one (nodes/merger_output.py), writes
-``summary_path`` (when set) and publishes ``/csam/markers``, both built by the message process
-(:mod:`csam_ros.message_process`). A thread of its own publishes ``/csam/joined_map/provisional``
-(the newest local maps placed by the last join, unsolved) and the poses it places; the status
-goes out on ``/csam/status`` and ``/diagnostics``. ``~/flush`` (std_srvs/Trigger;
-the data has ended) solves the newest inputs at once, giving up a running solve of older ones;
-after it each robot's next local map gives up a running solve once more.
-
-With ``state_path`` set, the merger writes its state there (atomically) after each solve, once
-its joined map is out (:class:`~csam_ros.core.exchange.checkpoint.MergerState`). Started with
-such a file, it takes that state up, publishes its joined map at once and goes on from it; a
-file it cannot use is one logged error, and it starts empty.
+Its decisions are :class:`~csam_ros.core.merging.policy.MergerPolicy`'s: the reference, when to
+solve, when the provisional map goes out, smoother restarts, stale robots and what
+``/csam/status`` and ``/diagnostics`` say. A worker thread hands each solve to the solve process
+(:mod:`csam_ros.solve_process`; one runs, one is pending), then publishes ``/csam/joined_map``,
+``/tf`` ``<reference>/map -> <robot>/map`` and ``/<robot>/pose`` (nodes/merger_output.py), and
+the message process writes ``summary_path`` and publishes ``/csam/markers``. A thread of its own
+publishes ``/csam/joined_map/provisional``. ``~/flush`` (the data has ended) solves the newest
+inputs at once, giving up a running solve of older ones. With ``state_path`` set, the merger
+writes its state there after each solve and takes it up when started with it
+(:class:`~csam_ros.core.exchange.checkpoint.MergerState`).
 """
 
 from __future__ import annotations
@@ -142,15 +131,6 @@ class Merger(Node):
         provisional = settings.provisional_check_period
         if self._provisional_timer is not None and provisional is not None:
             self._provisional_timer.timer_period_ns = round(provisional * 1e9)
-
-    # the policy's state that tests and tools read on the node
-    local_maps = property(lambda self: self.policy.local_maps, doc="MergerPolicy.local_maps")
-    last_result = property(lambda self: self.policy.last_result, doc="MergerPolicy.last_result")
-    reference = property(lambda self: self.policy.reference, doc="MergerPolicy.reference")
-    solves = property(lambda self: self.policy.solves, doc="MergerPolicy.solves")
-    restarts = property(lambda self: self.policy.restarts, doc="MergerPolicy.restarts")
-    dirty = property(lambda self: self.policy.dirty, doc="MergerPolicy.dirty")
-    solving = property(lambda self: self.policy.solving, doc="MergerPolicy.solving")
 
     def destroy_node(self) -> None:
         """Stop the solve worker and the solve process (a solve running is lost: nothing of it

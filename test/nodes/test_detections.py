@@ -312,7 +312,7 @@ def test_tags_on_tf_give_the_direct_messages_and_the_joined_map(
         s.solve_and_publish(converge=True)
 
     def merged_final() -> bool:
-        result = merger.last_result
+        result = merger.policy.last_result
         return result is not None and all(
             r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
             for r, s in smoothers.items()
@@ -320,7 +320,7 @@ def test_tags_on_tf_give_the_direct_messages_and_the_joined_map(
 
     assert spin(executor, merged_final, 60)
     spin(executor, lambda: False, 0.3)
-    result: CsamResult = merger.last_result
+    result: CsamResult = merger.policy.last_result
     core = run_csam(camera_log)
     for name, want in core.robots.items():
         got = result.robots[name]

@@ -286,7 +286,11 @@ def test_a_checkpoint_or_state_that_cannot_be_used_is_one_error_and_an_empty_sta
         context=ros_context, parameter_overrides=[Parameter("state_path", value=str(robot1))]
     )
     try:
-        assert merger.local_maps == {} and merger.solves == 0 and merger.last_result is None
+        assert (
+            merger.policy.local_maps == {}
+            and merger.policy.solves == 0
+            and merger.policy.last_result is None
+        )
     finally:
         merger.destroy_node()
     logged = capfd.readouterr().err
@@ -373,15 +377,17 @@ def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
     harness = MergerHarness(ros_context, spin, state_path=str(state))
     try:
         joined = harness.start(early)
-        solves = harness.merger.solves
+        solves = harness.merger.policy.solves
         for r in ROBOTS:  # the smoothers are gone: nothing holds their maps any more
             harness.smoothers.destroy(r)
             harness.injector.destroy_publisher(harness.rendezvous[r])
         _replace_merger(harness, ros_context, state_path=str(state))
         published = len(harness.joined)
         harness.wait(lambda: len(harness.joined) > published)
-        assert harness.merger.solves == solves and harness.merger.reference == "robot1"
-        assert set(harness.merger.local_maps) == set(ROBOTS)
+        assert (
+            harness.merger.policy.solves == solves and harness.merger.policy.reference == "robot1"
+        )
+        assert set(harness.merger.policy.local_maps) == set(ROBOTS)
         assert joined_view(harness.joined[-1]) == joined_view(joined)
 
         # the smoothers are back with their whole maps: the merger goes on from its state
@@ -398,16 +404,16 @@ def test_a_merger_resumed_from_its_state_goes_on_as_an_uninterrupted_one(
             )
 
         harness.hold(whole)
-        harness.wait(lambda: harness.merger.solves > solves and robot2_whole())
-        harness.wait(lambda: not harness.merger.dirty and not harness.merger.solving)
+        harness.wait(lambda: harness.merger.policy.solves > solves and robot2_whole())
+        harness.wait(lambda: not harness.merger.policy.dirty and not harness.merger.policy.solving)
         continued = harness.resolve()
-        assert harness.merger.restarts == {}
+        assert harness.merger.policy.restarts == {}
 
         # a merger that never stopped, on the same maps (it asks the smoothers for them)
         _replace_merger(harness, ros_context)
         published = len(harness.joined)
         harness.wait(lambda: len(harness.joined) > published)
-        harness.wait(lambda: not harness.merger.dirty and not harness.merger.solving)
+        harness.wait(lambda: not harness.merger.policy.dirty and not harness.merger.policy.solving)
         uninterrupted = harness.resolve()
         assert joined_view(continued) == joined_view(uninterrupted)
         assert joined_view(continued) != joined_view(joined)
@@ -504,14 +510,14 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
             s.solve_and_publish(converge=True)
 
         def merged_final() -> bool:
-            result = merger.last_result
+            result = merger.policy.last_result
             return result is not None and all(
                 len(result.robots[r].stamps) == len(s.map.stamps) for r, s in smoothers.items()
             )
 
         assert spin(executor, merged_final, 60)
         spin(executor, lambda: False, 0.3)
-        result = merger.last_result
+        result = merger.policy.last_result
         assert result is not None
         # robot2's smoother holds no pose before its first one: the measurement is counted
         assert smoothers["robot2"].drops.as_dict() == {OUTSIDE_TRAJECTORY: 1}

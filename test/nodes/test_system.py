@@ -58,18 +58,18 @@ def _run_to_the_end(executor, spin, simulator, smoothers, merger) -> CsamResult:
     final = {r: s.published_ns for r, s in smoothers.items()}
 
     def merged_final() -> bool:
-        result = merger.last_result
+        result = merger.policy.last_result
         if result is None:
             return False
         return all(
             r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
             for r, s in smoothers.items()
-        ) and set(merger.local_maps) == set(final)
+        ) and set(merger.policy.local_maps) == set(final)
 
     assert spin(executor, merged_final, 60)
     spin(executor, lambda: False, 0.3)
-    assert merger.last_result is not None
-    return merger.last_result
+    assert merger.policy.last_result is not None
+    return merger.policy.last_result
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def test_nodes_in_one_process_give_the_core_result(
         result = _run_to_the_end(executor, spin, simulator, smoothers, merger)
         written = RunSummary.read(summary_path)  # the merger's last solve
         assert written.to_dict() == RunSummary(result, merger=written.merger).to_dict()
-        assert written.merger == MergerStats(merger.drops.as_dict(), merger.solves)
+        assert written.merger == MergerStats(merger.drops.as_dict(), merger.policy.solves)
         assert written.merger.solves >= 1
         for name, expected in core_result.robots.items():
             got = result.robots[name]
