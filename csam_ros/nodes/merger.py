@@ -16,7 +16,8 @@ the message process writes ``summary_path`` and publishes ``/csam/markers``. A t
 publishes ``/csam/joined_map/provisional``. ``~/flush`` (the data has ended) solves the newest
 inputs at once, giving up a running solve of older ones. With ``state_path`` set, the merger
 writes its state there after each solve and takes it up when started with it
-(:class:`~csam_ros.core.exchange.checkpoint.MergerState`).
+(:class:`~csam_ros.core.exchange.checkpoint.MergerState`). ``~/save_state``, ``~/load_state``,
+``~/reset`` and ``~/pause``: :mod:`csam_ros.nodes.state_services`.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import sys
 import threading
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 from csam_msgs.msg import LocalMapUpdate, RendezvousPoses
@@ -34,9 +34,8 @@ from rclpy.node import Node
 from rclpy.timer import Timer
 from std_srvs.srv import Trigger
 
-from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter, RefusedMessageError
-from csam_ros.core.merging.notices import Notice, StateResumed
+from csam_ros.core.merging.notices import Notice
 from csam_ros.core.merging.policy import (
     Flushed,
     Found,
@@ -44,13 +43,13 @@ from csam_ros.core.merging.policy import (
     ProvisionalMap,
     SolveInputs,
     arrival,
-    read_state,
 )
 from csam_ros.core.merging.status import SharedDropCounter
 from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe, watch_parameters
 from csam_ros.nodes.merger_output import MergerOutput
 from csam_ros.nodes.merger_parameters import declare_merger_parameters, live_merger_parameters
 from csam_ros.nodes.merger_resync import ResyncClients
+from csam_ros.nodes.state_services import MergerServices
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import map_update_from_message, rendezvous_log_from_message
 from csam_ros.ros.merger_reports import log_notice, status_array
@@ -88,12 +87,14 @@ class Merger(Node):
         self._provisional_due: ProvisionalMap | None = None
         self._writing_state = False  # the worker waits for the last solve's state write
         self._stopping = threading.Event()  # set under _lock
-        self._on_map = guarded(self, self.drops, self.on_local_map_update)
-        self._on_rendezvous = guarded(self, self.drops, self.on_rendezvous_poses)
+        self.state_services = MergerServices(self)  # ~/save_state, ~/load_state, ~/reset, ...
+        taking = self.state_services.taking  # input dropped while paused
+        self._on_map = guarded(self, self.drops, taking(self.on_local_map_update))
+        self._on_rendezvous = guarded(self, self.drops, taking(self.on_rendezvous_poses))
         self.output = MergerOutput(
             self, params.summary_path, self._publish_lock, self._stopping, self.drops
         )
-        resumed = self.state_path is not None and self.resume(self.state_path)
+        resumed = self.state_path is not None and self.state_services.resume(self.state_path)
         for robot in settings.robots:  # listed robots' latched maps may come before discovery
             if robot not in self.policy.robots:
                 self._subscribe(robot)
@@ -152,20 +153,6 @@ class Merger(Node):
         self.output.message_process.close()
         with self._publish_lock:  # no publication is under way, and none starts from now on
             super().destroy_node()
-
-    def resume(self, path: Path) -> bool:
-        """Take up the state saved at ``path`` (call before any subscription); whether it was
-        (a file that cannot be used is logged once: the merger starts empty)."""
-        saved = read_state(path)
-        if not isinstance(saved, MergerState):
-            self._note(saved)
-            return False
-        with self._lock:
-            robots = self.policy.take_up(saved)
-        for robot in robots:
-            self._subscribe(robot)
-        self._note(StateResumed(path, len(saved.maps), saved.reference, saved.solves))
-        return True
 
     def _subscribe(self, robot: str) -> None:
         """Subscribe to ``robot``'s local map updates and rendezvous poses; publish its pose."""

@@ -34,6 +34,12 @@ What came while it was down is lost: the step of its odometry stamps across the 
 logged, and the odometry samples missed are counted as ``lost_while_down`` (``/csam/status``,
 with ``restarts`` and ``lost_seconds``). A checkpoint that cannot be read, or of another
 robot, is one logged error: the node starts empty.
+
+Its state services (:mod:`csam_ros.nodes.state_services`, docs/ARCHITECTURE.md): ``~/save_state``
+writes such a checkpoint to a path, ``~/load_state`` takes one up as a restart from it would
+and publishes its map, ``~/reset`` forgets everything as a start without one would (both in a
+new update session: the merger takes the new map for a restart), ``~/pause`` drops the input
+(``paused``) until resumed.
 """
 
 from __future__ import annotations
@@ -89,6 +95,7 @@ from csam_ros.nodes.common import (
     subscribe,
     watch_parameters,
 )
+from csam_ros.nodes.state_services import SmootherServices
 from csam_ros.ros.conversions import (
     feature_points_from_message,
     features_from_message,
@@ -202,12 +209,14 @@ class Smoother(Node):
         if self.checkpoint_path is not None:
             self.resume(self.checkpoint_path)
 
+        self.state_services = SmootherServices(self)  # ~/save_state, ~/load_state, ~/reset, ...
+        taking = self.state_services.taking  # input dropped while paused
         # this robot's topics by relative name (the node runs in the robot's namespace)
-        subscribe(self, ODOM, guarded(self, self.drops, self.on_odometry))
-        subscribe(self, FEATURES, guarded(self, self.drops, self.on_features))
-        subscribe(self, FEATURE_POINTS, guarded(self, self.drops, self.on_feature_points))
-        subscribe(self, RENDEZVOUS, guarded(self, self.drops, self.on_own_rendezvous))
-        on_peer = guarded(self, self.drops, self.on_peer_rendezvous)
+        subscribe(self, ODOM, guarded(self, self.drops, taking(self.on_odometry)))
+        subscribe(self, FEATURES, guarded(self, self.drops, taking(self.on_features)))
+        subscribe(self, FEATURE_POINTS, guarded(self, self.drops, taking(self.on_feature_points)))
+        subscribe(self, RENDEZVOUS, guarded(self, self.drops, taking(self.on_own_rendezvous)))
+        on_peer = guarded(self, self.drops, taking(self.on_peer_rendezvous))
         for peer in self.robots:
             if peer != self.robot:
                 subscribe(
@@ -407,24 +416,28 @@ class Smoother(Node):
 
     # -- checkpoint -----------------------------------------------------------------------------
 
+    def checkpoint(self) -> SmootherCheckpoint:
+        """What this node accepted and its local map, as a checkpoint."""
+        return SmootherCheckpoint(
+            robot=self.robot,
+            local_map=self.map.state(),
+            filter=FilterState.of(self.filter),
+            peer_filter=FilterState.of(self.peer_filter),
+            thinning=ThinningState.of(self.thinning),
+            own_rendezvous=rendezvous_log_from_chunks(self.own_rendezvous),
+            rendezvous_stamps=np.array(sorted(self.rendezvous_stamps), dtype=float),
+            last_odometry_ns=self.last_odometry_ns,
+            published_ns=self.published_ns,
+            errors=self.errors,
+            restarts=self.restarts,
+            lost_seconds=self.lost_seconds,
+        )
+
     def write_checkpoint(self, path: pathlib.Path) -> None:
         """Write what this node accepted and its local map to ``path`` (atomically); a
         failure is logged and counted as an error, never fatal."""
         try:
-            SmootherCheckpoint(
-                robot=self.robot,
-                local_map=self.map.state(),
-                filter=FilterState.of(self.filter),
-                peer_filter=FilterState.of(self.peer_filter),
-                thinning=ThinningState.of(self.thinning),
-                own_rendezvous=rendezvous_log_from_chunks(self.own_rendezvous),
-                rendezvous_stamps=np.array(sorted(self.rendezvous_stamps), dtype=float),
-                last_odometry_ns=self.last_odometry_ns,
-                published_ns=self.published_ns,
-                errors=self.errors,
-                restarts=self.restarts,
-                lost_seconds=self.lost_seconds,
-            ).write(path)
+            self.checkpoint().write(path)
         except OSError as err:
             self.errors += 1
             self.get_logger().error(f"checkpoint not written to {path}: {err}")
@@ -436,16 +449,55 @@ class Smoother(Node):
             self.get_logger().info(f"no checkpoint at {path} yet: starting empty")
             return
         try:
-            saved = SmootherCheckpoint.read(path, self.robot)
-            local = CoreLocalMap.from_state(self.robot, saved.local_map, self.map.options)
+            saved, local = self.read_checkpoint(path)
         except CheckpointError as err:
             self.get_logger().error(f"checkpoint not used, starting empty: {err}")
             return
+        self.take_up(saved, local, f"resumed from {path}")
+
+    def read_checkpoint(self, path: pathlib.Path) -> tuple[SmootherCheckpoint, CoreLocalMap]:
+        """The checkpoint of this robot at ``path`` and its local map; any fault (the file's,
+        or a map that cannot be rebuilt) is a :class:`CheckpointError` naming it."""
+        try:
+            saved = SmootherCheckpoint.read(path, self.robot)
+            return saved, CoreLocalMap.from_state(self.robot, saved.local_map, self.map.options)
+        except CheckpointError:
+            raise
         except Exception as err:  # noqa: BLE001 - a node never dies of a bad file
-            self.get_logger().error(
-                f"checkpoint not used, starting empty: {path}: {type(err).__name__}: {err}"
-            )
-            return
+            raise CheckpointError(f"{path}: {type(err).__name__}: {err}") from None
+
+    def load(self, path: pathlib.Path) -> None:
+        """``~/load_state``: replace the state by the checkpoint at ``path`` as a restart from
+        it would, in a new session, and publish its map; a :class:`CheckpointError` leaves
+        the state as it was."""
+        saved, local = self.read_checkpoint(path)
+        self.forget()
+        self.take_up(saved, local, f"loaded {path}")
+        if self.published_ns >= 0 and len(self.map.stamps) >= 2:
+            self.publish(0, exact=True)  # the whole map: the first update of its session
+
+    def forget(self) -> None:
+        """Forget every input, the local map and the counts, in a new update session (the
+        first update of which is the whole map): the state of a smoother just started
+        without a checkpoint. The drop counters stay the same objects (callbacks hold them)."""
+        self.map = CoreLocalMap(self.robot, self.map.options)
+        for checks in (self.filter, self.peer_filter):
+            checks.restore_streams({})
+            for counter in checks.drops.values():
+                counter.counts.clear()
+        self.thinning.restore({}, {})
+        self.own_rendezvous, self.rendezvous_stamps, self.outside_stamps = [], set(), set()
+        self.last_odometry_ns = self.published_ns = -1
+        self.dirty = self.flushed = False
+        self.solve_seconds, self.errors, self.restarts, self.lost_seconds = 0.0, 0, 0, 0.0
+        self.resyncs = self.deferred_updates = 0
+        self._resumed_after = self._odometry_period = None
+        self._rendezvous_sent = None
+        self.sender = UpdateSender(int.from_bytes(os.urandom(4)), self.sender.tolerance)
+
+    def take_up(self, saved: SmootherCheckpoint, local: CoreLocalMap, origin: str) -> None:
+        """Go on from ``saved`` and its local map ``local`` (``origin``: where from, logged)
+        on a node just started or :meth:`forget`-ful: as a restart from that checkpoint."""
         self.map = local
         saved.filter.restore(self.filter)
         saved.peer_filter.restore(self.peer_filter)
@@ -477,7 +529,7 @@ class Smoother(Node):
         self._resumed_after = float(odometry[-1]) if len(odometry) else None
         self._odometry_period = odometry_period(odometry)
         self.get_logger().info(
-            f"resumed from {path}: {len(self.map.stamps)} poses, "
+            f"{origin}: {len(self.map.stamps)} poses, "
             f"{len(self.map.landmark_labels)} features, odometry up to "
             f"{self._resumed_after if self._resumed_after is not None else float('nan'):.3f} s"
         )

@@ -162,6 +162,13 @@ TOPICS: tuple[Topic, ...] = (
 # whole local map as one update
 FLUSH = "flush"
 RESYNC = "resync"
+# the state services of the smoother and the merger (nodes/state_services.py): write the state
+# file (csam_msgs/SaveState), replace the state by a file's (csam_msgs/LoadState), forget
+# everything held (std_srvs/Trigger), stop and resume taking input (std_srvs/SetBool)
+SAVE_STATE = "save_state"
+LOAD_STATE = "load_state"
+RESET = "reset"
+PAUSE = "pause"
 MERGER_NODE = "merger"
 
 

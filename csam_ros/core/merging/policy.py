@@ -24,7 +24,11 @@ measurements, the reference, the counts, the last result) and decides with it:
 - staleness: a robot without a new local map for ``stale_after`` s is reported stale; its
   last map stays joined;
 - when to ask a smoother for its whole map (``RESYNC_*``);
-- the status content (:class:`~csam_ros.core.merging.status.MergerStatus`).
+- the status content (:class:`~csam_ros.core.merging.status.MergerStatus`);
+- the state services: the state of the last joined map to save (:meth:`MergerPolicy.saved_state`,
+  its maps refined by :func:`joined_maps`), forgetting everything (:meth:`MergerPolicy.reset`)
+  before going on from a saved state (:meth:`MergerPolicy.take_up`), and no resync request
+  while paused (``paused``: the node drops what arrives).
 
 Its clock is injected (a callable returning monotonic seconds). It is not thread-safe: the
 node calls it under its lock. The inputs a solve takes (maps, sources, stamps, rendezvous)
@@ -34,12 +38,13 @@ are dicts replaced, never mutated, so that a solve's snapshot of them stays as i
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 from pathlib import Path
 
 from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
-from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
+from csam_ros.core.exchange.local_map_checks import LocalMapArrays
+from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map, robot_map_arrays
 from csam_ros.core.exchange.map_updates import HeldMap, MapUpdate, MissingBaseError, apply_update
 from csam_ros.core.exchange.validation import (
     FAILED_SOLVE,
@@ -48,6 +53,7 @@ from csam_ros.core.exchange.validation import (
     RefusedMessageError,
 )
 from csam_ros.core.joining.config import CsamConfig
+from csam_ros.core.joining.local_views import in_threads
 from csam_ros.core.joining.result import CsamResult, MergerStats
 from csam_ros.core.merging.joiner import JoinReply, JoinRequest, MapSource
 from csam_ros.core.merging.notices import (
@@ -210,6 +216,21 @@ class ProvisionalMap:
     stamp_tolerance: float  # s: carried_forward's
 
 
+def joined_maps(inputs: SolveInputs) -> dict[str, RobotMap]:
+    """Each robot's map as the solve of ``inputs`` joined it, in the join's order: one built
+    from updates refined to its sender's optimum, a saved one as it is (the joiner's maps,
+    :class:`~csam_ros.core.merging.joiner.Joiner`). :class:`LocalMapError` when one is not
+    usable (the solve joined that robot's previous map)."""
+
+    def joined(robot: str) -> RobotMap:
+        source = inputs.sources[robot]
+        if isinstance(source, LocalMapArrays):
+            return checked_robot_map(robot, source)
+        return held_robot_map(robot, source)
+
+    return dict(zip(inputs.order, in_threads(joined, inputs.order), strict=True))
+
+
 def read_state(path: Path) -> MergerState | StateMissing | StateUnusable:
     """The merger state saved at ``path``, or why there is none to take up."""
     if not path.exists():
@@ -260,6 +281,8 @@ class MergerPolicy:
         self.restarts: dict[str, int] = {}
         self.restart_poses_lost: dict[str, int] = {}
         self.provisional_maps = 0  # provisional joined maps published
+        self.paused = False  # ~/pause: nothing is taken, no whole map asked for
+        self._joined: SolveInputs | None = None  # the inputs of the last joined map
         self._first_heard_at = 0.0  # clock s of the first local map
         self._late_reference_noted = False
         self._behind: set[str] = set()  # an update of did not apply: resync until one does
@@ -291,7 +314,9 @@ class MergerPolicy:
 
     def resyncs_wanted(self) -> Iterator[tuple[str, str]]:
         """The robots whose whole map is wanted (none is held, or an update did not apply),
-        with why; :meth:`resync_due` says whether to ask now."""
+        with why, none while paused; :meth:`resync_due` says whether to ask now."""
+        if self.paused:
+            return
         for robot in self.robots:
             if robot not in self.held:
                 yield robot, NO_MAP_HELD
@@ -380,8 +405,8 @@ class MergerPolicy:
         self.dirty = True
 
     def take_up(self, saved: MergerState) -> list[str]:
-        """Go on from a saved merger state (before anything arrived); the robots it had
-        subscribed to that are still to be (the allow-list's)."""
+        """Go on from a saved merger state (on a policy just made, or :meth:`reset`); the
+        robots it had subscribed to that are still to be (the allow-list's)."""
         now = self.clock()
         self.local_maps = dict(saved.maps)
         self.sources = {robot: robot_map_arrays(m) for robot, m in saved.maps.items()}
@@ -398,7 +423,41 @@ class MergerPolicy:
         self.last_result = saved.result
         if saved.result is not None:  # the node publishes it at once
             self._published_stamps = dict(self.local_map_stamps)
+            self._joined = SolveInputs(
+                order=tuple(saved.heard),  # the reference first (state_after)
+                sources=self.sources,
+                logs=self.rendezvous,
+                stamps=self.local_map_stamps,
+                robots=tuple(saved.robots),
+            )
         return [robot for robot in saved.robots if self.settings.admits(robot)]
+
+    def reset(self) -> None:
+        """Forget every map, measurement, result and count (``~/reset``, and before
+        :meth:`take_up` on a merger that ran): as a policy just made that subscribed to the
+        same robots (whose whole maps it asks for again); ``paused`` stays. Call with no solve
+        running."""
+        robots, ignored, paused = self.robots, self.ignored, self.paused
+        self.drops.counts.clear()  # the node's counter, shared: cleared, never replaced
+        vars(self).update(vars(MergerPolicy(self.settings, self.clock, self.config, self.drops)))
+        self.ignored, self.paused = ignored, paused
+        for robot in robots:
+            self.subscribed(robot)
+
+    def saved_state(self) -> tuple[MergerState, SolveInputs] | None:
+        """The state of the last joined map (``~/save_state``), as a solve writes it to
+        ``state_path``, but with the counts of now: its maps still to be filled in from its
+        inputs (:func:`joined_maps`, outside the node's lock); None before the first."""
+        inputs, result = self._joined, self.last_result
+        if inputs is None or result is None:
+            return None
+        state = replace(
+            self.state_after(inputs),
+            solves=self.solves,
+            rendezvous=dict(inputs.logs),
+            result=result,
+        )
+        return state, inputs
 
     # solves
 
@@ -462,6 +521,7 @@ class MergerPolicy:
             self.solves += 1
             self.last_result = reply.result
             self._published_stamps = dict(inputs.stamps)
+            self._joined = inputs
         return notices
 
     def stats(self) -> MergerStats:
