@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 from csam_msgs.msg import JoinedMap
 from csam_msgs.srv import LoadState, SaveState
@@ -43,10 +43,6 @@ from csam_ros.core.merging.notices import StateMissing, StateResumed
 from csam_ros.core.merging.policy import joined_maps, read_state
 from csam_ros.ros.topics import LOAD_STATE, PAUSE, RESET, SAVE_STATE
 from csam_ros.solve_process import SolveProcess
-
-if TYPE_CHECKING:
-    from csam_ros.nodes.merger import Merger
-    from csam_ros.nodes.smoother import Smoother
 
 # a drop reason: input that came while the node was paused (~/pause)
 PAUSED = "paused"
@@ -130,7 +126,7 @@ class SmootherServices:
     """The smoother's state services (module docstring); the state itself is the node's
     (:meth:`~csam_ros.nodes.smoother.Smoother.checkpoint`, ``load``, ``forget``)."""
 
-    def __init__(self, node: Smoother) -> None:
+    def __init__(self, node: Any) -> None:  # the Smoother (which imports this module)
         self.node = node
         self.pause = Pause(node.drops)
         self.taking = self.pause.taking
@@ -189,7 +185,7 @@ class MergerServices:
     A part of the node: it takes the node's locks as the node does (the policy under
     ``_lock``; no solve runs while it holds ``_solve_lock``)."""
 
-    def __init__(self, node: Merger) -> None:
+    def __init__(self, node: Any) -> None:  # the Merger (which imports this module)
         self.node = node
         self.pause = Pause(node.drops, self._paused)
         self.taking = self.pause.taking
