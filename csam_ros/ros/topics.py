@@ -114,8 +114,9 @@ JOINED_MAP = Topic("/csam/joined_map", JoinedMap, LATCHED)
 PROVISIONAL_MAP = Topic("/csam/joined_map/provisional", JoinedMap, LATCHED)
 MARKERS = Topic("/csam/markers", MarkerArray, LATCHED)
 STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
-# REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/base_link
-# (smoothers); reliable and volatile with a deep queue, as tf2's broadcasters
+# REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/odom
+# (smoothers), <robot>/odom -> <robot>/base_link (the robot's driver, or the simulator or
+# player); reliable and volatile with a deep queue, as tf2's broadcasters
 TF = Topic("/tf", TFMessage, QoSProfile(depth=100))
 CLOCK = Topic("/clock", Clock, SHALLOW)
 
