@@ -3,9 +3,10 @@
 Hypothesis draws odometry (twist, covariance and integrated pose, each known or not), features
 and rendezvous messages (own and a peer's) with any floats (nan, inf, huge, tiny, negative),
 any stamps, empty and long observation lists, unknown labels and robots, and hands them to an
-in-process smoother through its own subscription callbacks after a run of good data. No exception may reach the callbacks' guard
-(``callback_error`` stays 0: one caught there is a bug found), no local map update may fail,
-the node still answers ``~/flush``, and the map of the good data is unchanged.
+in-process smoother through its own subscription callbacks after a run of good data. No
+exception may reach the callbacks' guard (``callback_error`` stays 0: one caught there is a bug
+found), no local map update may fail, the node still answers ``~/flush``, and the map of the
+good data is unchanged.
 
 Runs ``CSAM_FUZZ_EXAMPLES`` examples (default 15, a few seconds); a longer run, e.g.
 ``CSAM_FUZZ_EXAMPLES=500 .venv/bin/python -m pytest -q -p no:cacheprovider

@@ -437,7 +437,9 @@ class MeasurementFilter:
     rendezvous must still name another robot). Every field is checked against ``bounds``.
     Within a message, single bad observations are dropped and the rest kept; a message that
     arrives with no observation is dropped as ``empty``, one with more than
-    ``max_observations`` as ``too_many_observations``.
+    ``max_observations`` as ``too_many_observations``. Odometry comes as values
+    (:meth:`odometry`) or as a message as drivers fill it (:meth:`odometry_reading`: the
+    twist or pose differences, default sigmas, pose jumps).
 
     Stamps (``J`` = ``bounds.max_stamp_jump``). A robot's odometry is its clock:
 
@@ -689,8 +691,10 @@ class MeasurementFilter:
             s.held_pose = pose
         if defaulted and (samples or now_held):
             self.defaulted.add(robot)
+        if not samples:
+            return []
         poses = [held_pose, pose] if len(samples) == 2 else [pose]
-        return list(zip(samples, poses[-len(samples) :] if samples else [], strict=True))
+        return list(zip(samples, poses, strict=True))
 
     def features(
         self,
