@@ -157,3 +157,24 @@ def test_pose_jumps_and_bad_poses_are_dropped_and_counted(
         assert status[f"dropped/{QUATERNION_NOT_NORMALISED}"] == "2"
         assert status[f"dropped/{NOT_FINITE}"] == "2"
         assert node.errors == 0 and node.drops.counts["callback_error"] == 0
+
+
+def test_offline_replay_reads_driver_odometry_as_the_node_does(ros_context: Any) -> None:
+    """A bag's driver-style odometry through offline replay's reading (``LogBuilder``) gives
+    the local map the smoother node makes of the same messages."""
+    from csam_ros.core.smoothing.local_map import LocalMap
+    from csam_ros.ros.conversions import LogBuilder
+
+    messages = [m for m in _messages("pose_no_covariance") if "rendezvous" not in m.topic]
+    builder = LogBuilder(robots=["robot1", "robot2"])
+    for m in messages:
+        builder.add(m.topic, m.message)
+    offline = LocalMap("robot1")
+    offline.add_log(builder.build().robots["robot1"])
+    offline.update(converge=True)
+    with fed_smoother(ros_context, messages) as (node, (stamps, poses, landmarks)):
+        np.testing.assert_array_equal(stamps, offline.stamps)
+        np.testing.assert_allclose(poses, offline.poses, atol=1e-6)
+        for label, xy in zip(offline.landmark_labels, offline.landmarks, strict=True):
+            np.testing.assert_allclose(landmarks[label], xy, atol=1e-6)
+        assert builder.filter.defaulted.as_dict() == node.filter.defaulted.as_dict() != {}
