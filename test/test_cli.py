@@ -195,20 +195,25 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
     tmp_path: Path, ros_context, ros_domain: int, spin
 ) -> None:
     """A process on the caller's domain (this session's) receives the demo's joined map and
-    frames; robot2's latest pose composed from /tf is the joined map's. An --isolated demo
-    runs on another domain."""
+    frames; robot2's latest pose composed from /tf (merger, smoother's map -> odom, the
+    simulator's odom -> base_link at that pose's stamp) is the joined map's. An --isolated
+    demo runs on another domain."""
     import rclpy
 
     from csam_ros.core.model import se2
+    from csam_ros.ros.conversions import time_to_ns
     from csam_ros.ros.topics import JOINED_MAP, TF
 
     node = rclpy.create_node("watcher", context=ros_context)
     received: list = []
     frames: dict[tuple[str, str], np.ndarray] = {}
+    odometry: dict[int, np.ndarray] = {}  # robot2/odom -> robot2/base_link by stamp
 
     def on_tf(msg) -> None:
         for t in msg.transforms:
             frames[(t.header.frame_id, t.child_frame_id)] = _planar(t.transform)
+            if (t.header.frame_id, t.child_frame_id) == ("robot2/odom", "robot2/base_link"):
+                odometry[time_to_ns(t.header.stamp)] = _planar(t.transform)
 
     node.create_subscription(JOINED_MAP.msgtype, JOINED_MAP.of(), received.append, JOINED_MAP.qos)
     node.create_subscription(TF.msgtype, TF.of(), on_tf, TF.qos)
@@ -234,11 +239,18 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
             domain = f"ROS_DOMAIN_ID {ros_domain}" in output
             assert domain == seen, output
             if seen:
-                joined = {t.robot: t for t in received[-1].trajectories}["robot2"].poses[-1]
+                trajectory = {t.robot: t for t in received[-1].trajectories}["robot2"]
+                joined = trajectory.poses[-1]
                 composed = se2.compose(
-                    frames[("robot1/map", "robot2/map")], frames[("robot2/map", "robot2/base_link")]
+                    se2.compose(
+                        frames[("robot1/map", "robot2/map")], frames[("robot2/map", "robot2/odom")]
+                    ),
+                    odometry[time_to_ns(trajectory.stamps[-1])],
                 )
-                np.testing.assert_allclose(composed, [joined.x, joined.y, joined.theta], atol=1e-9)
+                assert ("robot2/map", "robot2/base_link") not in frames  # one parent: odom
+                np.testing.assert_allclose(
+                    se2.between([joined.x, joined.y, joined.theta], composed), 0.0, atol=1e-9
+                )
     finally:
         node.destroy_node()
         executor.shutdown()

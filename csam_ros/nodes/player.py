@@ -16,6 +16,11 @@ recorded publishers agree; transient local with the recorded depth).
 
 BAG is a bag directory or an .mcap file. A bag whose recorder was killed plays up to its last
 complete chunk (with a warning); a bag without metadata.yaml plays from its .mcap files.
+
+Like the simulator, the player stands in for the robots' drivers: for each played
+``/<robot>/odom`` it publishes ``/tf`` ``<robot>/odom -> <robot>/base_link`` at the message's
+stamp, from the message's pose, or where the message has none the dead reckoning of its twists
+(``--no-odom-tf``: not, e.g. for a bag whose recorded /tf already holds them).
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
@@ -38,7 +44,8 @@ from rosgraph_msgs.msg import Clock
 from csam_ros.bag import BagError, BagInfo, BagMessage, inspect_bag, publisher_qos, read_bag
 from csam_ros.bag.types import UnknownMessageTypeError, message_class
 from csam_ros.nodes.common import run_rclpy, stop_on_signals, watch_parameters
-from csam_ros.ros.topics import CLOCK
+from csam_ros.ros.conversions import OdometryTransforms
+from csam_ros.ros.topics import CLOCK, ODOM, TF
 
 
 class PlayerNode(Node):
@@ -50,6 +57,7 @@ class PlayerNode(Node):
         topics: Sequence[str],
         publish_clock: bool = True,
         stop: threading.Event | None = None,
+        odometry_tf: bool = True,
     ) -> None:
         super().__init__("player")
         self.bag = bag
@@ -57,6 +65,7 @@ class PlayerNode(Node):
         self.published = 0
         self.skipped_topics: list[str] = []
         self._topic_publishers: dict[str, Publisher] = {}
+        self._odometry: dict[str, tuple[str, type]] = {}  # odometry topics: robot, type
         for topic in topics:
             info = bag.topics[topic]
             try:
@@ -67,6 +76,13 @@ class PlayerNode(Node):
                 continue
             qos = publisher_qos(info.offered_qos_profiles)
             self._topic_publishers[topic] = self.create_publisher(cls, topic, qos)
+            robot = ODOM.robot_of(topic)
+            if odometry_tf and robot is not None and info.msgtype == ODOM.type_name:
+                self._odometry[topic] = (robot, cls)
+        self._odometry_transforms = OdometryTransforms()
+        self._tf_publisher = (
+            self.create_publisher(TF.msgtype, TF.name, TF.qos) if self._odometry else None
+        )
         self._clock_publisher = (
             self.create_publisher(CLOCK.msgtype, CLOCK.name, CLOCK.qos) if publish_clock else None
         )
@@ -81,11 +97,13 @@ class PlayerNode(Node):
     def wait_for_subscribers(
         self, topics: Iterable[str], timeout_s: float, count: int = 1
     ) -> list[str]:
-        """Wait until each of ``topics`` (played topics or /clock) has ``count`` matched
+        """Wait until each of ``topics`` (played topics, /clock or /tf) has ``count`` matched
         subscriptions; returns those short of it when ``timeout_s`` ran out."""
         publishers = dict(self._topic_publishers)
         if self._clock_publisher is not None:
             publishers[CLOCK.name] = self._clock_publisher
+        if self._tf_publisher is not None:
+            publishers[TF.name] = self._tf_publisher
         waiting = [topic for topic in topics if topic in publishers]
         deadline = time.monotonic() + timeout_s
         while not self.stop.is_set():
@@ -136,12 +154,31 @@ class PlayerNode(Node):
                 self._publish_clock(message.log_time_ns)
             publisher.publish(message.data)
             self.published += 1
+            if message.topic in self._odometry:
+                self._publish_odometry_tf(message)
+
+    def _publish_odometry_tf(self, message: BagMessage) -> None:
+        """``odom -> base_link`` of one played odometry message (none for one without a
+        usable pose or twist, or that does not decode)."""
+        assert self._tf_publisher is not None
+        robot, cls = self._odometry[message.topic]
+        try:
+            odometry = deserialize_message(message.data, cls)
+        except Exception as error:  # noqa: BLE001 - a damaged message is played, not turned
+            self.get_logger().warning(f"no /tf of {message.topic}: {error}", once=True)
+            return
+        transform = self._odometry_transforms.transform(robot, odometry)
+        if transform is not None:
+            self._tf_publisher.publish(TF.msgtype(transforms=[transform]))
 
     def finish(self, linger_s: float) -> None:
         """Wait until reliable subscribers have acknowledged everything, then ``linger_s``
         more seconds (transient local late joiners), then log a summary; when stopped by a
         signal, only log."""
-        for topic, publisher in self._topic_publishers.items():
+        publishers = dict(self._topic_publishers)
+        if self._tf_publisher is not None:
+            publishers[TF.name] = self._tf_publisher
+        for topic, publisher in publishers.items():
             if (
                 self.stop.is_set()
                 or publisher.qos_profile.reliability != ReliabilityPolicy.RELIABLE
@@ -171,6 +208,11 @@ def parse_arguments(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--loop", action="store_true", help="play again from the start forever")
     parser.add_argument(
         "--no-clock", action="store_true", help="do not publish /clock (replay a recorded one)"
+    )
+    parser.add_argument(
+        "--no-odom-tf",
+        action="store_true",
+        help="do not publish /tf <robot>/odom -> <robot>/base_link of the played odometry",
     )
     parser.add_argument(
         "--clock-period",
@@ -248,7 +290,9 @@ def main(args: Sequence[str] | None = None) -> int:
     try:
         bag = inspect_bag(options.bag)
         topics = select_topics(bag, options.topics, publish_clock)
-        unknown = set(options.wait_for_subscribers or ()) - {*topics, CLOCK.name}
+        odometry_tf = not options.no_odom_tf and any(ODOM.robot_of(t) for t in topics)
+        published = {*topics, CLOCK.name, *([TF.name] if odometry_tf else [])}
+        unknown = set(options.wait_for_subscribers or ()) - published
         if unknown:
             raise BagError(f"--wait-for-subscribers names unplayed topic(s) {sorted(unknown)}")
     except BagError as error:
@@ -287,7 +331,7 @@ def main(args: Sequence[str] | None = None) -> int:
         return 0
 
     return run_rclpy(
-        lambda: PlayerNode(bag, topics, publish_clock, stop),
+        lambda: PlayerNode(bag, topics, publish_clock, stop, not options.no_odom_tf),
         play,
         args=argv,
         signal_handler_options=SignalHandlerOptions.NO,

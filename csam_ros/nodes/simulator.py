@@ -2,7 +2,10 @@
 
 Publishes per robot ``/<robot>/odom``, ``/<robot>/features``, ``/<robot>/rendezvous`` and
 ``/<robot>/ground_truth``, the features' truth on ``/sim/features_truth`` (transient local) and
-``/clock``. The whole run is simulated by the core at start; the node only paces it out.
+``/clock``. The whole run is simulated by the core at start; the node only paces it out. The
+odometry carries its integrated pose as a robot driver's does, and like a driver the simulator
+publishes ``/tf`` ``<robot>/odom -> <robot>/base_link`` from it, at each odometry stamp (REP-105:
+the smoothers publish ``<robot>/map -> <robot>/odom``).
 
 With robots on their own hosts, each host runs a simulator of the same scenario and seed that
 publishes only its own robots' topics (``emit_robots``); exactly one of them publishes /clock
@@ -19,6 +22,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rosgraph_msgs.msg import Clock
+from tf2_msgs.msg import TFMessage
 
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
@@ -31,10 +35,12 @@ from csam_ros.nodes.common import (
     steady_clock,
     watch_parameters,
 )
-from csam_ros.ros.conversions import log_to_messages, ns_to_time
+from csam_ros.ros.conversions import OdometryTransforms, log_to_messages, ns_to_time
 from csam_ros.ros.topics import (
     CLOCK,
     FEATURES_TRUTH,
+    ODOM,
+    TF,
     TOPICS,
     declaration,
     robot_topics,
@@ -124,12 +130,14 @@ class Simulator(Node):
         emitted = set(robot_topics(self.robots, TOPICS))
         if publish_clock:
             emitted.add(FEATURES_TRUTH.name)
-        self.messages = [m for m in log_to_messages(log) if m.topic in emitted]
+        self.messages = [m for m in log_to_messages(log, with_poses=True) if m.topic in emitted]
         self.topic_publishers: dict[str, Publisher] = {}
         for m in self.messages:
             if m.topic not in self.topic_publishers:
                 self.topic_publishers[m.topic] = publisher(self, declaration(m.topic), m.topic)
         self.clock = publisher(self, CLOCK) if publish_clock else None
+        self.tf = publisher(self, TF)  # odom -> base_link of the odometry published
+        self.odometry_transforms = OdometryTransforms()
         self.next_index = 0
         self.start_stamp_ns = self.messages[0].stamp_ns if self.messages else 0
         self.end_stamp_ns = self.messages[-1].stamp_ns if self.messages else 0
@@ -179,13 +187,21 @@ class Simulator(Node):
         else:
             horizon = self.end_stamp_ns
         published = 0
+        transforms = TFMessage()
         while self.next_index < len(self.messages):
             m = self.messages[self.next_index]
             if m.stamp_ns > horizon or (self.rate == 0 and published >= 200):
                 break
             self.topic_publishers[m.topic].publish(m.message)
+            robot = ODOM.robot_of(m.topic)
+            if robot is not None:
+                transform = self.odometry_transforms.transform(robot, m.message)  # type: ignore[arg-type]
+                if transform is not None:
+                    transforms.transforms.append(transform)
             self.next_index += 1
             published += 1
+        if transforms.transforms:
+            self.tf.publish(transforms)
         now_ns = self.messages[self.next_index - 1].stamp_ns if self.next_index else horizon
         done = self.next_index == len(self.messages)
         if self.clock is not None and (
@@ -205,7 +221,7 @@ class Simulator(Node):
         # a reliable sample to another host may still wait for a resend on a lossy link
         # (waited in short slices: SIGINT still ends the node at once)
         deadline = time.monotonic() + DRAIN_TIMEOUT_S
-        waiting = dict(self.topic_publishers)
+        waiting = {**self.topic_publishers, TF.name: self.tf}
         while waiting and time.monotonic() < deadline and self.context.ok():
             for topic in list(waiting):
                 if waiting[topic].wait_for_all_acked(Duration(seconds=0.1)):

@@ -18,7 +18,8 @@ nanoseconds), it publishes:
   acknowledged holds every change since, so a slow link carries fewer, larger updates instead
   of a queue it cannot drain. An update after ``~/flush`` is never deferred;
 - ``rendezvous_poses`` when its measurements changed (latched);
-- ``/tf`` ``<robot>/map -> <robot>/base_link`` at its latest pose;
+- ``/tf`` ``<robot>/map -> <robot>/odom`` (REP-105; :mod:`csam_ros.nodes.smoother_frames`):
+  the correction of the odometry at its latest key pose, also every 1/``tf_rate`` s;
 - ``local_map`` (the whole map with covariances) and ``path``, only while something
   subscribes to them (they are for a look on the robot, and grow with the run).
 Every field of every sensor message is checked against the ``input:`` bounds
@@ -75,7 +76,11 @@ from csam_ros.core.exchange.checkpoint import (
 )
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance
-from csam_ros.core.exchange.validation import InputBounds, MeasurementFilter
+from csam_ros.core.exchange.validation import (
+    ODOMETRY_DEFAULT_SIGMAS,
+    InputBounds,
+    MeasurementFilter,
+)
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous
@@ -95,16 +100,16 @@ from csam_ros.nodes.common import (
     subscribe,
     watch_parameters,
 )
+from csam_ros.nodes.smoother_frames import MapToOdom
 from csam_ros.nodes.state_services import SmootherServices
 from csam_ros.ros.conversions import (
     feature_points_from_message,
     features_from_message,
     ns_to_time,
-    odometry_from_message,
+    odometry_reading_from_message,
     rendezvous_from_message,
     rendezvous_log_from_chunks,
     stamp_to_ns,
-    tf_message,
     time_to_ns,
     yaw_quaternion,
 )
@@ -124,7 +129,6 @@ from csam_ros.ros.topics import (
     RENDEZVOUS_POSES,
     RESYNC,
     STATUS,
-    TF,
 )
 
 # a drop reason: a rendezvous stamp before this robot's first pose (e.g. clocks that differ)
@@ -193,6 +197,7 @@ class Smoother(Node):
             self.robots, np.deg2rad(fov), bounds, lambda: self.filter.clock(self.robot)
         )
         self.drops = self.filter.counter(self.robot)
+        self.frames = MapToOdom(self, self.robot, self.drops)
         self.own_rendezvous: list[tuple[float, dict]] = []
         self.rendezvous_stamps: set[float] = set()
         self.last_odometry_ns = -1
@@ -229,7 +234,6 @@ class Smoother(Node):
         self.update_pub = publisher(self, LOCAL_MAP_UPDATES)
         self.rendezvous_pub = publisher(self, RENDEZVOUS_POSES)
         self.path_pub = publisher(self, PATH)
-        self.tf_pub = publisher(self, TF)
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
         self.create_service(Trigger, f"~/{RESYNC}", self.on_resync)
@@ -251,8 +255,10 @@ class Smoother(Node):
     # -- input ----------------------------------------------------------------------------------
 
     def on_odometry(self, msg: Odometry) -> None:
-        samples = self.filter.odometry(self.robot, *odometry_from_message(msg))
-        if samples:
+        accepted = self.filter.odometry_reading(self.robot, odometry_reading_from_message(msg))
+        if accepted:
+            self.frames.add(msg, accepted)
+            samples = [sample for sample, _ in accepted]
             if self._resumed_after is not None:
                 self._count_lost(samples[0][0])
             stamps, inputs, sigmas, rho = (np.stack(a) for a in zip(*samples, strict=True))
@@ -408,8 +414,7 @@ class Smoother(Node):
             self._rendezvous_sent = content
         if self.path_pub.get_subscription_count():
             self.path_pub.publish(self.path(stamp_ns))
-        latest = (f"{self.robot}/map", f"{self.robot}/base_link", self.map.poses[-1])
-        self.tf_pub.publish(tf_message([latest], stamp_to_ns(self.map.stamps[-1])))
+        self.frames.update(float(self.map.stamps[-1]), self.map.poses[-1])
         self.published_ns = stamp_ns
         if self.checkpoint_path is not None:
             self.write_checkpoint(self.checkpoint_path)
@@ -528,6 +533,7 @@ class Smoother(Node):
         odometry = saved.local_map.odometry_stamps
         self._resumed_after = float(odometry[-1]) if len(odometry) else None
         self._odometry_period = odometry_period(odometry)
+        self.frames.resume(odometry, saved.local_map.odometry_inputs)
         self.get_logger().info(
             f"{origin}: {len(self.map.stamps)} poses, "
             f"{len(self.map.landmark_labels)} features, odometry up to "
@@ -619,6 +625,7 @@ class Smoother(Node):
             "resyncs": self.resyncs,
             "deferred_updates": self.deferred_updates,
             "lost_seconds": round(self.lost_seconds, 3),
+            ODOMETRY_DEFAULT_SIGMAS: self.filter.defaulted.counts[self.robot],
             **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
         }
         level = (

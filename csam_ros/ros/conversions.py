@@ -7,7 +7,8 @@ bag gives the same input to the core offline as through the nodes.
 
 Topics (docs/ARCHITECTURE.md): ``/<robot>/odom`` (nav_msgs/Odometry, twist = measured v, v_lat,
 omega in the body frame with their covariance: variances on the diagonal, covariances of
-correlated inputs off it), ``/<robot>/features``, ``/<robot>/feature_points`` (Cartesian),
+correlated inputs off it; or, as drivers publish it, the integrated pose, read as differences
+by the core), ``/<robot>/features``, ``/<robot>/feature_points`` (Cartesian),
 ``/<robot>/rendezvous``, ``/<robot>/ground_truth`` and ``/sim/features_truth``.
 """
 
@@ -34,7 +35,13 @@ from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 from tf2_msgs.msg import TFMessage
 
-from csam_ros.core.exchange.validation import InputBounds, MeasurementFilter, OdometrySample
+from csam_ros.core.exchange.validation import (
+    InputBounds,
+    MeasurementFilter,
+    OdometryReading,
+    OdometrySample,
+    pose_fault,
+)
 from csam_ros.core.model.log import (
     CORRELATION_PAIRS,
     FeatureLog,
@@ -45,6 +52,12 @@ from csam_ros.core.model.log import (
     RendezvousLog,
     RobotLog,
     empty_points,
+)
+from csam_ros.core.model.motion import odometry_poses
+from csam_ros.core.model.odometry_frame import (
+    OdometryFrame,
+    quaternion_norm_error,
+    quaternion_yaw,
 )
 from csam_ros.ros.topics import (
     FEATURE_POINTS,
@@ -123,9 +136,12 @@ def odometry_message(
     inputs: np.ndarray,
     sigmas: np.ndarray,
     correlations: np.ndarray | None = None,
+    pose: np.ndarray | None = None,
 ) -> Odometry:
     """One odometry sample: mean (v, v_lat, omega) over the interval ending at the stamp, its
-    sigmas and, if given, the correlations of its pairs (log.CORRELATION_PAIRS)."""
+    sigmas and, if given, the correlations of its pairs (log.CORRELATION_PAIRS); with
+    ``pose`` (x, y, yaw in ``<robot>/odom``) the integrated pose as a driver publishes it,
+    else the pose marked unknown."""
     msg = Odometry()
     msg.header.stamp = ns_to_time(stamp_ns)
     msg.header.frame_id = f"{robot}/odom"
@@ -140,36 +156,79 @@ def odometry_message(
         pairs = np.asarray(correlations, dtype=float) * sigmas[_PAIR_I] * sigmas[_PAIR_J]
         cov[_TWIST_UPPER] = cov[_TWIST_LOWER] = pairs
     msg.twist.covariance = cov
-    msg.pose.covariance[0] = -1.0  # REP-145 style: the pose part is not estimated here
+    if pose is None:
+        msg.pose.covariance[0] = -1.0  # REP-145 style: the pose part is not estimated here
+    else:
+        msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
+        msg.pose.pose.orientation = yaw_quaternion(float(pose[2]))
     return msg
 
 
-def odometry_from_message(
-    msg: Odometry,
-) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
-    """(stamp [s], inputs (3,), sigmas (3,), correlations (3,) or None) of an odometry message.
-
-    The correlations of the inputs' pairs (log.CORRELATION_PAIRS) come from the twist covariance
-    off its diagonal (the mean of both sides); None when they are all zero (independent
-    inputs); non-finite when the covariance is, or a sigma is zero. A negative variance gives a
-    NaN sigma."""
+def odometry_reading_from_message(msg: Odometry) -> OdometryReading:
+    """What the core reads of an odometry message (:class:`OdometryReading`): the twist with
+    its covariance (the variances of v, v_lat, omega and the covariances of their pairs, the
+    mean of both sides; None when its first entry is -1, unknown), and the integrated pose
+    with how far its quaternion is off unit norm (None when the pose covariance's first
+    entry is -1). The pose's covariance (the integrated drift) is not used."""
     t = msg.twist.twist
     # one indexing of the 36 entries, then plain floats: once per odometry message
-    v0, v1, v2, *pairs = np.asarray(msg.twist.covariance, dtype=float)[_TWIST_PICKED].tolist()
-    sigmas = np.array([math.sqrt(v) if v >= 0 else math.nan for v in (v0, v1, v2)])
-    inputs = np.array([t.linear.x, t.linear.y, t.angular.z], dtype=float)
-    stamp = time_to_seconds(msg.header.stamp)
-    upper = [0.5 * (a + b) for a, b in zip(pairs[:3], pairs[3:], strict=True)]
-    if not any(upper):
-        return stamp, inputs, sigmas, None
-    variances = np.array([v0, v1, v2])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return (
-            stamp,
-            inputs,
-            sigmas,
-            np.array(upper) / np.sqrt(variances[_PAIR_I] * variances[_PAIR_J]),
-        )
+    twist_cov = np.asarray(msg.twist.covariance, dtype=float)
+    covariance = None
+    if twist_cov[0] != -1.0:
+        v0, v1, v2, *pairs = twist_cov[_TWIST_PICKED].tolist()
+        upper = [0.5 * (a + b) for a, b in zip(pairs[:3], pairs[3:], strict=True)]
+        covariance = (v0, v1, v2, *upper)
+    pose = None
+    error = 0.0
+    if msg.pose.covariance[0] != -1.0:
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        pose = (float(p.x), float(p.y), quaternion_yaw(q.x, q.y, q.z, q.w))
+        error = quaternion_norm_error(q.x, q.y, q.z, q.w)
+    return OdometryReading(
+        time_to_seconds(msg.header.stamp),
+        (float(t.linear.x), float(t.linear.y), float(t.angular.z)),
+        covariance,
+        pose,
+        error,
+    )
+
+
+class OdometryTransforms:
+    """``odom -> base_link`` on ``/tf`` for a source of odometry without a driver of its own
+    (the simulator, the player): each message's own pose, or where the message marks it
+    unknown the dead reckoning of the twists in that odometry frame, from its first sample
+    at the origin (:class:`~csam_ros.core.model.odometry_frame.OdometryFrame`, as the smoother
+    takes it). Frames are the message's (``<robot>/odom``, ``<robot>/base_link`` where empty).
+    """
+
+    def __init__(self) -> None:
+        self.frames: dict[str, OdometryFrame] = {}
+
+    def transform(self, robot: str, msg: Odometry) -> TransformStamped | None:
+        """The transform of one odometry message in stamp order, or None for one with no
+        usable pose (not finite, no rotation, out of order)."""
+        parent = msg.header.frame_id or f"{robot}/odom"
+        child = msg.child_frame_id or f"{robot}/base_link"
+        reading = odometry_reading_from_message(msg)
+        frame = self.frames.setdefault(parent, OdometryFrame(keep=2))
+        latest = frame.latest
+        if latest is not None and reading.stamp <= latest[0]:
+            return None
+        if reading.pose is not None:
+            if pose_fault(reading) is not None:
+                return None
+            frame.add(reading.stamp, reading.twist, reading.pose)
+            t = TransformStamped()
+            t.header.stamp, t.header.frame_id, t.child_frame_id = msg.header.stamp, parent, child
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            t.transform.translation.x, t.transform.translation.y = p.x, p.y
+            t.transform.translation.z = p.z
+            t.transform.rotation = q
+            return t
+        if not (math.isfinite(reading.stamp) and all(map(math.isfinite, reading.twist))):
+            return None
+        pose = frame.add(reading.stamp, reading.twist)
+        return tf_message([(parent, child, pose)], time_to_ns(msg.header.stamp)).transforms[0]
 
 
 def _observations_message(
@@ -337,16 +396,23 @@ def _groups(stamps: np.ndarray) -> Iterator[tuple[float, slice]]:
         yield float(stamps[s]), slice(int(s), int(e))
 
 
-def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[StampedMessage]:
+def log_to_messages(
+    log: MultiRobotLog, with_truth: bool = True, with_poses: bool = False
+) -> list[StampedMessage]:
     """Every robot's measurements as messages in stamp order (stable: robots in log order).
 
     Feature and rendezvous observations sharing a stamp travel in one message. With
     ``with_truth``, the features' ground truth comes first (stamped at the first stamp) and each
-    robot's true pose follows each of its odometry samples.
+    robot's true pose follows each of its odometry samples. With ``with_poses`` the odometry
+    also carries its integrated pose in ``<robot>/odom`` (the dead reckoning of the samples
+    from the first one, at the origin), as a robot driver's does.
     """
     out: list[StampedMessage] = []
     for name, robot in log.robots.items():
         odo = robot.odometry
+        poses: list[np.ndarray | None] = [None] * len(odo.stamps)
+        if with_poses and len(odo.stamps):
+            poses = list(odometry_poses(odo.stamps, odo.inputs))
         truth_poses = None
         if with_truth and log.truth is not None and name in log.truth.trajectories:
             truth_stamps = log.truth.trajectory_stamps[name]
@@ -354,9 +420,11 @@ def log_to_messages(log: MultiRobotLog, with_truth: bool = True) -> list[Stamped
                 zip(truth_stamps.tolist(), log.truth.trajectories[name], strict=True)
             )
         rho = odo.correlations if odo.correlations is not None else [None] * len(odo.stamps)
-        for t, u, s, c in zip(odo.stamps, odo.inputs, odo.sigmas, rho, strict=True):
+        samples = zip(odo.stamps, odo.inputs, odo.sigmas, rho, poses, strict=True)
+        for t, u, s, c, p in samples:
             ns = stamp_to_ns(t)
-            out.append(StampedMessage(ns, ODOM.of(name), odometry_message(name, ns, u, s, c)))
+            msg = odometry_message(name, ns, u, s, c, p)
+            out.append(StampedMessage(ns, ODOM.of(name), msg))
             if truth_poses is not None and float(t) in truth_poses:
                 pose = truth_poses[float(t)]
                 out.append(
@@ -437,10 +505,11 @@ class LogBuilder:
         if topic is FEATURES_TRUTH:
             self.truth = truth_from_message(msg)  # type: ignore[arg-type]
         elif topic is ODOM:
-            samples = self.filter.odometry(robot, *odometry_from_message(msg))  # type: ignore[arg-type]
+            reading = odometry_reading_from_message(msg)  # type: ignore[arg-type]
+            samples = self.filter.odometry_reading(robot, reading)
             if samples:
                 self._robot(robot)
-                self._odometry.setdefault(robot, []).extend(samples)
+                self._odometry.setdefault(robot, []).extend(s for s, _ in samples)
         elif topic is FEATURE_POINTS:
             stamp, a = feature_points_from_message(msg)  # type: ignore[arg-type]
             keep = self.filter.points(robot, stamp, a["points"], a["covariances"])

@@ -126,8 +126,9 @@ STATUS = Topic("/csam/status", DiagnosticArray, SHALLOW)
 DIAGNOSTICS = Topic("/diagnostics", DiagnosticArray, SHALLOW)
 # each joined robot's latest pose in <reference>/map with its covariance, from the merger
 POSE = Topic("pose", PoseWithCovarianceStamped, LATEST)
-# REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/base_link
-# (smoothers); reliable and volatile with a deep queue, as tf2's broadcasters
+# REP-105 frames: <reference>/map -> <robot>/map (merger), <robot>/map -> <robot>/odom
+# (smoothers), <robot>/odom -> <robot>/base_link (the robot's driver, or the simulator or
+# player); reliable and volatile with a deep queue, as tf2's broadcasters
 TF = Topic("/tf", TFMessage, QoSProfile(depth=100))
 CLOCK = Topic("/clock", Clock, SHALLOW)
 

@@ -87,8 +87,10 @@ def offline_summary(
     ``resume``: continue from the state an earlier replay saved (its accepted logs and its
     measurement filter), the bag's data after them; ``save_state``: write the state of this
     replay there (a replay continued from it equals one over all the data), and say so to
-    ``progress``. ``reading``: the :func:`read_offline_log` of the same arguments, already
-    under way in another process."""
+    ``progress``, as the odometry samples given default sigmas (odometry as drivers publish
+    it is read as by the smoothers: ``LogBuilder``, ``MeasurementFilter.odometry_reading``).
+    ``reading``: the :func:`read_offline_log` of the same arguments, already under way in
+    another process."""
     from csam_ros.core.exchange.checkpoint import FilterState, OfflineState
     from csam_ros.core.joining.config import CsamConfig
     from csam_ros.core.joining.pipeline import run_csam
@@ -106,6 +108,10 @@ def offline_summary(
     else:
         log, measurement_filter = reading.result()
     dropped = {r: c.as_dict() for r, c in measurement_filter.drops.items()}
+    defaulted = measurement_filter.defaulted.as_dict()
+    if defaulted:  # the odometry without a covariance (smoother status: odometry_default_sigmas)
+        counts = ", ".join(f"{r} {n}" for r, n in defaulted.items())
+        progress(f"  odometry samples given default sigmas (no covariance): {counts}")
     try:
         result = run_csam(log, config, local_map)
     except ValueError as err:  # no robot with a local map: named with the reason of each

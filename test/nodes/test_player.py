@@ -330,3 +330,80 @@ def test_clock_steps_by_its_period_through_dense_messages(
     steps = np.diff(clock_ns)
     assert set(clock_ns) <= log_times and len(clock_ns) == 8, clock_ns
     assert np.all(steps >= SECOND // 20) and clock_ns[0] == 10 * SECOND
+
+
+def test_plays_odom_to_base_link_from_the_odometry_pose_or_its_dead_reckoning(
+    ros_context: Any, nodes: Any, spin: Any, tmp_path: Path
+) -> None:
+    """The player stands in for the robots' drivers: /tf ``<robot>/odom -> <robot>/base_link``
+    at each odometry stamp, the message's pose where it carries one (robot2, from an origin of
+    its own), else the dead reckoning of its twists (robot1, a bag of twists only)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
+
+    from csam_ros.bag.types import msgtype_of
+    from csam_ros.core.model import se2
+    from csam_ros.core.model.motion import odometry_poses
+    from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.datasets.simulation import simulate
+    from csam_ros.ros.conversions import odometry_message, stamp_to_ns, time_to_ns
+    from csam_ros.ros.topics import ODOM, TF, qos_of
+
+    log = simulate(load_scenario("map_joining"), seed=3)
+    origin = np.array([5.0, -3.0, 2.0])  # robot2's driver counts from here
+    expected: dict[str, dict[int, np.ndarray]] = {}
+    with BagWriter(tmp_path / "bag") as bag:
+        for robot in ("robot1", "robot2"):
+            odo = log.robots[robot].odometry
+            poses = odometry_poses(
+                odo.stamps, odo.inputs, start=origin if robot == "robot2" else (0, 0, 0)
+            )
+            expected[robot] = {stamp_to_ns(t): p for t, p in zip(odo.stamps, poses, strict=True)}
+            bag.add_topic(
+                ODOM.of(robot),
+                msgtype_of(odometry_message(robot, 0, odo.inputs[0], odo.sigmas[0])),
+                qos_of(ODOM.of(robot)),
+            )
+            for t, u, s, p in zip(odo.stamps, odo.inputs, odo.sigmas, poses, strict=True):
+                pose = p if robot == "robot2" else None
+                bag.write(
+                    ODOM.of(robot),
+                    stamp_to_ns(t),
+                    odometry_message(robot, stamp_to_ns(t), u, s, pose=pose),
+                )
+    node = rclpy.create_node("tf_sink", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    got: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+
+    def on_tf(msg: Any) -> None:
+        for t in msg.transforms:
+            r = t.transform.rotation
+            pose = np.array(
+                [t.transform.translation.x, t.transform.translation.y, 2 * np.arctan2(r.z, r.w)]
+            )
+            got.setdefault((t.header.frame_id, t.child_frame_id), {})[
+                time_to_ns(t.header.stamp)
+            ] = pose
+
+    node.create_subscription(TF.msgtype, TF.name, on_tf, QoSProfile(depth=10_000))
+    count = sum(len(e) for e in expected.values())
+    player = nodes.start(
+        "player", tmp_path / "bag", "--rate", "0", "--delay", "1", "--wait-for-subscribers", TF.name
+    )
+    try:
+        assert spin(executor, lambda: sum(len(v) for v in got.values()) == count, 30), nodes.output(
+            player
+        )
+        assert player.wait(timeout=30) == 0, nodes.output(player)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+    assert set(got) == {(f"{r}/odom", f"{r}/base_link") for r in expected}
+    for robot, poses in expected.items():
+        sent = got[(f"{robot}/odom", f"{robot}/base_link")]
+        assert sent.keys() == poses.keys()
+        for stamp, pose in poses.items():
+            np.testing.assert_allclose(sent[stamp][:2], pose[:2], atol=1e-9)
+            assert abs(se2.wrap_angle(sent[stamp][2] - pose[2])) < 1e-9

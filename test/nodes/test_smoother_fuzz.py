@@ -1,11 +1,12 @@
 """Fuzz test of the smoother's boundary: any sensor message after good data.
 
-Hypothesis draws odometry, features and rendezvous messages (own and a peer's) with any
-floats (nan, inf, huge, tiny, negative), any stamps, empty and long observation lists,
-unknown labels and robots, and hands them to an in-process smoother through its own
-subscription callbacks after a run of good data. No exception may reach the callbacks' guard
-(``callback_error`` stays 0: one caught there is a bug found), no local map update may fail,
-the node still answers ``~/flush``, and the map of the good data is unchanged.
+Hypothesis draws odometry (twist, covariance and integrated pose, each known or not), features
+and rendezvous messages (own and a peer's) with any floats (nan, inf, huge, tiny, negative),
+any stamps, empty and long observation lists, unknown labels and robots, and hands them to an
+in-process smoother through its own subscription callbacks after a run of good data. No
+exception may reach the callbacks' guard (``callback_error`` stays 0: one caught there is a bug
+found), no local map update may fail, the node still answers ``~/flush``, and the map of the
+good data is unchanged.
 
 Runs ``CSAM_FUZZ_EXAMPLES`` examples (default 15, a few seconds); a longer run, e.g.
 ``CSAM_FUZZ_EXAMPLES=500 .venv/bin/python -m pytest -q -p no:cacheprovider
@@ -68,7 +69,18 @@ def odometry(draw) -> tuple[str, Odometry]:
     t.linear.x, t.linear.y, t.angular.z = draw(values), draw(values), draw(values)
     covariance = np.zeros(36)
     covariance[[0, 7, 35]] = [draw(values), draw(values), draw(values)]
+    if draw(st.booleans()):  # as drivers send it: unknown (-1 first) or all zero
+        covariance[0] = draw(st.sampled_from([-1.0, 0.0]))
     msg.twist.covariance = covariance
+    # the integrated pose, marked unknown or not, its orientation a rotation or any numbers
+    pose = msg.pose.pose
+    pose.position.x, pose.position.y = draw(values), draw(values)
+    yaw = draw(st.floats(-4.0, 4.0))
+    orientation = (
+        (np.sin(yaw / 2), np.cos(yaw / 2)) if draw(st.booleans()) else (draw(floats), draw(floats))
+    )
+    pose.orientation.z, pose.orientation.w = (float(v) for v in orientation)
+    msg.pose.covariance[0] = draw(st.sampled_from([0.0, -1.0]))
     return "/robot1/odom", msg
 
 

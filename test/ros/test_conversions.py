@@ -208,3 +208,115 @@ def test_both_decoders_give_the_same_log(log, tmp_path) -> None:
         rclpy_log.truth.feature_positions, rosbags_log.truth.feature_positions
     )
     assert rclpy_log.truth.label_to_feature == rosbags_log.truth.label_to_feature
+
+
+# -- odometry as robot drivers publish it ----------------------------------------------------
+
+
+def _driver_odometry(log, covariance: bool) -> list:
+    """robot1's odometry as a driver publishes it: the integrated pose, the twist zero, and
+    the twist covariance zero (the stock diff-drive controller) or the log's."""
+    from csam_ros.ros.topics import ODOM
+
+    messages = [m for m in log_to_messages(log, with_poses=True) if m.topic == ODOM.of("robot1")]
+    for m in messages:
+        t = m.message.twist
+        t.twist.linear.x = t.twist.linear.y = t.twist.angular.z = 0.0
+        if not covariance:
+            t.covariance = np.zeros(36)
+    return messages
+
+
+def test_odometry_messages_read_back_with_their_pose_or_none(log) -> None:
+    from csam_ros.core.model.motion import odometry_poses
+    from csam_ros.ros.conversions import odometry_message, odometry_reading_from_message
+    from csam_ros.ros.topics import ODOM
+
+    odo = log.robots["robot1"].odometry
+    poses = odometry_poses(odo.stamps, odo.inputs)
+    messages = [
+        m.message for m in log_to_messages(log, with_poses=True) if m.topic == ODOM.of("robot1")
+    ]
+    readings = [odometry_reading_from_message(m) for m in messages]
+    np.testing.assert_allclose([r.pose for r in readings], poses, atol=1e-12)
+    assert max(r.quaternion_error for r in readings) < 1e-15
+    bare = odometry_reading_from_message(
+        odometry_message("robot1", 5, odo.inputs[1], odo.sigmas[1])
+    )
+    assert bare.pose is None and bare.twist == tuple(odo.inputs[1])
+    np.testing.assert_allclose(bare.twist_covariance, [*odo.sigmas[1] ** 2, 0, 0, 0], rtol=1e-15)
+    unknown = odometry_message("robot1", 5, odo.inputs[1], odo.sigmas[1])
+    unknown.twist.covariance[0] = -1.0
+    assert odometry_reading_from_message(unknown).twist_covariance is None
+
+
+@pytest.mark.parametrize("covariance", [False, True])
+def test_driver_odometry_builds_the_log_of_its_twist(log, tmp_path, covariance: bool) -> None:
+    """Pose-only odometry (offline replay decodes it with rosbags) gives the twist's inputs and,
+    where it has no covariance, the default sigmas, counted."""
+    from csam_ros.bag import BagWriter
+    from csam_ros.bag.types import msgtype_of
+    from csam_ros.core.exchange.validation import InputBounds
+    from csam_ros.core.model.motion import default_input_sigmas
+    from csam_ros.ros.topics import qos_of
+
+    odo = log.robots["robot1"].odometry
+    with BagWriter(tmp_path / "bag") as bag:
+        for m in _driver_odometry(log, covariance):
+            if m.topic not in bag.topics:
+                bag.add_topic(m.topic, msgtype_of(m.message), qos_of(m.topic))
+            bag.write(m.topic, m.stamp_ns, m.message)
+    for decoder in ("rclpy", "rosbags"):
+        builder = LogBuilder()
+        for m in read_bag_messages(tmp_path / "bag", decoder=decoder):
+            builder.add(m.topic, m.message)
+        got = builder.build().robots["robot1"].odometry
+        np.testing.assert_array_equal(got.stamps, odo.stamps)
+        np.testing.assert_allclose(got.inputs[1:], odo.inputs[1:], atol=1e-9)
+        if covariance:
+            np.testing.assert_allclose(got.sigmas, odo.sigmas, rtol=1e-15)
+            assert builder.filter.defaulted.as_dict() == {}
+        else:
+            b = InputBounds()
+            defaults = default_input_sigmas(
+                odo.inputs[1:],
+                np.diff(odo.stamps),
+                b.odometry_sigma_per_m,
+                b.odometry_sigma_per_rad,
+                b.odometry_sigma_floor,
+            )
+            np.testing.assert_allclose(got.sigmas[1:], defaults, rtol=1e-6)
+            assert builder.filter.defaulted.as_dict() == {"robot1": len(odo.stamps)}
+        assert builder.filter.drops["robot1"].total == 0
+
+
+def test_odometry_transforms_are_the_message_pose_or_the_dead_reckoning(log) -> None:
+    from csam_ros.core.model.motion import odometry_poses
+    from csam_ros.ros.conversions import OdometryTransforms, time_to_seconds
+    from csam_ros.ros.topics import ODOM
+
+    odo = log.robots["robot1"].odometry
+    expected = odometry_poses(odo.stamps, odo.inputs)
+    for with_poses in (True, False):
+        transforms = OdometryTransforms()
+        got = [
+            transforms.transform("robot1", m.message)
+            for m in log_to_messages(log, with_poses=with_poses)
+            if m.topic == ODOM.of("robot1")
+        ]
+        assert [t.header.frame_id for t in got] == ["robot1/odom"] * len(expected)
+        assert {t.child_frame_id for t in got} == {"robot1/base_link"}
+        assert [time_to_seconds(t.header.stamp) for t in got] == list(odo.stamps)
+        planar = [
+            [
+                t.transform.translation.x,
+                t.transform.translation.y,
+                2 * np.arctan2(t.transform.rotation.z, t.transform.rotation.w),
+            ]
+            for t in got
+        ]
+        np.testing.assert_allclose(
+            np.unwrap(np.array(planar), axis=0), np.unwrap(expected, axis=0), atol=1e-9
+        )
+    first = [m.message for m in log_to_messages(log) if m.topic == ODOM.of("robot1")][0]
+    assert transforms.transform("robot1", first) is None  # out of order: nothing

@@ -17,8 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from csam_ros.core.model import motion, se2
 from csam_ros.core.model.config_file import Section, setting
-from csam_ros.core.model.log import correlation_minors
+from csam_ros.core.model.log import CORRELATION_PAIRS, correlation_minors
+from csam_ros.core.model.odometry_frame import QUATERNION_TOLERANCE
 from csam_ros.core.smoothing.local_map_config import SMOOTHER
 
 # Reasons, as they appear in /csam/status and summary.json.
@@ -39,6 +41,14 @@ SPEED_OUT_OF_BOUNDS = "speed_out_of_bounds"
 TOO_MANY_OBSERVATIONS = "too_many_observations"
 STAMP_JUMP = "stamp_jump"  # more than max_stamp_jump away from its stream
 STAMP_GAP = "stamp_gap"  # odometry resumed after a gap (the sample that started it)
+# Odometry read from its pose (OdometryReading): a pose difference implying a speed beyond the
+# bounds (the next difference starts from the new pose), an orientation that is no rotation
+# (tf2's tolerance), a pose marked unknown where odometry_source is "pose".
+ODOMETRY_JUMP = "odometry_jump"
+QUATERNION_NOT_NORMALISED = "quaternion_not_normalised"
+POSE_UNKNOWN = "pose_unknown"
+# Not a drop: odometry samples that came without sigmas and were given the default ones.
+ODOMETRY_DEFAULT_SIGMAS = "odometry_default_sigmas"
 # The merger's boundary: local maps and rendezvous poses from the smoothers.
 MALFORMED_LOCAL_MAP = "malformed_local_map"
 MALFORMED_RENDEZVOUS_POSES = "malformed_rendezvous_poses"
@@ -68,6 +78,9 @@ class LocalMapError(RefusedMessageError):
         super().__init__(detail, reason)
 
 
+# where odometry's motion is read (InputBounds.odometry_source)
+ODOMETRY_SOURCES = ("auto", "twist", "pose")
+
 # the rule of most input bounds: positive, and a parameter of the smoother node
 _POSITIVE = {"minimum": 0.0, "exclusive": True, "node": SMOOTHER}
 
@@ -79,7 +92,8 @@ class InputBounds(Section):
 
     A value beyond them is dropped and counted, since the core would either raise on it (a
     covariance that is not positive definite) or be left stuck with it (an odometry factor
-    that no later update can whiten), or, for a stamp, build a million poses.
+    that no later update can whiten), or, for a stamp, build a million poses. The ``odometry_``
+    settings say how odometry as robot drivers publish it is read (:class:`OdometryReading`).
     """
 
     section = "input"
@@ -122,6 +136,30 @@ class InputBounds(Section):
         "most observations in one features or rendezvous message",
         minimum=1,
         node=SMOOTHER,
+    )
+    odometry_source: str = setting(
+        "auto",
+        "where odometry's motion is read: 'twist' (v, v_lat, omega), 'pose' (differences of "
+        "consecutive integrated poses), 'auto' (the twist where it is nonzero, else the pose)",
+        choices=ODOMETRY_SOURCES,
+        node=SMOOTHER,
+    )
+    odometry_sigma_per_m: float = setting(
+        0.05,
+        "m: sigma of odometry's position after 1 m travelled, where its covariance is zero or "
+        "unknown (growing with the square root of the distance)",
+        **_POSITIVE,
+    )
+    odometry_sigma_per_rad: float = setting(
+        0.05,
+        "rad: sigma of odometry's heading after 1 rad turned, where its covariance is zero or "
+        "unknown (growing with the square root of the turn)",
+        **_POSITIVE,
+    )
+    odometry_sigma_floor: float = setting(
+        0.001,
+        "m and rad: least sigma of those defaults' position and heading after 1 s (at rest)",
+        **_POSITIVE,
     )
 
     def __post_init__(self) -> None:
@@ -297,15 +335,99 @@ def correlation_fault(correlations: ArrayLike) -> str | None:
 
 
 OdometrySample = tuple[float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+Pose = tuple[float, float, float]  # x, y, yaw in the odometry frame
+
+
+@dataclass(frozen=True)
+class OdometryReading:
+    """One odometry message (nav_msgs/Odometry) as the core reads it, without ROS types.
+
+    ``twist``: v, v_lat, omega in the body frame; ``twist_covariance``: the variances of v,
+    v_lat and omega, then the covariances of their pairs (log.CORRELATION_PAIRS), or None
+    when the message marks it unknown (-1 first); ``pose``: x, y and yaw of the integrated
+    pose in the odometry frame, or None when the message marks it unknown (-1 first in the
+    pose covariance); ``quaternion_error``: ``| |q|^2 - 1 |`` of the pose's orientation.
+    """
+
+    stamp: float
+    twist: tuple[float, float, float]
+    twist_covariance: tuple[float, ...] | None
+    pose: Pose | None = None
+    quaternion_error: float = 0.0
+
+
+_PAIR_I, _PAIR_J = np.array(CORRELATION_PAIRS).T
+
+
+def odometry_noise(
+    covariance: tuple[float, ...] | None,
+    inputs: ArrayLike,
+    dt: float,
+    bounds: InputBounds,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, bool]:
+    """The sigmas ``(3,)`` of one odometry sample's input, the correlations of their pairs
+    ``(3,)`` (None: independent), and whether defaults were used.
+
+    ``covariance`` is :attr:`OdometryReading.twist_covariance`. Where it is unknown or all
+    zero, and for each variance that is zero, the sigmas are the defaults of ``bounds``
+    (:func:`~csam_ros.core.model.motion.default_input_sigmas` of the input held over ``dt``,
+    1 s when ``dt`` is unknown). A negative variance gives a NaN sigma."""
+    if covariance is None or not any(covariance):
+        return _default_sigmas(inputs, dt, bounds), None, True
+    v0, v1, v2, *upper = covariance
+    variances = [v0, v1, v2]
+    sigmas = np.array([math.sqrt(v) if v >= 0 else math.nan for v in variances])
+    defaulted = v0 == 0 or v1 == 0 or v2 == 0
+    if defaulted:
+        default = _default_sigmas(inputs, dt, bounds)
+        for k, v in enumerate(variances):
+            if v == 0:
+                sigmas[k] = default[k]
+                variances[k] = float(default[k]) ** 2
+    if not any(upper):
+        return sigmas, None, defaulted
+    var = np.array(variances)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sigmas, np.array(upper) / np.sqrt(var[_PAIR_I] * var[_PAIR_J]), defaulted
+
+
+def _default_sigmas(inputs: ArrayLike, dt: float, bounds: InputBounds) -> NDArray[np.float64]:
+    T = dt if math.isfinite(dt) and dt > 0 else 1.0
+    return motion.default_input_sigmas(
+        np.asarray(inputs, dtype=float).reshape(1, 3),
+        [T],
+        bounds.odometry_sigma_per_m,
+        bounds.odometry_sigma_per_rad,
+        bounds.odometry_sigma_floor,
+    )[0]
+
+
+def pose_fault(reading: OdometryReading) -> str | None:
+    """Why an odometry message's pose is unusable, or None (also when it has none)."""
+    if reading.pose is None:
+        return None
+    if not all(math.isfinite(v) for v in reading.pose):
+        return NOT_FINITE
+    if not reading.quaternion_error <= QUATERNION_TOLERANCE:
+        return QUATERNION_NOT_NORMALISED
+    return None
 
 
 @dataclass
 class _Stream:
     """One (robot, stream)'s stamps: the last accepted one, and an odometry sample held back
-    until the next one shows whether it starts the stream or ends a gap."""
+    until the next one shows whether it starts the stream or ends a gap; for odometry, the
+    poses (odometry frame) its messages carried at those two samples, which the next pose
+    difference starts from."""
 
     last: float = -np.inf
     held: OdometrySample | None = None
+    pose: Pose | None = None
+    held_pose: Pose | None = None
+
+
+# the stream-state entries of an odometry stream's poses (MeasurementFilter.stream_state)
+_POSE, _HELD_POSE = "/pose", "/held_pose"
 
 
 class MeasurementFilter:
@@ -315,7 +437,9 @@ class MeasurementFilter:
     rendezvous must still name another robot). Every field is checked against ``bounds``.
     Within a message, single bad observations are dropped and the rest kept; a message that
     arrives with no observation is dropped as ``empty``, one with more than
-    ``max_observations`` as ``too_many_observations``.
+    ``max_observations`` as ``too_many_observations``. Odometry comes as values
+    (:meth:`odometry`) or as a message as drivers fill it (:meth:`odometry_reading`: the
+    twist or pose differences, default sigmas, pose jumps).
 
     Stamps (``J`` = ``bounds.max_stamp_jump``). A robot's odometry is its clock:
 
@@ -351,6 +475,8 @@ class MeasurementFilter:
         self.bounds = bounds or InputBounds()
         self.reference = reference
         self.drops: dict[str, DropCounter] = {}
+        # odometry samples of each robot given default sigmas (ODOMETRY_DEFAULT_SIGMAS; kept)
+        self.defaulted = DropCounter()
         self._streams: dict[tuple[str, str], _Stream] = {}
 
     def counter(self, robot: str) -> DropCounter:
@@ -369,17 +495,41 @@ class MeasurementFilter:
 
     def stream_state(self) -> dict[tuple[str, str], tuple[float, OdometrySample | None]]:
         """Each (robot, stream)'s last accepted stamp and held-back odometry sample (copies):
-        what :meth:`restore_streams` puts back."""
-        return {
-            key: (s.last, None if s.held is None else (s.held[0], *(a.copy() for a in s.held[1:])))
-            for key, s in self._streams.items()
-        }
+        what :meth:`restore_streams` puts back. The poses an odometry stream's messages
+        carried go as entries of their own (``odometry/pose``, ``odometry/held_pose``), each
+        a held sample whose input is the pose."""
+        state: dict[tuple[str, str], tuple[float, OdometrySample | None]] = {}
+        for (robot, stream), s in self._streams.items():
+            held = s.held
+            state[(robot, stream)] = (
+                s.last,
+                None if held is None else (held[0], *(a.copy() for a in held[1:])),
+            )
+            stamp = held[0] if held is not None else s.last
+            for suffix, pose, at in ((_POSE, s.pose, s.last), (_HELD_POSE, s.held_pose, stamp)):
+                if pose is not None:
+                    zero = np.zeros(3)
+                    state[(robot, stream + suffix)] = (at, (at, np.array(pose), zero, zero.copy()))
+        return state
 
     def restore_streams(
         self, streams: Mapping[tuple[str, str], tuple[float, OdometrySample | None]]
     ) -> None:
         """Continue from :meth:`stream_state` of an earlier filter."""
-        self._streams = {key: _Stream(last, held) for key, (last, held) in streams.items()}
+        poses = {}
+        self._streams = {}
+        for (robot, stream), (last, held) in streams.items():
+            if stream.endswith((_POSE, _HELD_POSE)) and held is not None:
+                poses[(robot, stream)] = tuple(float(v) for v in held[1])
+            else:
+                self._streams[(robot, stream)] = _Stream(last, held)
+        for (robot, stream), pose in poses.items():
+            base, _, suffix = stream.rpartition("/")
+            target = self._stream(robot, base)
+            if "/" + suffix == _POSE:
+                target.pose = pose  # type: ignore[assignment]
+            else:
+                target.held_pose = pose  # type: ignore[assignment]
 
     def _known(self, robot: str) -> bool:
         return self.robots is None or robot in self.robots
@@ -415,36 +565,136 @@ class MeasurementFilter:
             np.asarray(sigmas, dtype=float),
             rho.reshape(3),
         )
+        return self._admit(robot, sample)[0]
+
+    def _admit(self, robot: str, sample: OdometrySample) -> tuple[list[OdometrySample], bool]:
+        """The stamp rules (class docstring) for a valid odometry sample: the samples to add,
+        and whether ``sample`` is now held back."""
+        drops = self.counter(robot)
+        stamp = sample[0]
         s, jump = self._stream(robot, "odometry"), self.bounds.max_stamp_jump
         held = s.held
         follows_held = held is not None and 0 < stamp - held[0] <= jump
         if not np.isfinite(s.last):  # not started: the first of two close samples
             if follows_held:
                 s.last, s.held = sample[0], None
-                return [held, sample]  # type: ignore[list-item]
+                return [held, sample], False  # type: ignore[list-item]
             if held is not None and stamp == held[0]:
                 drops.add(DUPLICATE)
-                return []
+                return [], False
             if held is not None:
                 drops.add(STAMP_JUMP)  # the held sample: nothing close followed it
             s.held = sample
-            return []
+            return [], True
         if stamp <= s.last:
             drops.add(DUPLICATE if stamp == s.last else STAMP_BACKWARDS)
-            return []
+            return [], False
         if stamp - s.last <= jump:
             s.last, s.held = sample[0], None
-            return [sample]
+            return [sample], False
         if follows_held:
             assert held is not None
             drops.reclassify(STAMP_JUMP, STAMP_GAP)
             gap = held[0] - s.last
             unknown = (held[0], np.zeros(3), np.full(3, GAP_SIGMA / gap), np.zeros(3))
             s.last, s.held = sample[0], None
-            return [unknown, sample]
+            return [unknown, sample], False
         drops.add(STAMP_JUMP)
         s.held = sample
-        return []
+        return [], True
+
+    def _before(self, s: _Stream, stamp: float) -> tuple[bool, float, Pose | None] | None:
+        """The sample an odometry sample at ``stamp`` would follow under the stamp rules (as
+        :meth:`_admit` will decide): (whether it is the held one, its stamp, its message's
+        pose), or None when it would start the stream, be held back or be dropped."""
+        jump, held = self.bounds.max_stamp_jump, s.held
+        follows_held = held is not None and 0 < stamp - held[0] <= jump
+        if np.isfinite(s.last) and s.last < stamp and stamp - s.last <= jump:
+            return False, s.last, s.pose
+        if follows_held and (not np.isfinite(s.last) or stamp > s.last):
+            assert held is not None
+            return True, held[0], s.held_pose
+        return None
+
+    def odometry_reading(
+        self, robot: str, reading: OdometryReading
+    ) -> list[tuple[OdometrySample, Pose | None]]:
+        """The samples to add for one odometry message as drivers publish it (as
+        :meth:`odometry`), each with the pose (odometry frame) its message carried, or None.
+
+        The motion comes from the twist, or from the difference between this message's pose
+        and the one of the sample it follows, as the constant input over the interval
+        (``bounds.odometry_source``; ``auto``: the pose where the twist is all zero and both
+        poses are known). A pose difference implying a speed beyond ``max_speed`` or
+        ``max_turn_rate`` is a jump of the pose: dropped (``odometry_jump``), and the next
+        difference starts from this pose, so the jump never enters the map. Where the
+        covariance is zero or unknown the sigmas are ``bounds``' defaults
+        (:func:`odometry_noise`), counted per robot in :attr:`defaulted`.
+        """
+        drops = self.counter(robot)
+        if not self._known(robot):
+            drops.add(UNKNOWN_ROBOT)
+            return []
+        stamp, pose, source = reading.stamp, reading.pose, self.bounds.odometry_source
+        fault = (
+            NOT_FINITE
+            if not math.isfinite(stamp)
+            else POSE_UNKNOWN
+            if source == "pose" and pose is None
+            else pose_fault(reading)
+        )
+        if fault is not None:
+            drops.add(fault)
+            return []
+        s = self._stream(robot, "odometry")
+        before = self._before(s, stamp)
+        dt = stamp - before[1] if before is not None else math.nan
+        known = before is not None and before[2] is not None
+        from_pose = source == "pose" or (
+            source == "auto" and pose is not None and known and not any(reading.twist)
+        )
+        inputs: NDArray[np.float64]
+        if not from_pose:
+            inputs = np.array(reading.twist, dtype=float)
+        elif before is None:  # it starts the stream (its input is not used), or is dropped
+            inputs = np.zeros(3)
+        else:
+            assert pose is not None
+            inputs = np.full(3, np.inf)
+            if before[2] is not None:  # else nothing to difference against: a jump
+                increment = se2.between(np.array(before[2]), np.array(pose))
+                inputs = motion.inputs_from_increments(increment[None], [dt])[0]
+            b = self.bounds
+            if not (
+                max(abs(inputs[0]), abs(inputs[1])) <= b.max_speed
+                and abs(inputs[2]) <= b.max_turn_rate
+            ):
+                drops.add(ODOMETRY_JUMP)
+                if before[0]:
+                    s.held_pose = pose
+                else:
+                    s.pose = pose
+                return []
+        sigmas, rho, defaulted = odometry_noise(reading.twist_covariance, inputs, dt, self.bounds)
+        fault = odometry_fault(inputs, sigmas, self.bounds) or (
+            None if rho is None else correlation_fault(rho)
+        )
+        if fault is not None:
+            drops.add(fault)
+            return []
+        held_pose = s.held_pose
+        sample = (float(stamp), inputs, sigmas, np.zeros(3) if rho is None else rho)
+        samples, now_held = self._admit(robot, sample)
+        if samples:
+            s.pose, s.held_pose = pose, None
+        elif now_held:
+            s.held_pose = pose
+        if defaulted and (samples or now_held):
+            self.defaulted.add(robot)
+        if not samples:
+            return []
+        poses = [held_pose, pose] if len(samples) == 2 else [pose]
+        return list(zip(samples, poses, strict=True))
 
     def features(
         self,

@@ -361,3 +361,48 @@ def calibrated_odometry_between(
     per_piece = J @ G @ du_dc[sample]
     dz_dc = np.add.reduceat(per_piece.reshape(len(U), 9), starts, axis=0).reshape(-1, 3, 3)
     return CalibratedOdometryFactors(keys, plain.relative_poses, plain.covariances, c0, dz_dc)
+
+
+def inputs_from_increments(increments: ArrayLike, dt: ArrayLike) -> Array:
+    """The constant inputs ``u`` ``(K, 3)`` whose increments ``U(u, T)`` over durations ``dt``
+    ``(K,)`` are ``increments`` ``(K, 3)``: the inverse of :func:`increment` for turns
+    ``|dtheta| < 2 pi`` (a heading difference wrapped to (-pi, pi] always is).
+
+    ``omega = dtheta / T``, and ``(v, v_lat)`` solve the chord's 2x2 system
+    ``T [[a, -b], [b, a]] (v, v_lat) = (dx, dy)``, whose determinant
+    ``T^2 (a^2 + b^2) = T^2 sinc(theta/2)^2`` vanishes only at full turns."""
+    inc = np.asarray(increments, dtype=float)
+    T = np.asarray(dt, dtype=float)
+    theta = inc[..., 2]
+    a, b, _, _ = _coefficients(theta)
+    scale = T * (a * a + b * b)
+    dx, dy = inc[..., 0], inc[..., 1]
+    return np.stack([(a * dx + b * dy) / scale, (a * dy - b * dx) / scale, theta / T], axis=-1)
+
+
+def inputs_from_poses(stamps: ArrayLike, poses: ArrayLike) -> Array:
+    """The constant inputs ``(N-1, 3)`` between consecutive poses ``(N, 3)`` at ``stamps``
+    ``(N,)`` (integrated odometry, as drivers publish it): sample ``i`` holds the input over
+    ``(stamps[i-1], stamps[i]]``, as :func:`odometry_poses` takes it, so the two are inverse."""
+    p = np.asarray(poses, dtype=float)
+    return inputs_from_increments(se2.between(p[:-1], p[1:]), np.diff(np.asarray(stamps, float)))
+
+
+def default_input_sigmas(
+    inputs: ArrayLike, dt: ArrayLike, per_m: float, per_rad: float, floor: float
+) -> Array:
+    """Sigmas ``(K, 3)`` of odometry inputs ``(K, 3)`` over durations ``dt`` ``(K,)`` that
+    came without any: the variance of the position grows by ``per_m**2`` per metre travelled
+    and that of the heading by ``per_rad**2`` per radian turned, each by at least
+    ``floor**2`` per second (at rest).
+
+    A random walk in distance and turn, so that the covariance of a factor composed from
+    many samples does not depend on how often the odometry was sampled; as input sigmas
+    over the sample's ``T`` (the step's variance is ``sigma_u^2 T^2``)."""
+    u = np.asarray(inputs, dtype=float).reshape(-1, 3)
+    T = np.asarray(dt, dtype=float).reshape(-1)
+    distance = np.hypot(u[:, 0], u[:, 1]) * T
+    turn = np.abs(u[:, 2]) * T
+    translation = np.sqrt(np.maximum(per_m * per_m * distance, floor * floor * T)) / T
+    heading = np.sqrt(np.maximum(per_rad * per_rad * turn, floor * floor * T)) / T
+    return np.stack([translation, translation, heading], axis=1)

@@ -275,3 +275,52 @@ def test_calibration_at_one_is_the_logged_odometry():
     scaled, du_dc = motion.calibrated_inputs(u[[0, 60]], [2.0, 3.0, 5.0], 0.02)
     np.testing.assert_allclose(scaled[:, 2], u[[0, 60], 2] * [3.0, 5.0])
     np.testing.assert_allclose(np.einsum("kij,j->ki", du_dc, [2.0, 3.0, 5.0]), scaled)
+
+
+# -- odometry as drivers publish it: integrated poses back to inputs -------------------------
+
+
+@given(inputs, durations)
+def test_inputs_from_increments_invert_the_increment(u, T):
+    if abs(u[2] * T) >= 3.1:  # a heading difference shows the turn only modulo 2 pi
+        u[2] = 3.0 / T
+    back = motion.inputs_from_increments(motion.increment(u[None], [T]), [T])[0]
+    np.testing.assert_allclose(back, u, atol=1e-9)
+
+
+def test_twist_integrated_to_poses_comes_back_as_the_twist():
+    """twist -> integrate -> poses (as a driver publishes them) -> twist, to 1e-9, across the
+    series branch, straight driving and turns up to almost half a turn per sample."""
+    rng = np.random.default_rng(11)
+    n = 3000
+    stamps = 100.0 + np.cumsum(rng.uniform(0.005, 0.5, n))
+    dt = np.diff(stamps, prepend=stamps[0] - 0.1)
+    twist = np.c_[rng.uniform(-2, 2, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-1, 1, n) * 3 / dt]
+    twist[10:20, 2] = 0.0
+    twist[20:30, 2] = 1e-9
+    twist[30:40, :2] = 0.0
+    poses = motion.odometry_poses(stamps, twist, start=(3.0, -2.0, 2.5))
+    np.testing.assert_allclose(motion.inputs_from_poses(stamps, poses), twist[1:], atol=1e-9)
+
+
+def test_default_sigmas_do_not_depend_on_the_sampling_rate():
+    """The same motion sampled at 4 Hz and at 100 Hz composes to the same factor covariance
+    (the heading's exactly, the position's to first order), growing with the square root
+    of the distance and the turn."""
+    per_m, per_rad, floor = 0.05, 0.02, 1e-3
+    u = np.array([0.8, 0.0, 0.3])
+    covariances = []
+    for rate in (4.0, 100.0):
+        t = np.arange(0.0, 2.0 + 0.5 / rate, 1.0 / rate)
+        inputs = np.tile(u, (len(t), 1))
+        sigmas = motion.default_input_sigmas(
+            inputs, np.full(len(t), 1.0 / rate), per_m, per_rad, floor
+        )
+        covariances.append(motion.odometry_between(t, inputs, sigmas, [0.0, 2.0]).covariances[0])
+    coarse, fine = covariances
+    np.testing.assert_allclose(coarse[2, 2], fine[2, 2], rtol=1e-12)
+    np.testing.assert_allclose(coarse[2, 2], per_rad**2 * 0.3 * 2.0, rtol=1e-12)
+    np.testing.assert_allclose(np.trace(coarse[:2, :2]), np.trace(fine[:2, :2]), rtol=0.05)
+    # at rest the floor: floor^2 per second
+    at_rest = motion.default_input_sigmas(np.zeros((1, 3)), [0.25], per_m, per_rad, floor)[0]
+    np.testing.assert_allclose((at_rest * 0.25) ** 2, floor**2 * 0.25, rtol=1e-12)
