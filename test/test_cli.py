@@ -199,6 +199,7 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
     simulator's odom -> base_link at that pose's stamp) is the joined map's. An --isolated
     demo runs on another domain."""
     import rclpy
+    from rclpy.qos import QoSProfile
 
     from csam_ros.core.model import se2
     from csam_ros.ros.conversions import time_to_ns
@@ -216,7 +217,9 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
                 odometry[time_to_ns(t.header.stamp)] = _planar(t.transform)
 
     node.create_subscription(JOINED_MAP.msgtype, JOINED_MAP.of(), received.append, JOINED_MAP.qos)
-    node.create_subscription(TF.msgtype, TF.of(), on_tf, TF.qos)
+    # a deep history: at --rate 0 the run's /tf comes in bursts, and the last odometry
+    # transform is needed
+    node.create_subscription(TF.msgtype, TF.of(), on_tf, QoSProfile(depth=100_000))
     executor = rclpy.executors.SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     try:
@@ -248,8 +251,10 @@ def test_a_demo_is_seen_by_other_ros_processes_unless_isolated(
                     odometry[time_to_ns(trajectory.stamps[-1])],
                 )
                 assert ("robot2/map", "robot2/base_link") not in frames  # one parent: odom
+                # the merger refines each map to its smoother's optimum (to the solver's
+                # tolerance), the smoother's map -> odom is of its own estimate
                 np.testing.assert_allclose(
-                    se2.between([joined.x, joined.y, joined.theta], composed), 0.0, atol=1e-9
+                    se2.between([joined.x, joined.y, joined.theta], composed), 0.0, atol=1e-6
                 )
     finally:
         node.destroy_node()

@@ -22,9 +22,32 @@ from rclpy.node import Node
 from csam_ros.core.exchange.validation import DropCounter, OdometrySample, Pose
 from csam_ros.core.model.motion import odometry_poses
 from csam_ros.core.model.odometry_frame import OdometryFrame, map_to_odom
-from csam_ros.nodes.common import declare, guarded, publisher, steady_clock
+from csam_ros.nodes.common import Declared, declare_each, guarded, publisher, steady_clock
 from csam_ros.ros.conversions import tf_message
 from csam_ros.ros.topics import TF
+
+# the smoother's frame parameters (REP-105), declared by :class:`MapToOdom`
+FRAME_PARAMETERS = (
+    Declared("map_frame", "", "the local map's frame", made_at_start="<robot>/map"),
+    Declared(
+        "odom_frame",
+        "",
+        "the odometry's frame (child of map_frame)",
+        made_at_start="<robot>/odom",
+    ),
+    Declared(
+        "base_frame",
+        "",
+        "the body frame (child of odom_frame)",
+        made_at_start="<robot>/base_link",
+    ),
+    Declared(
+        "tf_rate",
+        20.0,
+        "Hz: how often map_frame -> odom_frame goes out on /tf (0: with each local map)",
+        0.0,
+    ),
+)
 
 
 class MapToOdom:
@@ -32,20 +55,17 @@ class MapToOdom:
 
     def __init__(self, node: Node, robot: str, drops: DropCounter) -> None:
         self.node = node
-        self.map_frame = declare(node, "map_frame", f"{robot}/map", "the local map's frame")
-        self.odom_frame = declare(
-            node, "odom_frame", f"{robot}/odom", "the odometry's frame (child of map_frame)"
-        )
-        self.base_frame = declare(
-            node, "base_frame", f"{robot}/base_link", "the body frame (child of odom_frame)"
-        )
-        rate = declare(
+        own = declare_each(
             node,
-            "tf_rate",
-            20.0,
-            "Hz: how often map_frame -> odom_frame goes out on /tf (0: with each local map)",
-            0.0,
+            FRAME_PARAMETERS,
+            {
+                "map_frame": lambda _: f"{robot}/map",
+                "odom_frame": lambda _: f"{robot}/odom",
+                "base_frame": lambda _: f"{robot}/base_link",
+            },
         )
+        self.map_frame, self.odom_frame = own["map_frame"], own["odom_frame"]
+        self.base_frame, rate = own["base_frame"], own["tf_rate"]
         self.odometry = OdometryFrame()
         self.correction: np.ndarray | None = None
         self._changed = False

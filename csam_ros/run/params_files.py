@@ -56,8 +56,9 @@ def _smoother() -> tuple[str, list[FileParameter]]:
     from csam_ros.core.joining.config import CsamConfig
     from csam_ros.core.smoothing.local_map_config import SMOOTHER, LocalMapConfig
     from csam_ros.nodes.smoother import SMOOTHER_PARAMETERS
+    from csam_ros.nodes.smoother_frames import FRAME_PARAMETERS
 
-    own = _own(SMOOTHER_PARAMETERS)
+    own = _own(SMOOTHER_PARAMETERS + FRAME_PARAMETERS)
     return SMOOTHER, own + _settings(SMOOTHER, LocalMapConfig(), CsamConfig(), InputBounds())
 
 

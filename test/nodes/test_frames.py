@@ -147,7 +147,7 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
             s.solve_and_publish(converge=True)
 
         def merged_final() -> bool:
-            result = merger.last_result
+            result = merger.policy.last_result
             return result is not None and all(
                 r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
                 for r, s in smoothers.items()
@@ -156,7 +156,7 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
         assert spin(executor, merged_final, 60)
         spin(executor, lambda: False, 0.5)  # the last transforms, and the timers' broadcasts
         defaulted = {r: s.filter.defaulted.as_dict() for r, s in smoothers.items()}
-        return merger.last_result, tf, defaulted
+        return merger.policy.last_result, tf, defaulted
     finally:
         for n in nodes:
             n.destroy_node()
