@@ -36,7 +36,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 from vision_msgs.msg import Detection3D, Detection3DArray
@@ -60,6 +59,7 @@ from csam_ros.nodes.common import (
     watch_parameters,
 )
 from csam_ros.ros.conversions import features_message, rendezvous_message, time_to_ns
+from csam_ros.ros.diagnostics import node_status
 from csam_ros.ros.topics import DETECTIONS, FEATURES, RENDEZVOUS, STATUS, TF
 
 # drop reasons of the node: a detections array in another frame than the camera's; a frame
@@ -232,20 +232,20 @@ class Detections(Node):
             "dropped": self.drops.total,
             **{f"dropped/{k}": v for k, v in self.drops.as_dict().items()},
         }
-        status = DiagnosticStatus(
-            level=DiagnosticStatus.OK if self.drops.total == 0 else DiagnosticStatus.WARN,
-            name=f"detections/{self.robot}",
-            hardware_id=self.robot,
-            message=f"{self.frames} frames, {self.features} feature and {self.rendezvous} "
-            f"rendezvous observations, {self.drops.total} detections dropped",
-            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+        message = (
+            f"{self.frames} frames, {self.features} feature and {self.rendezvous} "
+            f"rendezvous observations, {self.drops.total} detections dropped"
         )
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
+        array = node_status(
+            f"detections/{self.robot}",
+            self.robot,
+            self.drops.total == 0,
+            message,
+            values,
+            self.get_clock().now().to_msg(),
+        )
         self.status_pub.publish(array)
-        self.get_logger().info(
-            status.message + (f" {self.drops.as_dict()}" if self.drops.total else "")
-        )
+        self.get_logger().info(message + (f" {self.drops.as_dict()}" if self.drops.total else ""))
 
 
 def _best_tag(detection: Detection3D) -> Tag:

@@ -58,7 +58,6 @@ from csam_msgs.msg import (
     RendezvousObservations,
     RendezvousPoses,
 )
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.duration import Duration
@@ -113,6 +112,7 @@ from csam_ros.ros.conversions import (
     time_to_ns,
     yaw_quaternion,
 )
+from csam_ros.ros.diagnostics import node_status
 from csam_ros.ros.map_messages import (
     local_map_update_message,
     rendezvous_poses_message,
@@ -628,19 +628,14 @@ class Smoother(Node):
             ODOMETRY_DEFAULT_SIGMAS: self.filter.defaulted.counts[self.robot],
             **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
         }
-        level = (
-            DiagnosticStatus.OK if drops.total == 0 and self.errors == 0 else DiagnosticStatus.WARN
+        array = node_status(
+            f"smoother/{self.robot}",
+            self.robot,
+            drops.total == 0 and self.errors == 0,
+            f"{values['poses']} poses, {values['features']} features, {drops.total} inputs dropped",
+            values,
+            self.get_clock().now().to_msg(),
         )
-        status = DiagnosticStatus(
-            level=level,
-            name=f"smoother/{self.robot}",
-            hardware_id=self.robot,
-            message=f"{values['poses']} poses, {values['features']} features, "
-            f"{drops.total} inputs dropped",
-            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
-        )
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
         self.status_pub.publish(array)
 
 

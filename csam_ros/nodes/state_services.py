@@ -117,29 +117,40 @@ class Pause:
         return answer(response, True, state if was != self.paused else f"already {state}")
 
 
-def _create(node: Node, drops: DropCounter, handlers: dict[str, tuple[type, Callable]]) -> None:
-    for name, (srv_type, handler) in handlers.items():
-        node.create_service(srv_type, f"~/{name}", answering(node, drops, handler))
+class StateServices:
+    """``~/save_state``, ``~/load_state``, ``~/reset`` and ``~/pause`` of ``node``, answered by
+    the subclass's ``on_save``, ``on_load`` and ``on_reset``; ``pause_changed(paused)`` is told
+    of a new pause setting."""
+
+    def __init__(self, node: Any) -> None:
+        self.node = node
+        self.pause = Pause(node.drops, self.pause_changed)
+        self.taking = self.pause.taking
+        handlers: dict[str, tuple[type, Callable]] = {
+            SAVE_STATE: (SaveState, self.on_save),
+            LOAD_STATE: (LoadState, self.on_load),
+            RESET: (Trigger, self.on_reset),
+            PAUSE: (SetBool, self.pause.on_pause),
+        }
+        for name, (srv_type, handler) in handlers.items():
+            node.create_service(srv_type, f"~/{name}", answering(node, node.drops, handler))
+
+    def pause_changed(self, paused: bool) -> None:
+        """A new pause setting (the node's own flag is :attr:`pause`)."""
+
+    def on_save(self, request: SaveState.Request, response: SaveState.Response) -> Any:
+        raise NotImplementedError
+
+    def on_load(self, request: LoadState.Request, response: LoadState.Response) -> Any:
+        raise NotImplementedError
+
+    def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:
+        raise NotImplementedError
 
 
-class SmootherServices:
+class SmootherServices(StateServices):
     """The smoother's state services (module docstring); the state itself is the node's
     (:meth:`~csam_ros.nodes.smoother.Smoother.checkpoint`, ``load``, ``forget``)."""
-
-    def __init__(self, node: Any) -> None:  # the Smoother (which imports this module)
-        self.node = node
-        self.pause = Pause(node.drops)
-        self.taking = self.pause.taking
-        _create(
-            node,
-            node.drops,
-            {
-                SAVE_STATE: (SaveState, self.on_save),
-                LOAD_STATE: (LoadState, self.on_load),
-                RESET: (Trigger, self.on_reset),
-                PAUSE: (SetBool, self.pause.on_pause),
-            },
-        )
 
     def on_save(self, request: SaveState.Request, response: SaveState.Response) -> Any:
         node = self.node
@@ -180,27 +191,12 @@ class SmootherServices:
         return answer(response, True, f"reset: empty, in session {node.sender.session}")
 
 
-class MergerServices:
+class MergerServices(StateServices):
     """The merger's state services (module docstring), and its start from ``state_path``.
     A part of the node: it takes the node's locks as the node does (the policy under
     ``_lock``; no solve runs while it holds ``_solve_lock``)."""
 
-    def __init__(self, node: Any) -> None:  # the Merger (which imports this module)
-        self.node = node
-        self.pause = Pause(node.drops, self._paused)
-        self.taking = self.pause.taking
-        _create(
-            node,
-            node.drops,
-            {
-                SAVE_STATE: (SaveState, self.on_save),
-                LOAD_STATE: (LoadState, self.on_load),
-                RESET: (Trigger, self.on_reset),
-                PAUSE: (SetBool, self.pause.on_pause),
-            },
-        )
-
-    def _paused(self, paused: bool) -> None:
+    def pause_changed(self, paused: bool) -> None:
         with self.node._lock:
             self.node.policy.paused = paused
 

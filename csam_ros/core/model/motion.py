@@ -100,32 +100,10 @@ def compose_segments(
     composed relative pose ``(M, 3)`` and covariance ``(M, 3, 3)`` of each segment, from the
     first increment's start frame. Vectorised by cumulative sums over all increments.
     """
-    inc = np.asarray(increments, dtype=float)
     cov = np.asarray(covariances, dtype=float)
     starts = np.asarray(segment_starts, dtype=np.int64)
-    count = len(inc)
-    seg_len = np.diff(np.append(starts, count))
-    heading_after = np.cumsum(inc[:, 2])
-    heading_before = heading_after - inc[:, 2]
-    seg_heading0 = np.repeat(heading_before[starts], seg_len)
-    theta = heading_before - seg_heading0  # heading before each piece, in the segment frame
-    c, s = np.cos(theta), np.sin(theta)
-    wx = c * inc[:, 0] - s * inc[:, 1]
-    wy = s * inc[:, 0] + c * inc[:, 1]
-    px = np.cumsum(wx)
-    py = np.cumsum(wy)
-    base_x = np.repeat(px[starts] - wx[starts], seg_len)
-    base_y = np.repeat(py[starts] - wy[starts], seg_len)
-    px -= base_x
-    py -= base_y
-    ends = np.append(starts[1:], count) - 1
-    total = np.stack([px[ends], py[ends], heading_after[ends] - heading_before[starts]], axis=1)
-    tx = np.repeat(total[:, 0], seg_len) - px
-    ty = np.repeat(total[:, 1], seg_len) - py
-    J = np.zeros((count, 3, 3))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = c, -s, -ty
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = s, c, tx
-    J[:, 2, 2] = 1.0
+    total, J = segment_jacobians(increments, starts)
+    count = len(J)
     contrib = np.matmul(np.matmul(J, cov), J.transpose(0, 2, 1))
     summed = np.add.reduceat(contrib.reshape(count, 9), starts, axis=0).reshape(-1, 3, 3)
     return total, 0.5 * (summed + summed.transpose(0, 2, 1))
