@@ -22,6 +22,18 @@ def generate_launch_description() -> LaunchDescription:
     team = PathJoinSubstitution([FindPackageShare("csam_ros"), "config", "team.params.yaml"])
     namespace = LaunchConfiguration("namespace")
     params_file = LaunchConfiguration("params_file")
+
+    def robot_node(executable: str, **options: object) -> Node:
+        return Node(
+            package="csam_ros",
+            executable=executable,
+            name=executable,
+            namespace=namespace,
+            parameters=[params_file],
+            output="screen",
+            **options,
+        )
+
     return LaunchDescription(
         [
             DeclareLaunchArgument(
@@ -40,22 +52,7 @@ def generate_launch_description() -> LaunchDescription:
                 default_value="true",
                 description="start the detections node (false: the drivers publish features)",
             ),
-            Node(
-                package="csam_ros",
-                executable="smoother",
-                name="smoother",
-                namespace=namespace,
-                parameters=[params_file],
-                output="screen",
-            ),
-            Node(
-                package="csam_ros",
-                executable="detections",
-                name="detections",
-                namespace=namespace,
-                parameters=[params_file],
-                output="screen",
-                condition=IfCondition(LaunchConfiguration("detections")),
-            ),
+            robot_node("smoother"),
+            robot_node("detections", condition=IfCondition(LaunchConfiguration("detections"))),
         ]
     )

@@ -39,3 +39,39 @@ def smoothers_and_merger(
         ],
     )
     return smoothers, merger
+
+
+def final_joined_result(
+    executor: Any, smoothers: dict[str, Any], merger: Any, timeout_s: float = 60.0
+) -> Any:
+    """Every smoother's converged map published, then the merger's result once it holds all of
+    them (each robot with as many poses as its smoother's map); None when that takes longer."""
+    from waiting import wait_until
+
+    for smoother in smoothers.values():
+        smoother.solve_and_publish(converge=True)
+
+    def merged_final() -> bool:
+        result = merger.policy.last_result
+        return result is not None and all(
+            r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
+            for r, s in smoothers.items()
+        )
+
+    spin_once = lambda: executor.spin_once(timeout_sec=0.02)  # noqa: E731
+    return merger.policy.last_result if wait_until(merged_final, timeout_s, spin_once) else None
+
+
+def simulator_node(context: Any, scenario: str, seed: int, *extra: Parameter) -> Any:
+    """The simulator of ``scenario`` at full speed (rate 0), in-process."""
+    from csam_ros.nodes.simulator import Simulator
+
+    return Simulator(
+        context=context,
+        parameter_overrides=[
+            Parameter("scenario", value=scenario),
+            Parameter("seed", value=seed),
+            Parameter("rate", value=0.0),
+            *extra,
+        ],
+    )

@@ -122,6 +122,15 @@ class Declared:
     made_at_start: str = ""  # the default is made at start from this (params files leave it out)
 
 
+# a robot's node's name of its robot (the smoother's, the detections node's)
+ROBOT_PARAMETER = Declared(
+    "robot",
+    "",
+    "this robot's name (default: namespace)",
+    made_at_start="the namespace: robot1 under -r __ns:=/robot1",
+)
+
+
 def declare_each(
     node: Node,
     table: Sequence[Declared],

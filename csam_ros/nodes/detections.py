@@ -48,6 +48,7 @@ from csam_ros.core.model.detections import (
     parse_robot_tags,
 )
 from csam_ros.nodes.common import (
+    ROBOT_PARAMETER,
     Declared,
     declare_each,
     declare_settings,
@@ -71,12 +72,7 @@ STALE_STAMP = "stale_stamp"
 Tag = tuple[str, tuple[float, float, float]]  # a tag's name and its position in the camera frame
 # the node's own parameters (DetectionModel's fields are declared from their Settings)
 DETECTIONS_PARAMETERS = (
-    Declared(
-        "robot",
-        "",
-        "this robot's name (default: namespace)",
-        made_at_start="the namespace: robot1 under -r __ns:=/robot1",
-    ),
+    ROBOT_PARAMETER,
     Declared(
         "camera_frame",
         "",

@@ -88,6 +88,7 @@ from csam_ros.core.smoothing.local_map import LocalMap as CoreLocalMap
 from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.nodes.common import (
+    ROBOT_PARAMETER,
     Declared,
     Live,
     declare_each,
@@ -136,12 +137,7 @@ OUTSIDE_TRAJECTORY = "outside_trajectory"
 NO_WAIT = Duration(seconds=0)  # asking whether every reliable subscriber acknowledged
 # the smoother's own parameters (its settings dataclasses' fields are declared from them)
 SMOOTHER_PARAMETERS = (
-    Declared(
-        "robot",
-        "",
-        "this robot's name (default: namespace)",
-        made_at_start="the namespace: robot1 under -r __ns:=/robot1",
-    ),
+    ROBOT_PARAMETER,
     Declared(
         "robots",
         [""],

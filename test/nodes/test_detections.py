@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from node_group import smoothers_and_merger
+from node_group import final_joined_result, smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -308,17 +308,7 @@ def test_tags_on_tf_give_the_direct_messages_and_the_joined_map(
 
     # through the smoothers and the merger: the core's joined map of the same observations
     spin(executor, lambda: False, 0.5)
-    for s in smoothers.values():
-        s.solve_and_publish(converge=True)
-
-    def merged_final() -> bool:
-        result = merger.policy.last_result
-        return result is not None and all(
-            r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
-            for r, s in smoothers.items()
-        )
-
-    assert spin(executor, merged_final, 60)
+    assert final_joined_result(executor, smoothers, merger) is not None
     spin(executor, lambda: False, 0.3)
     result: CsamResult = merger.policy.last_result
     core = run_csam(camera_log)

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 from merger_harness import ROBOTS, MergerHarness, Smoothers, joined_view, run_messages
-from node_group import smoothers_and_merger
+from node_group import final_joined_result, smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -506,16 +506,7 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
             30,
         )
         spin(executor, lambda: False, 0.5)
-        for s in smoothers.values():
-            s.solve_and_publish(converge=True)
-
-        def merged_final() -> bool:
-            result = merger.policy.last_result
-            return result is not None and all(
-                len(result.robots[r].stamps) == len(s.map.stamps) for r, s in smoothers.items()
-            )
-
-        assert spin(executor, merged_final, 60)
+        assert final_joined_result(executor, smoothers, merger) is not None
         spin(executor, lambda: False, 0.3)
         result = merger.policy.last_result
         assert result is not None

@@ -15,9 +15,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from node_group import smoothers_and_merger
+from node_group import final_joined_result, simulator_node, smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.parameter import Parameter
 
 from csam_ros.core.joining.alignment import ALIGNED
 from csam_ros.core.model import se2
@@ -108,7 +107,6 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
     """A whole run from ``source`` (driver or simulator) to the merger's final joined map."""
     import rclpy
 
-    from csam_ros.nodes.simulator import Simulator
     from csam_ros.ros.topics import TF as TF_TOPIC
 
     robots = [r.name for r in load_scenario(SCENARIO).robots]
@@ -121,14 +119,7 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
     if source == "driver":
         driver = Driver(context, simulate(load_scenario(SCENARIO), seed=SEED))
     else:
-        simulator = Simulator(
-            context=context,
-            parameter_overrides=[
-                Parameter("scenario", value=SCENARIO),
-                Parameter("seed", value=SEED),
-                Parameter("rate", value=0.0),
-            ],
-        )
+        simulator = simulator_node(context, SCENARIO, SEED)
     source_node = driver.node if driver is not None else simulator
     nodes = [source_node, merger, listener, *smoothers.values()]
     executor = SingleThreadedExecutor(context=context)
@@ -143,17 +134,7 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
         else:
             assert spin(executor, lambda: simulator.next_index == len(simulator.messages), 60)
         spin(executor, lambda: False, 1.0)
-        for s in smoothers.values():
-            s.solve_and_publish(converge=True)
-
-        def merged_final() -> bool:
-            result = merger.policy.last_result
-            return result is not None and all(
-                r in result.robots and len(result.robots[r].stamps) == len(s.map.stamps)
-                for r, s in smoothers.items()
-            )
-
-        assert spin(executor, merged_final, 60)
+        assert final_joined_result(executor, smoothers, merger) is not None
         spin(executor, lambda: False, 0.5)  # the last transforms, and the timers' broadcasts
         defaulted = {r: s.filter.defaulted.as_dict() for r, s in smoothers.items()}
         return merger.policy.last_result, tf, defaulted

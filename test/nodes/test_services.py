@@ -45,6 +45,26 @@ def _refused(reply: Any) -> None:
     assert reply.message and "\n" not in reply.message, reply.message
 
 
+def _loads_refused(
+    client: Any, tmp_path: Path, garbage: Path, other: tuple[Path, str], unchanged: Any
+) -> None:
+    """``~/load_state`` of a missing file, garbage, ``other`` (a file of another robot or
+    kind, and why it is refused) and no path: each refused in one line naming why, and the
+    node's state ``unchanged()``."""
+    from csam_ros.ros.topics import LOAD_STATE
+
+    for path, why in (
+        (tmp_path / "missing.npz", "no such file"),
+        (garbage, "not a readable .npz file"),
+        other,
+        ("", "no path given"),
+    ):
+        reply = client.call(LOAD_STATE, path=str(path))
+        _refused(reply)
+        assert why in reply.message, reply.message
+        assert unchanged()
+
+
 def _sensor_messages() -> tuple[list[Any], float]:
     """robot1's sensor messages of map_joining and robot2's rendezvous (robot1's smoother
     takes those too), in stamp order; and the first odometry stamp."""
@@ -242,16 +262,13 @@ def test_a_smoother_saved_destroyed_and_loaded_into_a_new_one_holds_the_same_map
         robot2 = tmp_path / "robot2.npz"
         replace(SmootherCheckpoint.read(state, "robot1"), robot="robot2").write(robot2)
         held_map, held_session = second.map, second.sender.session
-        for path, why in (
-            (tmp_path / "missing.npz", "no such file"),
-            (garbage, "not a readable .npz file"),
+        _loads_refused(
+            client,
+            tmp_path,
+            garbage,
             (robot2, "the checkpoint of 'robot2', not of 'robot1'"),
-            ("", "no path given"),
-        ):
-            reply = client.call(LOAD_STATE, path=str(path))
-            _refused(reply)
-            assert why in reply.message, reply.message
-            assert second.map is held_map and second.sender.session == held_session
+            lambda: second.map is held_map and second.sender.session == held_session,
+        )
         _same_local_map(_local_map(second), saved_map)
         reply = client.call(SAVE_STATE, path=str(tmp_path))  # a folder: cannot be written
         _refused(reply)
@@ -444,16 +461,13 @@ def test_a_merger_saved_destroyed_and_loaded_into_a_new_one_publishes_the_same_j
         held_maps, result = merger.policy.local_maps, merger.policy.last_result
         checkpoint = _smoother_checkpoint(ros_context)
         checkpoint.write(smoother_file)
-        for path, why in (
-            (tmp_path / "missing.npz", "no such file"),
-            (garbage, "not a readable .npz file"),
+        _loads_refused(
+            services,
+            tmp_path,
+            garbage,
             (smoother_file, "a 'smoother' file, not a 'merger' one"),
-            ("", "no path given"),
-        ):
-            reply = services.call(LOAD_STATE, path=str(path))
-            _refused(reply)
-            assert why in reply.message, reply.message
-            assert merger.policy.local_maps is held_maps and merger.policy.last_result is result
+            lambda: merger.policy.local_maps is held_maps and merger.policy.last_result is result,
+        )
     finally:
         harness.close()
 

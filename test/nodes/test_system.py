@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from node_group import smoothers_and_merger
+from node_group import simulator_node, smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -34,18 +34,9 @@ def _nodes(
     extra_smoother: list[Parameter] | None = None,
     summary_path: Path | None = None,
 ):
-    from csam_ros.nodes.simulator import Simulator
 
     smoothers, merger = smoothers_and_merger(context, robots, extra_smoother, summary_path)
-    simulator = Simulator(
-        context=context,
-        parameter_overrides=[
-            Parameter("scenario", value=SCENARIO),
-            Parameter("seed", value=SEED),
-            Parameter("rate", value=0.0),
-            Parameter("min_subscribers", value=1),
-        ],
-    )
+    simulator = simulator_node(context, SCENARIO, SEED, Parameter("min_subscribers", value=1))
     return simulator, smoothers, merger
 
 
