@@ -285,3 +285,13 @@ def status_values(array: DiagnosticArray, name: str) -> dict[str, str] | None:
 def copied(msg: Any) -> Any:
     """A deep copy of a message to mutate."""
     return copy.deepcopy(msg)
+
+
+def with_robot2(messages: RunMessages, update: Any) -> RunMessages:
+    """``messages`` with robot2's local map update replaced by ``update``."""
+    return RunMessages(
+        {**messages.local_maps, "robot2": update},
+        messages.rendezvous,
+        messages.logs,
+        messages.robot_maps,
+    )

@@ -25,6 +25,14 @@ EXECUTABLES = [
 ]
 
 
+def _succeeds(command: list[str]) -> None:
+    """Run ``command`` in the source tree; it must exit 0."""
+    result = subprocess.run(
+        command, cwd=REPO, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert result.returncode == 0, result.stderr
+
+
 @pytest.fixture
 def ament_prefix(monkeypatch: pytest.MonkeyPatch) -> Path:
     """AMENT_PREFIX_PATH as a ROS setup script would set it for this environment."""
@@ -77,15 +85,7 @@ def test_setup_py_installs_the_params_and_launch_files_to_the_share_folder(
 ) -> None:
     """What colcon installs from setup.py's data_files: config/ (params files among them) and
     launch/ in share/csam_ros, where `ros2 launch csam_ros FILE` looks."""
-    result = subprocess.run(
-        [sys.executable, "setup.py", "-q", "install_data", f"--install-dir={tmp_path}"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert result.returncode == 0, result.stderr
+    _succeeds([sys.executable, "setup.py", "-q", "install_data", f"--install-dir={tmp_path}"])
     share = tmp_path / "share" / "csam_ros"
     _same_files(share / "launch", REPO / "launch", "*.launch.py")
     _same_files(share / "config", REPO / "config", "*.yaml")
@@ -102,14 +102,7 @@ def test_install_layout_puts_the_config_and_launch_folders_in_the_share_folder(
     (venv / "bin").mkdir()
     for name in EXECUTABLES:
         (venv / "lib" / "csam_ros" / name).symlink_to(PREFIX / "lib" / "csam_ros" / name)
-    result = subprocess.run(
-        ["bash", str(REPO / "scripts" / "install_layout.sh"), str(venv)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert result.returncode == 0, result.stderr
+    _succeeds(["bash", str(REPO / "scripts" / "install_layout.sh"), str(venv)])
     share = venv / "share" / "csam_ros"
     assert (share / "launch").resolve() == REPO / "launch"
     assert (share / "config").resolve() == REPO / "config"

@@ -117,6 +117,10 @@ class Pause:
         return answer(response, True, state if was != self.paused else f"already {state}")
 
 
+def _map_size(smoother: Any) -> str:
+    return f"{len(smoother.map.stamps)} poses, {len(smoother.map.landmark_labels)} features"
+
+
 class StateServices:
     """``~/save_state``, ``~/load_state``, ``~/reset`` and ``~/pause`` of ``node``, answered by
     the subclass's ``on_save``, ``on_load`` and ``on_reset``; ``pause_changed(paused)`` is told
@@ -162,8 +166,7 @@ class SmootherServices(StateServices):
         return answer(
             response,
             True,
-            f"saved to {path}: {len(node.map.stamps)} poses, {len(node.map.landmark_labels)} "
-            f"features ({size} bytes)",
+            f"saved to {path}: {_map_size(node)} ({size} bytes)",
         )
 
     def on_load(self, request: LoadState.Request, response: LoadState.Response) -> Any:
@@ -177,8 +180,7 @@ class SmootherServices(StateServices):
         return answer(
             response,
             True,
-            f"loaded {path}: {len(node.map.stamps)} poses, {len(node.map.landmark_labels)} "
-            f"features, in session {node.sender.session}",
+            f"loaded {path}: {_map_size(node)}, in session {node.sender.session}",
         )
 
     def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:

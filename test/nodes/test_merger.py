@@ -36,6 +36,7 @@ from merger_harness import (
     resent,
     run_messages,
     status_values,
+    with_robot2,
 )
 from std_srvs.srv import Trigger
 
@@ -408,7 +409,7 @@ def test_flush_gives_up_a_solve_of_older_maps_and_solves_the_newest(
     middle, last = growing[1], growing[2]
     sender = UpdateSender(11)
     harness.start(
-        _with_robot2(middle, _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"]))))
+        with_robot2(middle, _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"]))))
     )
     merger, solves, published = harness.merger, harness.merger.policy.solves, len(harness.joined)
     flush = _flush_client(harness)
@@ -437,7 +438,7 @@ def test_after_a_flush_each_robots_next_map_gives_up_a_running_solve_once(
     asked for it); the robot's map after that waits for the running solve, as during a run."""
     sender = UpdateSender(11)
     maps = [_message(sender.update(robot_map_arrays(g.robot_maps["robot2"]))) for g in growing]
-    harness.start(_with_robot2(growing[0], maps[0]))
+    harness.start(with_robot2(growing[0], maps[0]))
     merger, solves = harness.merger, harness.merger.policy.solves
     assert _flush_client(harness)().startswith("the joined map (or the running solve) holds")
     for k, stamp in ((1, STAMP_NS + 10**9), (2, STAMP_NS + 2 * 10**9)):
@@ -514,15 +515,6 @@ def _assert_joined_close(a: JoinedMap, b: JoinedMap, atol: float) -> None:
     np.testing.assert_allclose([n[2:] for n in na], [n[2:] for n in nb], 0, atol)
 
 
-def _with_robot2(messages: RunMessages, update: LocalMapUpdate) -> RunMessages:
-    return RunMessages(
-        {**messages.local_maps, "robot2": update},
-        messages.rendezvous,
-        messages.logs,
-        messages.robot_maps,
-    )
-
-
 def _joined_from_updates(
     context: Any, spin: Any, growing: list[RunMessages], missed: bool
 ) -> JoinedMap:
@@ -592,7 +584,7 @@ def test_an_update_delivered_twice_changes_nothing(harness, growing: list[RunMes
     middle, last = growing[1], growing[2]
     sender = UpdateSender(11)
     first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-    harness.start(_with_robot2(middle, first))
+    harness.start(with_robot2(middle, first))
     solves, published = harness.merger.policy.solves, len(harness.joined)
     update = _message(sender.update(robot_map_arrays(last.robot_maps["robot2"])))
     assert update.base_sequence == first.sequence
@@ -648,7 +640,7 @@ def test_a_running_solve_publishes_the_newest_maps_provisionally(
     middle, last = growing[1], growing[2]
     sender = UpdateSender(11)
     first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-    harness.start(_with_robot2(middle, first))
+    harness.start(with_robot2(middle, first))
     joined = harness.merger.policy.last_result
     provisional: list[JoinedMap] = []
     harness.injector.create_subscription(
@@ -695,7 +687,7 @@ def test_a_provisional_map_waits_for_quiet_unless_every_robot_has_a_new_map(
         middle, last = growing[1], growing[2]
         sender = UpdateSender(11)
         first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-        harness.hold(_with_robot2(middle, first))
+        harness.hold(with_robot2(middle, first))
         assert harness.merger.solve_pending() and harness.merger.policy.last_result is not None
         provisional: list[JoinedMap] = []
         harness.injector.create_subscription(
@@ -727,7 +719,7 @@ def test_maps_are_checked_on_arrival_and_joined_refined(
     middle, last = growing[1], growing[2]
     sender = UpdateSender(11)
     first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-    harness.start(_with_robot2(middle, first))
+    harness.start(with_robot2(middle, first))
     solves = harness.merger.policy.solves
     harness.publish("robot2", _message(sender.update(robot_map_arrays(last.robot_maps["robot2"]))))
     harness.wait(

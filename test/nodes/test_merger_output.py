@@ -5,13 +5,11 @@ joined robot, WARN for a pending one, STALE for one without a map for ``stale_af
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from merger_harness import ROBOTS, STAMP_NS, MergerHarness, RunMessages, run_messages
+from merger_harness import ROBOTS, STAMP_NS, MergerHarness, run_messages, with_robot2
 
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import UpdateSender
@@ -170,15 +168,6 @@ def _stale_status(arrays: list[DiagnosticArray]) -> bool:
     return False
 
 
-def _with_robot2(messages: RunMessages, update: Any) -> RunMessages:
-    return RunMessages(
-        {**messages.local_maps, "robot2": update},
-        messages.rendezvous,
-        messages.logs,
-        messages.robot_maps,
-    )
-
-
 def test_a_newer_local_map_moves_the_pose_before_any_solve(ros_context, spin) -> None:
     """robot2's grown map, while no solve runs (solve_period far off: the test solves when it
     means to), goes out provisionally and moves robot2's pose: the last join's base node
@@ -189,7 +178,7 @@ def test_a_newer_local_map_moves_the_pose_before_any_solve(ros_context, spin) ->
         middle, last = run_messages(end=30.0), run_messages()
         sender = UpdateSender(11)
         first = sender.update(robot_map_arrays(middle.robot_maps["robot2"]))
-        harness.hold(_with_robot2(middle, local_map_update_message(first, "robot2", STAMP_NS)))
+        harness.hold(with_robot2(middle, local_map_update_message(first, "robot2", STAMP_NS)))
         policy = harness.merger.policy
         assert harness.merger.solve_pending() and policy.solves == 1
         harness.wait(lambda: all(listener.poses.values()))

@@ -45,6 +45,22 @@ def _refused(reply: Any) -> None:
     assert reply.message and "\n" not in reply.message, reply.message
 
 
+def service_types() -> dict[str, type]:
+    """The type of each service a smoother and the merger answer, by name."""
+    from csam_msgs.srv import LoadState, SaveState
+    from std_srvs.srv import SetBool, Trigger
+
+    from csam_ros.ros.topics import FLUSH, LOAD_STATE, PAUSE, RESET, SAVE_STATE
+
+    return {
+        FLUSH: Trigger,
+        SAVE_STATE: SaveState,
+        LOAD_STATE: LoadState,
+        RESET: Trigger,
+        PAUSE: SetBool,
+    }
+
+
 def _loads_refused(
     client: Any, tmp_path: Path, garbage: Path, other: tuple[Path, str], unchanged: Any
 ) -> None:
@@ -87,17 +103,10 @@ class SmootherClient:
 
     def __init__(self, context: Any, spin: Any) -> None:
         import rclpy
-        from csam_msgs.srv import LoadState, SaveState
-        from std_srvs.srv import SetBool, Trigger
 
         from csam_ros.nodes.common import publisher, subscribe
         from csam_ros.ros.topics import (
-            FLUSH,
-            LOAD_STATE,
             LOCAL_MAP_UPDATES,
-            PAUSE,
-            RESET,
-            SAVE_STATE,
             Topic,
             declaration,
             smoother_service,
@@ -112,13 +121,7 @@ class SmootherClient:
         self.updates: list[Any] = []
         self.held: HeldMap | None = None  # the map the updates build
         subscribe(self.node, LOCAL_MAP_UPDATES, self._on_update, LOCAL_MAP_UPDATES.of("robot1"))
-        service = {
-            FLUSH: Trigger,
-            SAVE_STATE: SaveState,
-            LOAD_STATE: LoadState,
-            RESET: Trigger,
-            PAUSE: SetBool,
-        }
+        service = service_types()
         self.clients = {
             name: self.node.create_client(kind, smoother_service("robot1", name))
             for name, kind in service.items()
@@ -378,19 +381,11 @@ class MergerServiceClients:
     """Clients of the merger's services on the harness's injector node."""
 
     def __init__(self, harness: MergerHarness) -> None:
-        from csam_msgs.srv import LoadState, SaveState
-        from std_srvs.srv import SetBool, Trigger
 
-        from csam_ros.ros.topics import FLUSH, LOAD_STATE, PAUSE, RESET, SAVE_STATE, merger_service
+        from csam_ros.ros.topics import merger_service
 
         self.harness = harness
-        self.types = {
-            FLUSH: Trigger,
-            SAVE_STATE: SaveState,
-            LOAD_STATE: LoadState,
-            RESET: Trigger,
-            PAUSE: SetBool,
-        }
+        self.types = service_types()
         self.clients = {
             name: harness.injector.create_client(kind, merger_service(name))
             for name, kind in self.types.items()
