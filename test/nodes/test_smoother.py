@@ -261,16 +261,7 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
     """A 2D SLAM file's messages: Cartesian feature points with full covariances and odometry
     whose inputs are correlated (in the twist covariance). The smoother's map is the offline
     build's, which keeps both."""
-    from csam_ros.core.model import se2
-    from csam_ros.core.model.log import (
-        FeaturePointLog,
-        MultiRobotLog,
-        OdometryLog,
-        RobotLog,
-        correlations_from_covariances,
-        empty_features,
-        empty_rendezvous,
-    )
+    from csam_ros.core.model import log, se2
     from csam_ros.core.model.motion import dead_reckoning, increment
     from csam_ros.core.smoothing.local_map_build import build_local_map
     from csam_ros.ros.conversions import log_to_messages
@@ -279,7 +270,7 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
     n = 40
     inputs = np.column_stack([np.full(n, 0.5), np.zeros(n), np.full(n, 0.15)])
     a = 0.05 * rng.standard_normal((n, 3, 3))
-    sigmas, rho = correlations_from_covariances(a @ a.transpose(0, 2, 1) + 1e-3 * np.eye(3))
+    sigmas, rho = log.correlations_from_covariances(a @ a.transpose(0, 2, 1) + 1e-3 * np.eye(3))
     truth = dead_reckoning(increment(inputs[1:], np.ones(n - 1)))
     landmarks = rng.uniform(-4, 4, (6, 2)) + truth[:, :2].mean(axis=0)
     pose, label = np.nonzero(np.ones((n, 6), dtype=bool))
@@ -288,14 +279,14 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
     seen = se2.inverse_transform_point(truth[pose], landmarks[label])
     points = seen + 0.05 * rng.standard_normal(seen.shape)
     measured = inputs + 0.01 * rng.standard_normal(inputs.shape)
-    robot = RobotLog(
+    robot = log.RobotLog(
         "robot1",
-        OdometryLog(np.arange(n, dtype=float), measured, sigmas, rho),
-        empty_features(),
-        empty_rendezvous(),
-        FeaturePointLog(pose.astype(float), label, points, covariance),
+        log.OdometryLog(np.arange(n, dtype=float), measured, sigmas, rho),
+        log.empty_features(),
+        log.empty_rendezvous(),
+        log.FeaturePointLog(pose.astype(float), label, points, covariance),
     )
-    messages = log_to_messages(MultiRobotLog({"robot1": robot}))
+    messages = log_to_messages(log.MultiRobotLog({"robot1": robot}))
     assert {m.topic for m in messages} == {"/robot1/odom", "/robot1/feature_points"}
     offline = build_local_map(robot)
     with fed_smoother(ros_context, messages) as (node, (stamps, poses, landmark_xy)):
@@ -306,9 +297,9 @@ def test_smoother_takes_feature_points_and_correlated_odometry_as_offline(ros_co
             np.testing.assert_allclose(landmark_xy[k], xy, atol=1e-7)
     # without the correlations the map is another one
     independent = build_local_map(
-        RobotLog(
+        log.RobotLog(
             "robot1",
-            OdometryLog(np.arange(n, dtype=float), measured, sigmas),
+            log.OdometryLog(np.arange(n, dtype=float), measured, sigmas),
             robot.features,
             robot.rendezvous,
             robot.points,
