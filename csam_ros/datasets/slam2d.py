@@ -37,14 +37,16 @@ line number.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from csam_ros.core.model import se2
+from csam_ros.core.sam import factors
 from csam_ros.core.sam.factors import POINT, POSE, PointObservation, PosePrior, RelativePose
 from csam_ros.core.sam.solver import GAUGE_SIGMA, Problem
 
@@ -259,6 +261,17 @@ def initial_values(data: Slam2dData) -> tuple[dict[int, Array], dict[int, Array]
     return poses, landmarks
 
 
+def _add_indexed(
+    problem: Problem, kind: factors.VariableKind, prefix: str, ids: Any, values: Mapping[int, Any]
+) -> tuple[Any, dict[int, int]]:
+    """Unknowns ``(prefix, id)`` of ``kind`` at ``values[id]`` for each of the file's ``ids``;
+    their problem indices, and a map from file id to problem index."""
+    added = problem.add_variables(
+        kind, [(prefix, int(i)) for i in ids], np.array([values[int(i)] for i in ids])
+    )
+    return added, {int(i): int(v) for i, v in zip(ids, added, strict=True)}
+
+
 def build_problem(data: Slam2dData, gauge_sigma: float = GAUGE_SIGMA) -> Problem:
     """Least-squares problem of a file: variables ``("x", id)`` and ``("l", id)``.
 
@@ -268,10 +281,7 @@ def build_problem(data: Slam2dData, gauge_sigma: float = GAUGE_SIGMA) -> Problem
     poses, landmarks = initial_values(data)
     problem = Problem()
     pose_ids = data.pose_ids
-    pid = problem.add_variables(
-        POSE, [("x", int(i)) for i in pose_ids], np.array([poses[int(i)] for i in pose_ids])
-    )
-    index = {int(i): int(v) for i, v in zip(pose_ids, pid, strict=True)}
+    pid, index = _add_indexed(problem, POSE, "x", pose_ids, poses)
     problem.add_factor(
         PosePrior(pid[:1], poses[int(pose_ids[0])][None], np.eye(3) / gauge_sigma, name="gauge")
     )
@@ -287,10 +297,7 @@ def build_problem(data: Slam2dData, gauge_sigma: float = GAUGE_SIGMA) -> Problem
         )
     lm_ids = data.landmark_ids
     if len(lm_ids):
-        lid = problem.add_variables(
-            POINT, [("l", int(i)) for i in lm_ids], np.array([landmarks[int(i)] for i in lm_ids])
-        )
-        lindex = {int(i): int(v) for i, v in zip(lm_ids, lid, strict=True)}
+        _, lindex = _add_indexed(problem, POINT, "l", lm_ids, landmarks)
         if len(data.observations):
             problem.add_factor(
                 PointObservation(

@@ -163,11 +163,7 @@ class SmootherServices(StateServices):
             size = node.checkpoint().write(path)
         except (OSError, ValueError) as err:
             return answer(response, False, f"not saved: {err}")
-        return answer(
-            response,
-            True,
-            f"saved to {path}: {_map_size(node)} ({size} bytes)",
-        )
+        return answer(response, True, f"saved to {path}: {_map_size(node)} ({size} bytes)")
 
     def on_load(self, request: LoadState.Request, response: LoadState.Response) -> Any:
         node = self.node
@@ -177,11 +173,8 @@ class SmootherServices(StateServices):
         except (CheckpointError, ValueError) as err:
             return answer(response, False, f"{UNCHANGED}: {err}")
         node.publish_status()
-        return answer(
-            response,
-            True,
-            f"loaded {path}: {_map_size(node)}, in session {node.sender.session}",
-        )
+        loaded = f"loaded {path}: {_map_size(node)}, in session {node.sender.session}"
+        return answer(response, True, loaded)
 
     def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:
         node = self.node
