@@ -24,16 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from csam_ros.core.model import motion, se2
-from csam_ros.core.model.log import (
-    FeatureLog,
-    GroundTruth,
-    MultiRobotLog,
-    OdometryLog,
-    RendezvousLog,
-    RobotLog,
-    empty_rendezvous,
-)
+from csam_ros.core.model import log, motion, se2
 from csam_ros.core.model.sensor import cartesian_to_polar
 from csam_ros.datasets.odometry_stress import OdometryStress, stress_odometry
 
@@ -170,7 +161,7 @@ def _scan(
     return pose_idx, target_idx, r, b
 
 
-def simulate(scenario: Scenario, seed: int | None = None) -> MultiRobotLog:
+def simulate(scenario: Scenario, seed: int | None = None) -> log.MultiRobotLog:
     """Run the scenario once: odometry, feature scans and rendezvous measurements per robot.
 
     ``seed`` (default: the scenario's) seeds every random draw; the same seed gives the same
@@ -190,7 +181,7 @@ def simulate(scenario: Scenario, seed: int | None = None) -> MultiRobotLog:
     trajectories = {r.name: true_trajectory(r, t) for r in scenario.robots}
     stamps = {name: np.arange(len(p)) * t for name, p in trajectories.items()}
 
-    robots: dict[str, RobotLog] = {}
+    robots: dict[str, log.RobotLog] = {}
     label_to_feature: dict[str, dict[int, int]] = {}
     for index, spec in enumerate(scenario.robots):
         poses = trajectories[spec.name]
@@ -203,7 +194,7 @@ def simulate(scenario: Scenario, seed: int | None = None) -> MultiRobotLog:
         inputs[1:, 0] = cmd[:, 0]
         inputs[1:, 2] = cmd[:, 1]
         inputs[1:] += sigma * rng.standard_normal((n - 1, 3))
-        odometry = OdometryLog(stamps[spec.name].copy(), inputs, np.tile(sigma, (n, 1)))
+        odometry = log.OdometryLog(stamps[spec.name].copy(), inputs, np.tile(sigma, (n, 1)))
         if spec.odometry_stress is not None:
             odometry = stress_odometry(odometry, spec.odometry_stress)
 
@@ -211,7 +202,7 @@ def simulate(scenario: Scenario, seed: int | None = None) -> MultiRobotLog:
         label_to_feature[spec.name] = {int(lab): int(f) for f, lab in enumerate(labels)}
         pi, fi, r, b = _scan(poses, features, spec.feature_sensor, rng)
         fs = spec.feature_sensor
-        feature_log = FeatureLog(
+        feature_log = log.FeatureLog(
             stamps=stamps[spec.name][pi],
             labels=labels[fi].astype(np.int64),
             ranges=r,
@@ -219,18 +210,18 @@ def simulate(scenario: Scenario, seed: int | None = None) -> MultiRobotLog:
             sigma_range=np.full(len(r), fs.sigma_range),
             sigma_bearing=np.full(len(r), fs.sigma_bearing),
         )
-        robots[spec.name] = RobotLog(
+        robots[spec.name] = log.RobotLog(
             spec.name, odometry, feature_log, _rendezvous(spec, scenario, trajectories, rng)
         )
 
-    truth = GroundTruth(
+    truth = log.GroundTruth(
         feature_ids=np.arange(n_features, dtype=np.int64),
         feature_positions=features.copy(),
         label_to_feature=label_to_feature,
         trajectory_stamps={k: v.copy() for k, v in stamps.items()},
         trajectories={k: v.copy() for k, v in trajectories.items()},
     )
-    return MultiRobotLog(robots=robots, truth=truth)
+    return log.MultiRobotLog(robots=robots, truth=truth)
 
 
 def _rendezvous(
@@ -238,7 +229,7 @@ def _rendezvous(
     scenario: Scenario,
     trajectories: dict[str, FloatArray],
     rng: np.random.Generator,
-) -> RendezvousLog:
+) -> log.RendezvousLog:
     """Observations of other robots by ``spec`` at the samples both robots exist."""
     sensor = spec.rendezvous_sensor
     known = {r.name for r in scenario.robots}
@@ -267,11 +258,11 @@ def _rendezvous(
                 se2.wrap_angle(true_b[seen] + sensor.sigma_bearing * rng.standard_normal(k))
             )
     if not stamp_list:
-        return empty_rendezvous()
+        return log.empty_rendezvous()
     st = np.concatenate(stamp_list)
     order = np.argsort(st, kind="stable")
     r = np.concatenate(ranges)[order]
-    return RendezvousLog(
+    return log.RendezvousLog(
         stamps=st[order],
         observed=[observed[i] for i in order],
         ranges=r,
@@ -287,7 +278,7 @@ def simulate_robot_log(
     seed: int = 0,
     landmarks: int = 12,
     scan_rate: float = 2.0,
-) -> tuple[RobotLog, FloatArray, FloatArray, FloatArray]:
+) -> tuple[log.RobotLog, FloatArray, FloatArray, FloatArray]:
     """A robot log at MR.CLAM-like rates: odometry at ``rate`` Hz (jittered stamps), feature
     scans at their own stamps (``scan_rate`` per second, between odometry samples), a
     stretch of exactly zero turn rate, two rendezvous stamps.
@@ -311,7 +302,7 @@ def simulate_robot_log(
     r, b = cartesian_to_polar(se2.inverse_transform_point(at_scan[:, None], lm[None]))
     seen_scan, seen_lm = np.nonzero(r < 6.0)
     k = len(seen_scan)
-    features = FeatureLog(
+    features = log.FeatureLog(
         stamps=scan_t[seen_scan],
         labels=(seen_lm + 10).astype(np.int64),
         ranges=r[seen_scan, seen_lm] + rng.normal(0, 0.02, k),
@@ -320,8 +311,8 @@ def simulate_robot_log(
         sigma_bearing=np.full(k, 0.01),
     )
     rdv_t = np.array([stamps[0] + 7.31, stamps[0] + 21.005])
-    rendezvous = RendezvousLog(
+    rendezvous = log.RendezvousLog(
         rdv_t, ["other", "other"], np.ones(2), np.zeros(2), np.full(2, 0.1), np.full(2, 0.1)
     )
-    log = RobotLog("robot1", OdometryLog(stamps, meas_u, sig), features, rendezvous)
-    return log, truth, stamps, lm
+    robot = log.RobotLog("robot1", log.OdometryLog(stamps, meas_u, sig), features, rendezvous)
+    return robot, truth, stamps, lm

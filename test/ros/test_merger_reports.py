@@ -17,20 +17,14 @@ from csam_ros.ros.merger_reports import (
     status_array,
 )
 
+# a robot's counts in these tests: ten poses, the third update, nothing restarted or asked for
+COUNTS = {"poses": 10, "solve_seconds": 0.1, "update": 3}
+NONE = dict.fromkeys(("restarts", "restart_poses_lost", "resync_requests"), 0)
+
 
 def _robot(name: str, alignment: str, stale: bool = False) -> RobotStatus:
-    return RobotStatus(
-        robot=name,
-        alignment=alignment,
-        stale=stale,
-        seconds_since_map=42.0 if stale else 1.0,
-        poses=10,
-        solve_seconds=0.1,
-        restarts=0,
-        restart_poses_lost=0,
-        update=3,
-        resync_requests=0,
-    )
+    since = 42.0 if stale else 1.0
+    return RobotStatus(name, alignment, stale, seconds_since_map=since, **COUNTS, **NONE)
 
 
 def _status(robots: tuple[RobotStatus, ...], last_error: str = "") -> MergerStatus:

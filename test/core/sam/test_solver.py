@@ -5,19 +5,8 @@ import pytest
 from sam_problems import chain, mixed_problem
 
 from csam_ros.core.model import se2
+from csam_ros.core.sam import factors as f
 from csam_ros.core.sam.covariance import marginal_covariance
-from csam_ros.core.sam.factors import (
-    POINT,
-    POSE,
-    Cauchy,
-    Huber,
-    LinearPrior,
-    PointObservation,
-    PointPrior,
-    PosePrior,
-    RelativePose,
-    VariableKind,
-)
 from csam_ros.core.sam.solver import Problem, SolverOptions
 from csam_ros.testing.gtsam_oracle import build_gtsam, gtsam_estimate, gtsam_marginal_covariance
 from csam_ros.testing.landmark_problem import build_problem, simulate_landmark_problem
@@ -57,41 +46,41 @@ def test_levenberg_marquardt_safeguard_recovers_from_a_bad_start():
 def test_robust_kernel_limits_an_outlier():
     def solve(robust):
         p = Problem()
-        ids = p.add_variables(POINT, ["l"], [[0.0, 0.0]])
+        ids = p.add_variables(f.POINT, ["l"], [[0.0, 0.0]])
         z = np.array([[1.0, 1.0], [1.1, 0.9], [0.9, 1.05], [8.0, -6.0]])
         p.add_factor(
-            PointPrior(np.repeat(ids, 4), z, np.tile(np.eye(2) * 10, (4, 1, 1)), robust=robust)
+            f.PointPrior(np.repeat(ids, 4), z, np.tile(np.eye(2) * 10, (4, 1, 1)), robust=robust)
         )
         p.solve()
         return p.value("l")
 
-    plain, robust = solve(None), solve(Huber(1.0))
+    plain, robust = solve(None), solve(f.Huber(1.0))
     assert np.linalg.norm(robust - [1.0, 1.0]) < 0.2 < np.linalg.norm(plain - [1.0, 1.0])
 
 
 def flat_robust_problem(offset=0.95):
-    """Six poses with exact odometry see one landmark twice each, at ``+-offset`` Cauchy
+    """Six poses with exact odometry see one landmark twice each, at ``+-offset`` f.Cauchy
     scales across the truth: the truth is the minimum (by symmetry), where the cost's
     curvature in y is ``(1 - offset^2) / (1 + offset^2)`` of the reweighted model's."""
     rng = np.random.default_rng(1)
     truth = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
     p = Problem()
-    x = p.add_variables(POSE, [("x", i) for i in range(6)], truth + rng.normal(0, 0.05, (6, 3)))
-    landmark = p.add_variables(POINT, ["l"], [[3.2, 0.5]])
-    p.add_factor(PosePrior(x[:1], truth[:1], np.eye(3) * 1e6))
+    x = p.add_variables(f.POSE, [("x", i) for i in range(6)], truth + rng.normal(0, 0.05, (6, 3)))
+    landmark = p.add_variables(f.POINT, ["l"], [[3.2, 0.5]])
+    p.add_factor(f.PosePrior(x[:1], truth[:1], np.eye(3) * 1e6))
     odometry = se2.between(truth[:-1], truth[1:])
-    p.add_factor(RelativePose(x[:-1], x[1:], odometry, covariance=np.eye(3) * 1e-4))
+    p.add_factor(f.RelativePose(x[:-1], x[1:], odometry, covariance=np.eye(3) * 1e-4))
     sigma = 0.1
     seen_from = np.repeat(np.arange(6), 2)
     z = se2.inverse_transform_point(truth[seen_from], np.array([3.0, 0.0]))
     z[:, 1] += np.tile([offset * sigma, -offset * sigma], 6)
     p.add_factor(
-        PointObservation(
+        f.PointObservation(
             x[seen_from],
             np.repeat(landmark, 12),
             z,
             covariance=np.eye(2) * sigma**2,
-            robust=Cauchy(1.0),
+            robust=f.Cauchy(1.0),
         )
     )
     return p, truth
@@ -125,14 +114,14 @@ def test_extrapolation_options_are_checked():
 
 
 def test_a_new_pose_like_kind_works_with_the_generic_factors():
-    base = VariableKind("base_node", 3, angle_index=2)
+    base = f.VariableKind("base_node", 3, angle_index=2)
     p = Problem()
     b = p.add_variable(base, "b", [0.0, 0.0, 3.0])
-    p.add_factor(LinearPrior([b], [base], [1.0, 2.0, -3.1], np.eye(3)))
+    p.add_factor(f.LinearPrior([b], [base], [1.0, 2.0, -3.1], np.eye(3)))
     p.solve()
     np.testing.assert_allclose(p.value("b"), [1.0, 2.0, -3.1], atol=1e-12)
     with pytest.raises(ValueError, match="kind base_node where a pose is expected"):
-        p.add_factor(PosePrior([b], [[0, 0, 0]], np.eye(3)))
+        p.add_factor(f.PosePrior([b], [[0, 0, 0]], np.eye(3)))
 
 
 # -- GTSAM as oracle ----------------------------------------------------------------------------
@@ -176,16 +165,18 @@ def test_same_map_estimate_and_marginals_as_gtsam():
 def test_bad_variables_and_factors_are_rejected():
     p, ids = chain()
     with pytest.raises(ValueError, match="already exists"):
-        p.add_variable(POSE, ("x", 1), [0, 0, 0])
+        p.add_variable(f.POSE, ("x", 1), [0, 0, 0])
     with pytest.raises(ValueError, match="not finite"):
-        p.add_variable(POSE, "nan", [0, np.nan, 0])
+        p.add_variable(f.POSE, "nan", [0, np.nan, 0])
     with pytest.raises(ValueError, match="must have shape"):
-        p.add_variables(POINT, ["a", "b"], np.zeros((2, 3)))
+        p.add_variables(f.POINT, ["a", "b"], np.zeros((2, 3)))
     with pytest.raises(ValueError, match="unknown variable id"):
-        p.add_factor(RelativePose([0], [7], np.zeros((1, 3)), np.eye(3)))
+        p.add_factor(f.RelativePose([0], [7], np.zeros((1, 3)), np.eye(3)))
     with pytest.raises(ValueError, match="connects variable \\('x', 1\\) twice"):
-        p.add_factor(RelativePose([0, 1], [1, 1], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1))))
+        p.add_factor(
+            f.RelativePose([0, 1], [1, 1], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)))
+        )
     with pytest.raises(ValueError, match="kind pose where a point is expected"):
-        p.add_factor(PointPrior([0], [[0, 0]], np.eye(2)))
+        p.add_factor(f.PointPrior([0], [[0, 0]], np.eye(2)))
     with pytest.raises(KeyError, match="no variable 'zzz'"):
         p.index("zzz")
