@@ -36,14 +36,8 @@ from std_srvs.srv import Trigger
 
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter, RefusedMessageError
 from csam_ros.core.merging.notices import Notice
-from csam_ros.core.merging.policy import (
-    Flushed,
-    Found,
-    MergerPolicy,
-    ProvisionalMap,
-    SolveInputs,
-    arrival,
-)
+from csam_ros.core.merging.policy import MergerPolicy
+from csam_ros.core.merging.policy_inputs import Flushed, Found, ProvisionalMap, SolveInputs, arrival
 from csam_ros.core.merging.status import SharedDropCounter
 from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe, watch_parameters
 from csam_ros.nodes.merger_output import MergerOutput

@@ -16,7 +16,8 @@ from rclpy.publisher import Publisher
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter
 from csam_ros.core.joining.result import CsamResult, MergerStats, RunSummary, write_summary_text
 from csam_ros.core.joining.warm_start import carried_forward
-from csam_ros.core.merging.policy import MergerPolicy, ProvisionalMap
+from csam_ros.core.merging.policy import MergerPolicy
+from csam_ros.core.merging.policy_inputs import ProvisionalMap
 from csam_ros.core.merging.robot_poses import LatestPoseCovariances, robot_poses
 from csam_ros.core.merging.status import MergerStatus
 from csam_ros.core.smoothing.robot_map import RobotMap

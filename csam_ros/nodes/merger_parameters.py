@@ -13,7 +13,7 @@ from typing import Any
 from rclpy.node import Node
 
 from csam_ros.core.joining.config import CsamConfig
-from csam_ros.core.merging.policy import MergerSettings
+from csam_ros.core.merging.policy_inputs import MergerSettings
 from csam_ros.nodes.common import Declared, Live, declare_each, declare_settings
 
 _DEFAULTS = MergerSettings()

@@ -75,10 +75,10 @@ from csam_ros.core.exchange.checkpoint import (
 )
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance
+from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.validation import (
     ODOMETRY_DEFAULT_SIGMAS,
     InputBounds,
-    MeasurementFilter,
 )
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.pipeline import robot_map_from_local_map

@@ -40,7 +40,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter, LocalMapError
 from csam_ros.core.merging.notices import StateMissing, StateResumed
-from csam_ros.core.merging.policy import joined_maps, read_state
+from csam_ros.core.merging.policy_inputs import joined_maps, read_state
 from csam_ros.ros.topics import LOAD_STATE, PAUSE, RESET, SAVE_STATE
 from csam_ros.solve_process import SolveProcess
 

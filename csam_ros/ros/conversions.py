@@ -35,9 +35,9 @@ from nav_msgs.msg import Odometry
 from numpy.typing import ArrayLike, NDArray
 from tf2_msgs.msg import TFMessage
 
+from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.validation import (
     InputBounds,
-    MeasurementFilter,
     OdometryReading,
     OdometrySample,
     pose_fault,

@@ -12,7 +12,7 @@ from csam_ros.forked import Forked
 from csam_ros.run.errors import RunError, warn
 
 if TYPE_CHECKING:
-    from csam_ros.core.exchange.validation import MeasurementFilter
+    from csam_ros.core.exchange.measurement_filter import MeasurementFilter
     from csam_ros.core.joining.result import RunSummary
     from csam_ros.core.model.log import GroundTruth, MultiRobotLog
 

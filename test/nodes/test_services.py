@@ -21,7 +21,7 @@ from rclpy.parameter import Parameter
 
 from csam_ros.core.exchange.checkpoint import MergerState, SmootherCheckpoint
 from csam_ros.core.exchange.map_updates import HeldMap, KeyedMap, MissingBaseError, apply_update
-from csam_ros.core.merging.policy import NO_MAP_HELD
+from csam_ros.core.merging.policy_inputs import NO_MAP_HELD
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from csam_ros.core.exchange.local_map_checks import LocalMapArrays
 from csam_ros.core.exchange.map_arrays import robot_map_arrays, robot_map_from_arrays
-from csam_ros.core.exchange.validation import MeasurementFilter
+from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog, RobotLog
@@ -175,8 +175,8 @@ def _unstamp(value: Any) -> float:
 
 @dataclass
 class FilterState:
-    """A :class:`~csam_ros.core.exchange.validation.MeasurementFilter`'s stream stamps (and any
-    odometry sample it holds back) and its drop counts."""
+    """A :class:`~csam_ros.core.exchange.measurement_filter.MeasurementFilter`'s stream
+    stamps (and any odometry sample it holds back) and its drop counts."""
 
     streams: dict[tuple[str, str], tuple[float, tuple[float, Array, Array] | None]]
     drops: dict[str, dict[str, int]]

@@ -38,22 +38,18 @@ are dicts replaced, never mutated, so that a solve's snapshot of them stays as i
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, replace
-from enum import Enum
+from dataclasses import replace
 from pathlib import Path
 
-from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
-from csam_ros.core.exchange.local_map_checks import LocalMapArrays
-from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map, robot_map_arrays
-from csam_ros.core.exchange.map_updates import HeldMap, MapUpdate, MissingBaseError, apply_update
+from csam_ros.core.exchange.checkpoint import MergerState
+from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import (
     FAILED_SOLVE,
     DropCounter,
-    LocalMapError,
     RefusedMessageError,
 )
 from csam_ros.core.joining.config import CsamConfig
-from csam_ros.core.joining.local_views import in_threads
 from csam_ros.core.joining.result import CsamResult, MergerStats
 from csam_ros.core.merging.joiner import JoinReply, JoinRequest, MapSource
 from csam_ros.core.merging.notices import (
@@ -65,182 +61,26 @@ from csam_ros.core.merging.notices import (
     RowsDropped,
     SolveFailed,
     SolveGivenUp,
-    StateMissing,
-    StateUnusable,
     smoother_restart,
+)
+from csam_ros.core.merging.policy_inputs import (
+    BEHIND,
+    NO_MAP_HELD,
+    RESYNC_FIRST_S,
+    RESYNC_RETRY_S,
+    RESYNC_TIMEOUT_S,
+    UPDATE,
+    Arrival,
+    Found,
+    MapTaken,
+    MergerSettings,
+    ProvisionalMap,
+    SolveInputs,
+    SolveStart,
 )
 from csam_ros.core.merging.status import MergerStatus, RobotStatus, outside_trajectory
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.robot_map import RobotMap
-
-PROVISIONAL_CHECKS = 4  # looks per provisional_quiet (or period) whether a provisional map is due
-# asking a smoother for its whole local map (~/resync): a robot none is held of is asked this
-# long after it was subscribed to (its first update, whole, usually comes first); a request
-# stands this long before another is made (the whole map may take long on a slow link), and
-# one the smoother could not serve (nothing sent yet) is made again after RESYNC_RETRY_S
-RESYNC_FIRST_S = 3.0
-RESYNC_TIMEOUT_S = 30.0
-RESYNC_RETRY_S = 2.0
-NO_MAP_HELD = "no local map held yet"
-UPDATE = "local map update"  # what a refused map update is called
-BEHIND = "an update did not apply to the map held"
-
-
-@dataclass(frozen=True)
-class MergerSettings:
-    """The merger node's own parameters its decisions take (seconds of the wall clock)."""
-
-    robots: tuple[str, ...] = ()  # the allow-list (empty: every robot found)
-    reference: str = ""  # the configured reference ("": the first of robots)
-    reference_wait: float = 5.0
-    stale_after: float = 30.0  # 0: never stale
-    solve_period: float = 0.5
-    provisional_period: float = 1.0  # 0: no provisional maps
-    provisional_quiet: float = 0.5
-
-    @property
-    def configured_reference(self) -> str:
-        """``reference``, else the first of ``robots`` ("" when neither is set)."""
-        return self.reference or (self.robots[0] if self.robots else "")
-
-    def admits(self, robot: str) -> bool:
-        """Whether ``robot`` is joined (on the allow-list, or there is none)."""
-        return not self.robots or robot in self.robots
-
-    @property
-    def solve_check_period(self) -> float:
-        """s between looks whether a solve is to start."""
-        return max(self.solve_period, 0.01)
-
-    @property
-    def provisional_check_period(self) -> float | None:
-        """s between looks whether a provisional map is due (None: there are none)."""
-        if self.provisional_period <= 0.0:
-            return None
-        quickest = min(self.provisional_period, self.provisional_quiet)
-        return max(quickest / PROVISIONAL_CHECKS, 0.01)
-
-
-class Flushed(Enum):
-    """What ``~/flush`` did (its reply's message)."""
-
-    NOTHING_NEWER = "the joined map (or the running solve) holds the newest inputs"
-    GAVE_UP = "a solve of older inputs was given up: solving the newest"
-    SOLVING = "solving the newest inputs"
-
-    @classmethod
-    def of(cls, newer: bool, given_up: bool) -> Flushed:
-        """With inputs ``newer`` than the last solve's, and a running solve ``given_up``."""
-        if not newer:
-            return cls.NOTHING_NEWER
-        return cls.GAVE_UP if given_up else cls.SOLVING
-
-
-class Found(Enum):
-    """What to do with a robot newly seen publishing local map updates."""
-
-    JOIN = "join"  # subscribe to it
-    LEAVE_OUT = "leave out"  # not on the allow-list (said once)
-
-
-@dataclass(frozen=True)
-class SolveInputs:
-    """What one solve works on, taken from the policy: never changed afterwards."""
-
-    order: tuple[str, ...]  # the robots joined, the reference first
-    sources: Mapping[str, MapSource]  # each robot's map as held (refined by the solve)
-    logs: Mapping[str, RendezvousLog]
-    stamps: Mapping[str, int]
-    robots: tuple[str, ...]  # every known robot, in the solve's order
-
-
-@dataclass(frozen=True)
-class SolveStart:
-    """A solve to run now, and what making the reference for it has to say (if anything)."""
-
-    inputs: SolveInputs
-    notice: Notice | None = None
-
-
-@dataclass(frozen=True)
-class Arrival:
-    """An update on a robot's topic applied to the map held of it (:func:`arrival`)."""
-
-    held: HeldMap | None = None  # the map it built (None: it built none new)
-    checked: RobotMap | None = None  # ``held`` checked (None: not usable, or none)
-    behind: str = ""  # why it did not apply to the map held: the whole map is wanted
-    refused: RefusedMessageError | None = None  # why it, or the map it built, is not usable
-    whole: bool = False  # it was a complete update: a resync request no longer stands
-
-
-def arrival(robot: str, held: HeldMap | None, update: MapUpdate) -> Arrival:
-    """``update`` on ``robot``'s topic applied to ``held``, the map held of it, and the map
-    it builds checked (not refined: the solve process refines it). Pure: the node calls it
-    outside its lock (only the executor changes what is held), then
-    :meth:`MergerPolicy.map_arrived`."""
-    try:
-        new = apply_update(held, update)
-    except MissingBaseError as error:
-        return Arrival(behind=str(error))
-    except RefusedMessageError as error:
-        return Arrival(refused=error)
-    except ValueError as error:  # it does not fit the map held
-        return Arrival(refused=LocalMapError(f"{robot}: {error}"))
-    if new is held:
-        return Arrival()  # delivered again: nothing to solve
-    try:
-        return Arrival(new, held_robot_map(robot, new, refine=False), whole=update.complete)
-    except RefusedMessageError as error:
-        return Arrival(new, refused=error, whole=update.complete)
-
-
-@dataclass(frozen=True)
-class MapTaken:
-    """What an update on a robot's topic led to."""
-
-    notices: tuple[Notice, ...] = ()  # a refusal, a smoother restart
-    behind: str = ""  # why its whole map is wanted ("": it is not)
-    taken: bool = False  # a new local map is held: a provisional map may be due
-    give_up_solve: bool = False  # give up a running solve for the newest inputs (~/flush)
-
-
-@dataclass(frozen=True)
-class ProvisionalMap:
-    """A provisional joined map decided on: the newest local maps (in the join's robot order)
-    to be placed by ``last`` (:func:`~csam_ros.core.joining.warm_start.carried_forward`)."""
-
-    last: CsamResult
-    maps: list[RobotMap]
-    stamps: dict[str, int]
-    robots: tuple[str, ...]
-    stamp_tolerance: float  # s: carried_forward's
-
-
-def joined_maps(inputs: SolveInputs) -> dict[str, RobotMap]:
-    """Each robot's map as the solve of ``inputs`` joined it, in the join's order: one built
-    from updates refined to its sender's optimum, a saved one as it is (the joiner's maps,
-    :class:`~csam_ros.core.merging.joiner.Joiner`). :class:`LocalMapError` when one is not
-    usable (the solve joined that robot's previous map)."""
-
-    def joined(robot: str) -> RobotMap:
-        source = inputs.sources[robot]
-        if isinstance(source, LocalMapArrays):
-            return checked_robot_map(robot, source)
-        return held_robot_map(robot, source)
-
-    return dict(zip(inputs.order, in_threads(joined, inputs.order), strict=True))
-
-
-def read_state(path: Path) -> MergerState | StateMissing | StateUnusable:
-    """The merger state saved at ``path``, or why there is none to take up."""
-    if not path.exists():
-        return StateMissing(path)
-    try:
-        return MergerState.read(path)
-    except CheckpointError as err:
-        return StateUnusable(str(err))
-    except Exception as err:  # noqa: BLE001 - a node never dies of a bad file
-        return StateUnusable(f"{path}: {type(err).__name__}: {err}")
 
 
 class MergerPolicy:

@@ -27,7 +27,7 @@ from csam_ros.core.exchange.checkpoint import (
     read_npz,
     write_npz,
 )
-from csam_ros.core.exchange.validation import MeasurementFilter
+from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import robot_map_from_local_map, run_csam
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning

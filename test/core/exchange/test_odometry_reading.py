@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from csam_ros.core.exchange.checkpoint import FilterState, SmootherCheckpoint, ThinningState
+from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.validation import (
     NOT_FINITE,
     ODOMETRY_JUMP,
     POSE_UNKNOWN,
     QUATERNION_NOT_NORMALISED,
     InputBounds,
-    MeasurementFilter,
     OdometryReading,
     odometry_noise,
 )

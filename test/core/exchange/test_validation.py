@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.validation import (
     DUPLICATE,
     GAP_SIGMA,
@@ -17,7 +18,6 @@ from csam_ros.core.exchange.validation import (
     STAMP_JUMP,
     TOO_MANY_OBSERVATIONS,
     InputBounds,
-    MeasurementFilter,
 )
 from csam_ros.core.smoothing.local_map import LocalMap
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions

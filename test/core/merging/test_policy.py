@@ -29,7 +29,8 @@ from csam_ros.core.merging.notices import (
     SolveFailed,
     SolveGivenUp,
 )
-from csam_ros.core.merging.policy import (
+from csam_ros.core.merging.policy import MergerPolicy
+from csam_ros.core.merging.policy_inputs import (
     BEHIND,
     NO_MAP_HELD,
     RESYNC_FIRST_S,
@@ -38,7 +39,6 @@ from csam_ros.core.merging.policy import (
     Flushed,
     Found,
     MapTaken,
-    MergerPolicy,
     MergerSettings,
     SolveStart,
     arrival,
