@@ -118,16 +118,25 @@ def yaw_quaternion(yaw: float) -> Quaternion:
 def tf_message(transforms: Sequence[tuple[str, str, np.ndarray]], stamp_ns: int) -> TFMessage:
     """``/tf`` of planar transforms ``(parent, child, pose)``: frame ``child`` at ``pose``
     (x, y, yaw) in frame ``parent``, all at ``stamp_ns``."""
-    msg = TFMessage()
-    for parent, child, pose in transforms:
-        t = TransformStamped()
-        t.header.stamp = ns_to_time(stamp_ns)
-        t.header.frame_id = parent
-        t.child_frame_id = child
-        t.transform.translation.x, t.transform.translation.y = float(pose[0]), float(pose[1])
-        t.transform.rotation = yaw_quaternion(float(pose[2]))
-        msg.transforms.append(t)
-    return msg
+    return TFMessage(
+        transforms=[
+            transform_stamped(parent, child, stamp_ns, (pose[0], pose[1], 0.0), float(pose[2]))
+            for parent, child, pose in transforms
+        ]
+    )
+
+
+def transform_stamped(
+    parent: str, child: str, stamp_ns: int, translation: Sequence[float], yaw: float = 0.0
+) -> TransformStamped:
+    """Frame ``child`` at ``translation`` (x, y, z) in frame ``parent``, turned by ``yaw``."""
+    t = TransformStamped()
+    t.header.stamp = ns_to_time(stamp_ns)
+    t.header.frame_id, t.child_frame_id = parent, child
+    x, y, z = (float(c) for c in translation)
+    t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = x, y, z
+    t.transform.rotation = yaw_quaternion(yaw)
+    return t
 
 
 def odometry_message(

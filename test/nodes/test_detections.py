@@ -89,10 +89,9 @@ def camera_log() -> MultiRobotLog:
 def _tf_frames(log: MultiRobotLog) -> list[tuple[int, Any]]:
     """Each robot's observations of one stamp as one /tf message of tag poses in its camera
     optical frame (stamp order), with bad detections the adapters must drop."""
-    from geometry_msgs.msg import TransformStamped
     from tf2_msgs.msg import TFMessage
 
-    from csam_ros.ros.conversions import ns_to_time, stamp_to_ns
+    from csam_ros.ros.conversions import stamp_to_ns, transform_stamped
 
     frames: dict[tuple[int, str], list[tuple[str, np.ndarray, str]]] = {}
     for name, robot in log.robots.items():
@@ -120,18 +119,8 @@ def _tf_frames(log: MultiRobotLog) -> list[tuple[int, Any]]:
             tags.append(("tag36h11:3", np.array([0.0, 0.0, 1.0]), f"{key[1]}/map"))
     out = []
     for (stamp_ns, _), tags in sorted(frames.items()):
-        msg = TFMessage()
-        for child, p, parent in tags:
-            t = TransformStamped()
-            t.header.stamp = ns_to_time(stamp_ns)
-            t.header.frame_id = parent
-            t.child_frame_id = child
-            t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = (
-                float(c) for c in p
-            )
-            t.transform.rotation.w = 1.0
-            msg.transforms.append(t)
-        out.append((stamp_ns, msg))
+        transforms = [transform_stamped(parent, child, stamp_ns, p) for child, p, parent in tags]
+        out.append((stamp_ns, TFMessage(transforms=transforms)))
     return out
 
 
