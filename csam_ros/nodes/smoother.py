@@ -495,6 +495,7 @@ class Smoother(Node):
         self._resumed_after = self._odometry_period = None
         self._rendezvous_sent = None
         self.sender = UpdateSender(int.from_bytes(os.urandom(4)), self.sender.tolerance)
+        self.frames.reset()
 
     def take_up(self, saved: SmootherCheckpoint, local: CoreLocalMap, origin: str) -> None:
         """Go on from ``saved`` and its local map ``local`` (``origin``: where from, logged)

@@ -66,9 +66,7 @@ class MapToOdom:
         )
         self.map_frame, self.odom_frame = own["map_frame"], own["odom_frame"]
         self.base_frame, rate = own["base_frame"], own["tf_rate"]
-        self.odometry = OdometryFrame()
-        self.correction: np.ndarray | None = None
-        self._changed = False
+        self.reset()
         self._sent_ns = -1
         self._named: set[str] = set()  # frame names of the odometry already warned about
         self.publisher = publisher(node, TF)
@@ -76,6 +74,13 @@ class MapToOdom:
             node.create_timer(
                 1.0 / rate, guarded(node, drops, self.broadcast), clock=steady_clock()
             )
+
+    def reset(self) -> None:
+        """Forget the odometry frame and the correction (a reset or loaded smoother); the stamp
+        last sent stays, so no transform goes out twice with one stamp."""
+        self.odometry = OdometryFrame()
+        self.correction: np.ndarray | None = None
+        self._changed = False
 
     def add(self, msg: Odometry, samples: Iterable[tuple[OdometrySample, Pose | None]]) -> None:
         """Accepted odometry samples (with the poses their messages carried) of ``msg``; say

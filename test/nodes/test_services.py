@@ -319,6 +319,7 @@ def test_a_paused_smoother_drops_and_counts_its_input_and_a_reset_one_starts_emp
         assert reply.success and "\n" not in reply.message
         assert len(smoother.map.stamps) == 0 and smoother.published_ns == -1
         assert smoother.drops.as_dict() == {} and smoother.sender.session != session
+        assert smoother.frames.correction is None  # no map -> odom of the forgotten map
         # the data from the start again (earlier stamps than it had): taken, and its first
         # update is the whole map of the new session
         updates = len(client.updates)
@@ -329,6 +330,9 @@ def test_a_paused_smoother_drops_and_counts_its_input_and_a_reset_one_starts_emp
         assert first_new.session == smoother.sender.session and first_new.base_sequence == 0
         assert client.held is not None and client.held.session == smoother.sender.session
         assert len(smoother.map.stamps) > 2 and smoother.map.stamps[0] - t0 < 10.0
+        # map -> odom again from the replayed odometry: the latest key pose of the new map
+        assert smoother.frames.correction is not None
+        assert smoother.frames.odometry.pose_at(float(smoother.map.stamps[-1])) is not None
     finally:
         client.close()
 
