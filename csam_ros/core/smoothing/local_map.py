@@ -391,13 +391,8 @@ class LocalMap:
         calibrator.linearised_at = calibrator.estimate.copy()
         if len(self._keys) < 2:
             return
-        odo = calibrator.compose(
-            self._odo_t,
-            self._odo_u,
-            self._odo_q,
-            self._keys,
-            self._odo_rho if self._odo_rho.any() else None,
-        )
+        odo = self._odometry_between(self._keys)
+        assert isinstance(odo, motion.CalibratedOdometryFactors)
         self._rel = odo.relative_poses
         self._rel_w = sqrt_information_from_covariance(odo.covariances, f"{self.name} odometry")
         calibrator.jacobians = odo.calibration_jacobians
