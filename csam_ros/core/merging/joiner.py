@@ -87,6 +87,14 @@ class StateWritten:
     seconds: float = 0.0
 
 
+def robot_map_of(robot: str, source: MapSource) -> RobotMap:
+    """``robot``'s map as a join takes it: one built from updates refined to its sender's
+    optimum, a saved one as it is. :class:`LocalMapError` when it is not usable."""
+    if isinstance(source, HeldMap):
+        return held_robot_map(robot, source)
+    return checked_robot_map(robot, source)
+
+
 class Joiner:
     """The joins of one merger, each warm-started from the last (module docstring)."""
 
@@ -164,10 +172,7 @@ class Joiner:
         if source is None:
             return None
         try:
-            if isinstance(source, HeldMap):
-                self.maps[robot] = held_robot_map(robot, source)
-            else:
-                self.maps[robot] = checked_robot_map(robot, source)
+            self.maps[robot] = robot_map_of(robot, source)
             return None
         except LocalMapError as error:
             if robot not in self.maps and isinstance(source, HeldMap):

@@ -8,8 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Literal
 
-import numpy as np
-
+from csam_ros.core.model.stamps import matching_stamp
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 Level = Literal["info", "warning", "error"]  # the name of the logger's method
@@ -195,7 +194,6 @@ def smoother_restart(
     later = new.stamps[0] > old.stamps[0] + tolerance
     if not (later or len(new.stamps) < len(old.stamps)):
         return None
-    gap = np.abs(old.stamps[:, None] - new.stamps[None, :]).min(axis=1) > tolerance
     return SmootherRestart(
         robot=robot,
         poses=len(new.stamps),
@@ -203,5 +201,5 @@ def smoother_restart(
         old_poses=len(old.stamps),
         old_first=float(old.stamps[0]),
         old_last=float(old.stamps[-1]),
-        lost=int(gap.sum()),
+        lost=int((matching_stamp(new.stamps, old.stamps, tolerance) < 0).sum()),
     )

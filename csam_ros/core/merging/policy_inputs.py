@@ -10,8 +10,7 @@ from enum import Enum
 from pathlib import Path
 
 from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
-from csam_ros.core.exchange.local_map_checks import LocalMapArrays
-from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map
+from csam_ros.core.exchange.map_arrays import held_robot_map
 from csam_ros.core.exchange.map_updates import HeldMap, MapUpdate, MissingBaseError, apply_update
 from csam_ros.core.exchange.validation import (
     LocalMapError,
@@ -19,7 +18,7 @@ from csam_ros.core.exchange.validation import (
 )
 from csam_ros.core.joining.local_views import in_threads
 from csam_ros.core.joining.result import CsamResult
-from csam_ros.core.merging.joiner import MapSource
+from csam_ros.core.merging.joiner import MapSource, robot_map_of
 from csam_ros.core.merging.notices import (
     Notice,
     StateMissing,
@@ -176,14 +175,8 @@ def joined_maps(inputs: SolveInputs) -> dict[str, RobotMap]:
     from updates refined to its sender's optimum, a saved one as it is (the joiner's maps,
     :class:`~csam_ros.core.merging.joiner.Joiner`). :class:`LocalMapError` when one is not
     usable (the solve joined that robot's previous map)."""
-
-    def joined(robot: str) -> RobotMap:
-        source = inputs.sources[robot]
-        if isinstance(source, LocalMapArrays):
-            return checked_robot_map(robot, source)
-        return held_robot_map(robot, source)
-
-    return dict(zip(inputs.order, in_threads(joined, inputs.order), strict=True))
+    maps = in_threads(lambda robot: robot_map_of(robot, inputs.sources[robot]), inputs.order)
+    return dict(zip(inputs.order, maps, strict=True))
 
 
 def read_state(path: Path) -> MergerState | StateMissing | StateUnusable:

@@ -246,8 +246,6 @@ def odometry_poses_at(
 # ---------------------------------------------------------------------------------------------
 # odometry calibration (docs/METHOD.md, "Calibrating the odometry")
 
-CALIBRATION_NAMES = ("distance", "turn_driving", "turn_on_the_spot")
-
 
 def calibrated_inputs(
     inputs: ArrayLike, calibration: ArrayLike, driving_speed: float
