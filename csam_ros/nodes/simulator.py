@@ -137,7 +137,14 @@ class Simulator(Node):
                 self.topic_publishers[m.topic] = publisher(self, declaration(m.topic), m.topic)
         self.clock = publisher(self, CLOCK) if publish_clock else None
         self.tf = publisher(self, TF)  # odom -> base_link of the odometry published
-        self.odometry_transforms = OdometryTransforms()
+        # odom -> base_link of each odometry message, made once (None: not odometry)
+        transforms = OdometryTransforms()
+        self.odometry_tf = [
+            transforms.transform(robot, m.message)  # type: ignore[arg-type]
+            if (robot := ODOM.robot_of(m.topic)) is not None
+            else None
+            for m in self.messages
+        ]
         self.next_index = 0
         self.start_stamp_ns = self.messages[0].stamp_ns if self.messages else 0
         self.end_stamp_ns = self.messages[-1].stamp_ns if self.messages else 0
@@ -193,11 +200,9 @@ class Simulator(Node):
             if m.stamp_ns > horizon or (self.rate == 0 and published >= 200):
                 break
             self.topic_publishers[m.topic].publish(m.message)
-            robot = ODOM.robot_of(m.topic)
-            if robot is not None:
-                transform = self.odometry_transforms.transform(robot, m.message)  # type: ignore[arg-type]
-                if transform is not None:
-                    transforms.transforms.append(transform)
+            transform = self.odometry_tf[self.next_index]
+            if transform is not None:
+                transforms.transforms.append(transform)
             self.next_index += 1
             published += 1
         if transforms.transforms:

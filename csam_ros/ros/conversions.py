@@ -237,7 +237,8 @@ class OdometryTransforms:
         if not (math.isfinite(reading.stamp) and all(map(math.isfinite, reading.twist))):
             return None
         pose = frame.add(reading.stamp, reading.twist)
-        return tf_message([(parent, child, pose)], time_to_ns(msg.header.stamp)).transforms[0]
+        stamp_ns = time_to_ns(msg.header.stamp)
+        return transform_stamped(parent, child, stamp_ns, (pose[0], pose[1], 0.0), pose[2])
 
 
 def _observations_message(
