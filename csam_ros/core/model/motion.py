@@ -40,6 +40,7 @@ from csam_ros.core.model import se2
 from csam_ros.core.model.log import covariances_from_correlations
 
 Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 SERIES_THRESHOLD = 1e-2
 
@@ -103,10 +104,14 @@ def compose_segments(
     cov = np.asarray(covariances, dtype=float)
     starts = np.asarray(segment_starts, dtype=np.int64)
     total, J = segment_jacobians(increments, starts)
-    count = len(J)
+    return total, _propagated(J, cov, starts)
+
+
+def _propagated(J: Array, cov: Array, starts: Array) -> Array:
+    """Each segment's covariance ``sum J_k cov_k J_k^T`` over its pieces, symmetrised."""
     contrib = np.matmul(np.matmul(J, cov), J.transpose(0, 2, 1))
-    summed = np.add.reduceat(contrib.reshape(count, 9), starts, axis=0).reshape(-1, 3, 3)
-    return total, 0.5 * (summed + summed.transpose(0, 2, 1))
+    summed = np.add.reduceat(contrib.reshape(len(J), 9), starts, axis=0).reshape(-1, 3, 3)
+    return 0.5 * (summed + summed.transpose(0, 2, 1))
 
 
 @dataclass
@@ -165,6 +170,16 @@ def odometry_between(
     keys = np.asarray(key_stamps, dtype=float)
     if check:
         check_odometry(t, u, q)
+    _check_keys(t, keys)
+    if len(keys) == 1:
+        return OdometryFactors(keys, np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    U, G, cov, sample, starts = _pieces(t, u, q, keys, correlations)
+    rel, rel_cov = compose_segments(U, cov, starts)
+    return OdometryFactors(keys, rel, rel_cov)
+
+
+def _check_keys(t: Array, keys: Array) -> None:
+    """ValueError unless ``keys`` increase strictly within the odometry span ``t``."""
     if keys.ndim != 1 or len(keys) == 0:
         raise ValueError("key_stamps must be a non-empty one-dimensional array")
     bad = np.flatnonzero(np.diff(keys) <= 0)
@@ -175,8 +190,14 @@ def odometry_between(
         raise ValueError(
             f"key stamp {keys[outside[0]]} lies outside the odometry span [{t[0]}, {t[-1]}]"
         )
-    if len(keys) == 1:
-        return OdometryFactors(keys, np.zeros((0, 3)), np.zeros((0, 3, 3)))
+
+
+def _pieces(
+    t: Array, u: Array, q: Array, keys: Array, correlations: ArrayLike | None
+) -> tuple[Array, Array, Array, IntArray, IntArray]:
+    """The odometry between ``keys`` cut into pieces at sample and key stamps: each piece's
+    increment ``U``, its Jacobian ``G = dU/du``, its covariance, the sample it comes from,
+    and where each key interval's pieces start."""
     lo = np.searchsorted(t, keys[0], side="right")  # first sample ending after keys[0]
     hi = np.searchsorted(t, keys[-1], side="left")  # last sample needed
     inner = t[lo:hi]
@@ -196,8 +217,7 @@ def odometry_between(
         cov = G @ covariances_from_correlations(sigma, rho) @ G.transpose(0, 2, 1)
     segment = np.searchsorted(keys, piece_end, side="left") - 1
     starts = np.flatnonzero(np.diff(np.concatenate([[-1], segment])))
-    rel, rel_cov = compose_segments(U, cov, starts)
-    return OdometryFactors(keys, rel, rel_cov)
+    return U, G, cov, sample, starts
 
 
 def dead_reckoning(relative_poses: ArrayLike, start: ArrayLike = (0.0, 0.0, 0.0)) -> Array:
@@ -319,24 +339,16 @@ def calibrated_odometry_between(
     keys = np.asarray(key_stamps, dtype=float)
     c0 = np.asarray(calibration, dtype=float).reshape(3)
     u, du_dc = calibrated_inputs(inputs, c0, driving_speed)
-    plain = odometry_between(t, u, sigmas, keys, check=False, correlations=correlations)
+    _check_keys(t, keys)
     if len(keys) == 1:
-        return CalibratedOdometryFactors(
-            keys, plain.relative_poses, plain.covariances, c0, np.zeros((0, 3, 3))
-        )
-    lo = np.searchsorted(t, keys[0], side="right")
-    hi = np.searchsorted(t, keys[-1], side="left")
-    piece_end = np.union1d(t[lo:hi], keys)
-    dt = np.diff(piece_end)
-    piece_end = piece_end[1:]
-    sample = np.searchsorted(t, piece_end, side="left")
-    U, G = increment_and_jacobian(u[sample], dt)
-    segment = np.searchsorted(keys, piece_end, side="left") - 1
-    starts = np.flatnonzero(np.diff(np.concatenate([[-1], segment])))
-    _, J = segment_jacobians(U, starts)
+        empty = np.zeros((0, 3, 3))
+        return CalibratedOdometryFactors(keys, np.zeros((0, 3)), empty, c0, empty)
+    q = np.asarray(sigmas, dtype=float)
+    U, G, cov, sample, starts = _pieces(t, u, q, keys, correlations)
+    rel, J = segment_jacobians(U, starts)
     per_piece = J @ G @ du_dc[sample]
     dz_dc = np.add.reduceat(per_piece.reshape(len(U), 9), starts, axis=0).reshape(-1, 3, 3)
-    return CalibratedOdometryFactors(keys, plain.relative_poses, plain.covariances, c0, dz_dc)
+    return CalibratedOdometryFactors(keys, rel, _propagated(J, cov, starts), c0, dz_dc)
 
 
 def inputs_from_increments(increments: ArrayLike, dt: ArrayLike) -> Array:
