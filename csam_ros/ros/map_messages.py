@@ -139,6 +139,8 @@ def robot_map_to_message(
     msg.observation_robust_kernel, msg.observation_robust_parameter = kernel or ("", 0.0)
     msg.iterations = int(iterations)
     msg.cost = float(problem.cost())
+    if m.odometry_calibration is not None:
+        msg.odometry_calibration = np.asarray(m.odometry_calibration, dtype=float).reshape(-1)
     return msg
 
 
@@ -198,6 +200,7 @@ def local_map_arrays(msg: LocalMap, robot: str) -> LocalMapArrays:
         robust_kernel=msg.observation_robust_kernel,
         robust_parameter=float(msg.observation_robust_parameter),
         cost=float(msg.cost),
+        odometry_calibration=np.asarray(msg.odometry_calibration, dtype=float),
     )
 
 
@@ -248,6 +251,7 @@ def local_map_update_message(
     msg.observation_robust_parameter = float(c.robust_parameter)
     msg.iterations = int(iterations)
     msg.cost = float(c.cost)
+    msg.odometry_calibration = _numbers(c.odometry_calibration, "d")
     return msg
 
 
@@ -286,6 +290,7 @@ def map_update_from_message(msg: LocalMapUpdate, robot: str | None = None) -> Ma
         robust_kernel=msg.observation_robust_kernel,
         robust_parameter=float(msg.observation_robust_parameter),
         cost=float(msg.cost),
+        odometry_calibration=np.asarray(msg.odometry_calibration, dtype=float),
     )
     counts = {
         "poses": (len(changes.pose_stamps), len(changes.poses)),

@@ -102,6 +102,12 @@ def _robot_entry(r: RobotStatus, prefix: str, level: bytes) -> DiagnosticStatus:
         "update": r.update,
         "resync_requests": r.resync_requests,
     }
+    if r.odometry_calibration:
+        scale, sigma = r.odometry_calibration[:3], r.odometry_calibration[3:]
+        values["odometry_calibration"] = " ".join(
+            f"{name} {v:.4f}+-{s:.4f}"
+            for name, v, s in zip(("s", "k_d", "k_s"), scale, sigma, strict=True)
+        )
     return DiagnosticStatus(
         level=level,
         name=f"{prefix}/{r.robot}",

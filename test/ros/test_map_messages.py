@@ -3,12 +3,15 @@ the smoother had."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from csam_msgs.msg import JoinedMap
 from visualization_msgs.msg import Marker
 
-from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.exchange.local_map_checks import local_map_fault
+from csam_ros.core.exchange.map_arrays import robot_map_arrays, robot_map_from_arrays
 from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender
 from csam_ros.core.exchange.validation import LocalMapError
 from csam_ros.core.joining.join import join_maps
@@ -227,3 +230,41 @@ def test_an_update_whose_fields_differ_in_length_is_refused(robot2_updates, fiel
     setattr(msg, field, list(getattr(msg, field))[:-width])
     with pytest.raises(LocalMapError, match="robot2: .*(differ in length|per row)"):
         map_update_from_message(msg, "robot2")
+
+
+@pytest.fixture(scope="module")
+def calibrated_map():
+    log = simulate(load_scenario("map_joining"), seed=2).robots["robot1"]
+    local = build_local_map(log, options=LocalMapOptions(odometry_calibration=True))
+    return robot_map_from_local_map(local)
+
+
+def test_the_odometry_calibration_travels_in_both_local_map_messages(calibrated_map) -> None:
+    m = calibrated_map
+    assert m.odometry_calibration is not None
+    expected = np.asarray(m.odometry_calibration).reshape(-1)
+    whole = robot_map_from_message(robot_map_to_message(m, 123))
+    np.testing.assert_array_equal(np.asarray(whole.odometry_calibration).reshape(-1), expected)
+    update = UpdateSender(session=5).update(robot_map_arrays(m))
+    msg = local_map_update_message(update, m.name, 123)
+    np.testing.assert_array_equal(msg.odometry_calibration, expected)
+    received = map_update_from_message(msg, m.name).changes.arrays()
+    np.testing.assert_array_equal(received.odometry_calibration, expected)
+    held = robot_map_from_arrays(m.name, received)
+    np.testing.assert_array_equal(np.asarray(held.odometry_calibration).reshape(-1), expected)
+
+
+@pytest.mark.parametrize(
+    ("calibration", "fault"),
+    [
+        ([1.0, 0.9, 1.0], "shape"),
+        ([1.0, 0.9, 1.0, 0.01, 0.02, -0.03], "not positive"),
+        ([1.0, np.nan, 1.0, 0.01, 0.02, 0.03], "not finite"),
+        ([1.0, 0.9, 1.0, 0.01, np.inf, 0.03], "not finite"),
+    ],
+)
+def test_a_bad_odometry_calibration_is_refused(calibrated_map, calibration, fault) -> None:
+    arrays = robot_map_arrays(calibrated_map)
+    bad = replace(arrays, odometry_calibration=np.asarray(calibration))
+    assert fault in (local_map_fault(bad) or "")
+    assert local_map_fault(arrays) is None

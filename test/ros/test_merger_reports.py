@@ -3,6 +3,8 @@ and one status as both ``/csam/status`` and ``/diagnostics`` (levels, names, val
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -101,6 +103,19 @@ def test_one_status_gives_both_arrays_with_a_stale_robot_stale_in_diagnostics() 
     for d, s in zip(diagnostics.status, legacy.status, strict=True):
         assert d.message == s.message
         assert [(kv.key, kv.value) for kv in d.values] == [(kv.key, kv.value) for kv in s.values]
+
+
+def test_a_robots_entry_gives_its_odometry_calibration_when_estimated() -> None:
+    calibrated = replace(
+        _robot("robot2", "aligned"), odometry_calibration=(1.01, 0.65, 0.98, 0.01, 0.02, 0.03)
+    )
+    array = diagnostics_array(_status((_robot("robot1", "reference"), calibrated)), Time())
+    values = [{kv.key: kv.value for kv in s.values} for s in array.status[:2]]
+    assert "odometry_calibration" not in values[0]
+    assert (
+        values[1]["odometry_calibration"]
+        == "s 1.0100+-0.0100 k_d 0.6500+-0.0200 k_s 0.9800+-0.0300"
+    )
 
 
 def test_the_mergers_entry_takes_its_status_level() -> None:

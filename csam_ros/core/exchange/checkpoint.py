@@ -387,7 +387,7 @@ def missed_samples(gap: float, period: float | None) -> int:
 _MAP_ARRAYS = [
     f.name
     for f in fields(LocalMapArrays)
-    if f.name not in ("robust_kernel", "robust_parameter", "cost")
+    if f.name not in ("robust_kernel", "robust_parameter", "cost", "odometry_calibration")
 ]
 _MAP_INTS = ("feature_labels", "odometry_ends", "observation_pose", "observation_label")
 

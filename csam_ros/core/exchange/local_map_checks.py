@@ -4,7 +4,7 @@ any number of theirs is trusted. A refused map or row is counted under a reason 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -49,6 +49,8 @@ class LocalMapArrays:
     robust_kernel: str
     robust_parameter: float
     cost: float
+    # (0,) not estimated, or (6,): s, k_d, k_s and their sigmas (docs/METHOD.md 4.4.1)
+    odometry_calibration: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
 
 def _number_fault(name: str, values: NDArray[np.float64], bound: float) -> str | None:
@@ -154,6 +156,17 @@ def local_map_fault(m: LocalMapArrays) -> str | None:
         return f"robust kernel parameter {m.robust_parameter!r} is not a positive number"
     if not (np.isfinite(m.cost) and m.cost >= 0):
         return f"cost {m.cost!r} is not a finite non-negative number"
+    return _calibration_fault(np.asarray(m.odometry_calibration, dtype=float))
+
+
+def _calibration_fault(calibration: NDArray[np.float64]) -> str | None:
+    if calibration.shape not in ((0,), (6,)):
+        return f"odometry calibration of shape {calibration.shape}, not (0,) or (6,)"
+    # the scales of a map that has seen little can be anything; their sigmas are positive
+    if len(calibration) and not (
+        np.all(np.abs(calibration) <= MAX_COORDINATE) and np.all(calibration[3:] > 0)
+    ):
+        return f"odometry calibration {calibration.tolist()}: not finite or a sigma not positive"
     return None
 
 

@@ -82,6 +82,11 @@ def robot_map_arrays(m: RobotMap) -> LocalMapArrays:
         robust_kernel=kernel,
         robust_parameter=parameter,
         cost=float(problem.cost()),
+        odometry_calibration=(
+            np.zeros(0)
+            if m.odometry_calibration is None
+            else np.asarray(m.odometry_calibration, dtype=float).reshape(-1)
+        ),
     )
 
 
@@ -128,8 +133,16 @@ def robot_map_from_arrays(name: str, m: LocalMapArrays) -> RobotMap:
                 name=f"{name} observations",
             )
         )
+    calibration = np.asarray(m.odometry_calibration, dtype=float)
     return RobotMap(
-        name, problem, m.stamps, pose_ids, m.feature_labels, feature_ids, gauge_factor=0
+        name,
+        problem,
+        m.stamps,
+        pose_ids,
+        m.feature_labels,
+        feature_ids,
+        gauge_factor=0,
+        odometry_calibration=calibration.reshape(2, 3) if len(calibration) else None,
     )
 
 

@@ -73,6 +73,7 @@ class KeyedMap:
     robust_kernel: str
     robust_parameter: float
     cost: float
+    odometry_calibration: Array  # (0,) or (6,): as in LocalMapArrays
 
     @classmethod
     def of(cls, m: LocalMapArrays) -> KeyedMap:
@@ -96,6 +97,7 @@ class KeyedMap:
             robust_kernel=m.robust_kernel,
             robust_parameter=float(m.robust_parameter),
             cost=float(m.cost),
+            odometry_calibration=np.asarray(m.odometry_calibration, dtype=float).reshape(-1),
         )
 
     def arrays(self) -> LocalMapArrays:
@@ -119,6 +121,7 @@ class KeyedMap:
             robust_kernel=self.robust_kernel,
             robust_parameter=self.robust_parameter,
             cost=self.cost,
+            odometry_calibration=self.odometry_calibration,
         )
 
     def _pose_index(self, stamps: IntArray, what: str) -> IntArray:

@@ -525,6 +525,11 @@ class MergerPolicy:
                     restart_poses_lost=self.restart_poses_lost.get(robot, 0),
                     update=self.held[robot].sequence if robot in self.held else 0,
                     resync_requests=self.resync_requests.get(robot, 0),
+                    odometry_calibration=(
+                        tuple(self.held[robot].map.odometry_calibration.tolist())
+                        if robot in self.held
+                        else ()
+                    ),
                 )
             )
         return MergerStatus(

@@ -35,6 +35,8 @@ class RobotStatus:
     restart_poses_lost: int
     update: int  # the sequence of the update the map held was built by (0: none held)
     resync_requests: int
+    # its local map's odometry calibration: s, k_d, k_s and their sigmas; () not estimated
+    odometry_calibration: tuple[float, ...] = ()
 
     @property
     def health(self) -> Health:

@@ -473,7 +473,8 @@ def test_the_status_says_each_robots_state_and_the_counts(run: Run) -> None:
     assert all(r.health is Health.WARN for r in status.robots)
     assert status.health is Health.OK and status.converged is None and status.reference == ""
     merger.rendezvous("robot2", run.logs["robot2"])
-    merger.send(run.early["robot2"])
+    calibration = np.array([[1.01, 0.65, 0.98], [0.01, 0.02, 0.03]])
+    merger.send(replace(run.early["robot2"], odometry_calibration=calibration))
     merger.solve(run.joined)
     merger.clock.advance(6.0)
     merger.drops.add("robot_mismatch", 2)
@@ -484,6 +485,8 @@ def test_the_status_says_each_robots_state_and_the_counts(run: Run) -> None:
     assert robot1.message == "reference (stale: no local map for 6 s)"
     assert robot1.poses == len(run.joined.robots["robot1"].stamps) and robot1.update == 1
     assert robot1.solve_seconds == 1.5
+    assert robot1.odometry_calibration == ()
+    assert robot2.odometry_calibration == tuple(calibration.reshape(-1).tolist())
     assert status.solves == 1 and status.reference == "robot1"
     assert status.features == len(run.joined.features)
     assert status.associations == len(run.joined.associations)
