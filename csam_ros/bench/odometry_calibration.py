@@ -6,9 +6,10 @@ odometry (csam_ros/datasets/odometry_stress.py), simulated then on MR.CLAM.
 
 Simulated: two robots driving arcs and turning on the spot with ``k_d = 1.5`` (reported turn
 while driving 1.5x the real one) and distance 0.95; prints the estimated scales, the applied
-ones and the sigmas. MR.CLAM: whole C-SAM on the stressed data set with calibration off and
-on: robots that pass the local-map consistency check and align, landmark RMSE, the time of the
-local maps (the cost of the calibration unknowns per local-map update).
+ones and the sigmas, and the cost of the calibration unknowns per local-map update (the online
+policy: an update every ``UPDATE_PERIOD`` s of data, as a smoother publishes). MR.CLAM:
+whole C-SAM on the stressed data set with calibration off and on: robots that pass the
+local-map consistency check and align, landmark RMSE, the time of the local maps.
 """
 
 from __future__ import annotations
@@ -20,11 +21,24 @@ from dataclasses import replace
 import numpy as np
 
 from csam_ros.core.joining.pipeline import run_csam
+from csam_ros.core.model.log import RobotLog
 from csam_ros.core.smoothing.local_map import LocalMap
+from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
+from csam_ros.core.smoothing.local_map_state import UpdateReport
 from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.odometry_stress import OdometryStress, parse_odometry_stress, stress_log
 from csam_ros.datasets.simulation import RobotSpec, Scenario, Segment, feature_grid, simulate
+
+UPDATE_PERIOD = 5.0  # s of data between local-map updates (config/mrclam.yaml publish_period)
+
+
+def update_seconds(robot: RobotLog, calibrate: bool) -> np.ndarray:
+    """The time of each online update of ``robot``'s local map (the last one converged)."""
+    reports: list[UpdateReport] = []
+    options = LocalMapOptions(odometry_calibration=calibrate)
+    build_local_map(robot, options=options, window=UPDATE_PERIOD, on_update=reports.append)
+    return np.array([r.seconds for r in reports[:-1]])
 
 
 def arcs_scenario(stress: OdometryStress) -> Scenario:
@@ -64,6 +78,13 @@ def simulated(stress: OdometryStress) -> None:
             f"  {name}: scale {np.round(cal.scale, 4).tolist()} sigma "
             f"{np.round(cal.sigma, 4).tolist()} error {np.round(100 * error, 2).tolist()} % "
             f"| converged solve {times[False]:.3f} s off, {times[True]:.3f} s on"
+        )
+        off, on = update_seconds(robot, False), update_seconds(robot, True)
+        print(
+            f"    per local-map update ({len(on)} updates of {UPDATE_PERIOD:g} s of data): "
+            f"mean {1e3 * off.mean():.1f} ms off, {1e3 * on.mean():.1f} ms on "
+            f"({1e3 * (on.mean() - off.mean()):+.1f} ms); max {1e3 * off.max():.1f} / "
+            f"{1e3 * on.max():.1f} ms"
         )
 
 

@@ -10,6 +10,7 @@ paths can settle in different local minima (MR.CLAM robots 2-5: 0.1-0.2 m apart)
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -19,6 +20,7 @@ from csam_ros.core.model.log import RobotLog
 from csam_ros.core.sam.solver import SolverOptions
 from csam_ros.core.smoothing.local_map import LocalMap
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
+from csam_ros.core.smoothing.local_map_state import UpdateReport
 
 # Offline, a 2D SLAM file's robot (Cartesian feature points only, no robust kernel; its stamps
 # count poses, so a window of seconds means nothing there) is built in chunks of this many
@@ -35,6 +37,7 @@ def build_local_map(
     extra_pose_stamps: ArrayLike = (),
     options: LocalMapOptions | None = None,
     window: float | None = 60.0,
+    on_update: Callable[[UpdateReport], object] | None = None,
 ) -> LocalMap:
     """Offline: the local map of a whole robot log, solved to convergence.
 
@@ -44,7 +47,7 @@ def build_local_map(
     kernels) out of the poor local minima that one batch solve from dead reckoning can end
     in; ``window=None`` starts the one batch solve from dead reckoning instead. A 2D SLAM
     file's robot is built in chunks of :data:`FILE_CHUNK` odometry samples instead, each
-    solved to :data:`CHUNK_SOLVER`'s tolerance.
+    solved to :data:`CHUNK_SOLVER`'s tolerance. ``on_update`` sees each update's report.
     """
     local = LocalMap(log.name, options)
     if window is None or len(log.odometry.stamps) == 0:
@@ -78,7 +81,11 @@ def build_local_map(
         local.add_log_part(log, slice(o_start, oc), orders[0][f_start:fc], orders[1][p_start:pc])
         o_start, f_start, p_start = oc, fc, pc
         if not (oc == len(odo.stamps) and fc == len(f.stamps) and pc == len(p.stamps)):
-            local.update()
+            report = local.update()
+            if on_update is not None:
+                on_update(report)
     local.options = own_options
-    local.update(converge=True)
+    report = local.update(converge=True)
+    if on_update is not None:
+        on_update(report)
     return local

@@ -80,7 +80,11 @@ def test_online_equals_offline_batch_with_late_pose_insertion():
 def test_offline_windows_and_one_batch_give_the_same_map():
     log, _, _, _ = make_log(seed=5)
     batch = build_local_map(log, window=None)
-    windowed = build_local_map(log, window=7.0)
+    reports = []
+    windowed = build_local_map(log, window=7.0, on_update=reports.append)
+    span = log.odometry.stamps[-1] - log.odometry.stamps[0]
+    assert len(reports) == int(np.ceil(span / 7.0))  # a window's update each, the last converged
+    assert sum(r.new_poses for r in reports) == len(windowed.stamps)
     np.testing.assert_array_equal(batch.stamps, windowed.stamps)
     np.testing.assert_allclose(batch.poses[:, :2], windowed.poses[:, :2], atol=1e-7)
     np.testing.assert_allclose(batch.landmarks, windowed.landmarks, atol=1e-7)
