@@ -22,13 +22,15 @@ import numpy as np
 
 from csam_ros.core.joining.pipeline import run_csam
 from csam_ros.core.model.log import RobotLog
+from csam_ros.core.sam.factors import Cauchy
+from csam_ros.core.smoothing.fold_check import ConsistencyOptions, factor_outliers
 from csam_ros.core.smoothing.local_map import LocalMap
 from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.core.smoothing.local_map_state import UpdateReport
 from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.odometry_stress import OdometryStress, parse_odometry_stress, stress_log
-from csam_ros.datasets.simulation import RobotSpec, Scenario, Segment, feature_grid, simulate
+from csam_ros.datasets.simulation import arcs_scenario, simulate
 
 UPDATE_PERIOD = 5.0  # s of data between local-map updates (config/mrclam.yaml publish_period)
 
@@ -39,25 +41,6 @@ def update_seconds(robot: RobotLog, calibrate: bool) -> np.ndarray:
     options = LocalMapOptions(odometry_calibration=calibrate)
     build_local_map(robot, options=options, window=UPDATE_PERIOD, on_update=reports.append)
     return np.array([r.seconds for r in reports[:-1]])
-
-
-def arcs_scenario(stress: OdometryStress) -> Scenario:
-    """Two robots on arcs, straight legs and turns on the spot among a grid of features."""
-    rng = np.random.default_rng(3)
-    features = feature_grid((0.0, 0.0), (16.0, 16.0), 1.5, 0.3, rng)
-    program = (
-        Segment(20.0, 0.4, 0.25),
-        Segment(4.0, 0.0, 0.6),
-        Segment(15.0, 0.4, 0.0),
-        Segment(20.0, 0.3, -0.3),
-        Segment(4.0, 0.0, -0.6),
-        Segment(20.0, 0.4, 0.2),
-    )
-    robots = tuple(
-        RobotSpec(name, pose, program, odometry_stress=stress)
-        for name, pose in (("robot1", (-3.0, -3.0, 0.0)), ("robot2", (3.0, 2.0, np.pi)))
-    )
-    return Scenario("odometry_calibration", 0.05, features, robots, seed=5)
 
 
 def simulated(stress: OdometryStress) -> None:
@@ -86,6 +69,37 @@ def simulated(stress: OdometryStress) -> None:
             f"({1e3 * (on.mean() - off.mean()):+.1f} ms); max {1e3 * off.max():.1f} / "
             f"{1e3 * on.max():.1f} ms"
         )
+
+
+SLIPS = ((30.0, 0.6), (50.0, -0.8), (40.0, 1.2))  # (s after the start, rad) a turn never made
+
+
+def slips() -> None:
+    """A fold cannot persist: each arcs robot with a slip besides the stress, its local map
+    (Cauchy kernel, calibration on, online updates every UPDATE_PERIOD s) without and with
+    ``fold_recovery``."""
+    print("slips (turn reported, never made), calibration on, Cauchy kernel:")
+    for at, turn in SLIPS:
+        stress = OdometryStress(turn_driving=1.5, resample_hz=8, slip_at=at, slip_turn=turn)
+        for name, robot in simulate(arcs_scenario(stress)).robots.items():
+            row = []
+            for recover in (False, True):
+                options = LocalMapOptions(
+                    robust=Cauchy(1.0), odometry_calibration=True, fold_recovery=recover
+                )
+                clock = time.perf_counter()
+                local = build_local_map(robot, options=options, window=UPDATE_PERIOD)
+                seconds = time.perf_counter() - clock
+                limits = ConsistencyOptions()
+                counts = factor_outliers(local.problem, limits.gate_probability)
+                verdict = "passes" if not counts.reasons(limits) else "fails"
+                row.append(
+                    f"{'with' if recover else 'without'} recovery: {verdict}, "
+                    f"{counts.observation_outliers}/{counts.observation_factors} observations "
+                    f"beyond the gate, k_d {local.odometry_calibration.scale[1]:.4f}, "
+                    f"{local.fold_recoveries} recoveries, {seconds:.1f} s"
+                )
+            print(f"  slip {turn:+.1f} rad at {at:g} s, {name}: " + " | ".join(row))
 
 
 def mrclam(directory: str, duration: float | None, stress: OdometryStress) -> None:
@@ -126,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stress", default="turn_driving=1.54,resample_hz=8")
     a = parser.parse_args(argv)
     simulated(OdometryStress(turn_driving=1.5, distance=0.95))
+    slips()
     if a.mrclam:
         mrclam(a.mrclam, a.duration, parse_odometry_stress(a.stress))
     return 0

@@ -7,6 +7,9 @@ input piecewise constant over windows of ``1/resample_hz`` s (the mean input of 
 reported at its last sample's stamp, so that the composed motion is kept; sigmas scaled by
 ``sqrt(sample period / window)``: the same noise density). A local map with
 ``odometry_calibration`` should estimate ``(1/distance, 1/turn_driving, 1/turn_spot)``.
+``slip_turn`` (rad, 0: none) is a turn the odometry reports and the robot never makes (a
+wheel slip or a bump), in the sample ``slip_at`` s after the first: no calibration explains
+it, ``fold_recovery`` must (docs/METHOD.md, a fold cannot persist).
 """
 
 from __future__ import annotations
@@ -28,14 +31,16 @@ class OdometryStress:
     distance: float = 1.0
     resample_hz: float = 0.0
     driving_speed: float = 0.02
+    slip_at: float = 0.0
+    slip_turn: float = 0.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if not np.isfinite(value) or value < 0 or (value == 0 and f.name in SCALES):
-                raise ValueError(
-                    f"odometry stress: {f.name} must be a positive number, not {value}"
-                )
+            negative = value < 0 and f.name != "slip_turn"
+            if not np.isfinite(value) or negative or (value == 0 and f.name in SCALES):
+                kind = "finite" if f.name == "slip_turn" else "positive"
+                raise ValueError(f"odometry stress: {f.name} must be a {kind} number, not {value}")
 
     @property
     def applied(self) -> np.ndarray:
@@ -68,6 +73,9 @@ def stress_odometry(odometry: OdometryLog, stress: OdometryStress) -> OdometryLo
     u[:, :2] *= stress.distance
     driving = np.abs(u[:, 0]) > stress.driving_speed  # as reported, as the calibration sees it
     u[:, 2] *= np.where(driving, stress.turn_driving, stress.turn_spot)
+    if stress.slip_turn and len(t) > 1:
+        i = min(max(int(np.searchsorted(t, t[0] + stress.slip_at)), 1), len(t) - 1)
+        u[i, 2] += stress.slip_turn / (t[i] - t[i - 1])  # sample i holds (t[i-1], t[i]]
     if not stress.resample_hz or len(t) < 2:
         return OdometryLog(t.copy(), u, np.array(odometry.sigmas), odometry.correlations)
     window = np.floor((t - t[0]) * stress.resample_hz - 1e-9).astype(np.int64)

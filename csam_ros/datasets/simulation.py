@@ -316,3 +316,22 @@ def simulate_robot_log(
     )
     robot = log.RobotLog("robot1", log.OdometryLog(stamps, meas_u, sig), features, rendezvous)
     return robot, truth, stamps, lm
+
+
+def arcs_scenario(stress: OdometryStress) -> Scenario:
+    """Two robots on arcs, straight legs and turns on the spot among a grid of features."""
+    rng = np.random.default_rng(3)
+    features = feature_grid((0.0, 0.0), (16.0, 16.0), 1.5, 0.3, rng)
+    program = (
+        Segment(20.0, 0.4, 0.25),
+        Segment(4.0, 0.0, 0.6),
+        Segment(15.0, 0.4, 0.0),
+        Segment(20.0, 0.3, -0.3),
+        Segment(4.0, 0.0, -0.6),
+        Segment(20.0, 0.4, 0.2),
+    )
+    robots = tuple(
+        RobotSpec(name, pose, program, odometry_stress=stress)
+        for name, pose in (("robot1", (-3.0, -3.0, 0.0)), ("robot2", (3.0, 2.0, np.pi)))
+    )
+    return Scenario("odometry_calibration", 0.05, features, robots, seed=5)

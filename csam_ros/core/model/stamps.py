@@ -25,3 +25,14 @@ def matching_stamp(stamps: ArrayLike, query: ArrayLike, tolerance: float) -> Int
         return np.full(q.shape, -1, dtype=np.int64)
     nearest = nearest_stamp(t, q)
     return np.where(np.abs(t[nearest] - q) <= tolerance, nearest, -1).astype(np.int64)
+
+
+def regular_stamps(stamps: NDArray[np.float64], interval: float, t0: float) -> NDArray[np.float64]:
+    """The grid ``t0 + k * interval`` over the span of sorted odometry ``stamps``, but only
+    where consecutive samples are at most ``interval`` apart, so that a gap in the odometry
+    adds no key pose (the grid points of each short interval ``(t_{i-1}, t_i]``)."""
+    scaled = (stamps - t0) / interval
+    dense = np.flatnonzero(np.diff(stamps) <= interval)
+    k = np.concatenate([np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
+    k = np.unique(k[(k >= 0) & (k <= np.floor(scaled[-1]))])
+    return t0 + interval * k

@@ -42,8 +42,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.model import motion, se2, sensor
+from csam_ros.core.model.chi_square import chi2_quantile
 from csam_ros.core.model.log import RobotLog, correlations_valid
-from csam_ros.core.model.stamps import nearest_stamp
+from csam_ros.core.model.stamps import nearest_stamp, regular_stamps
 from csam_ros.core.sam.covariance import (
     factorize_at_estimate,
     marginal_covariance,
@@ -60,6 +61,8 @@ from csam_ros.core.sam.factors import (
 from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.selected_inverse import SelectedInverse
 from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions
+from csam_ros.core.smoothing.fold_check import ConsistencyOptions, factor_outliers
+from csam_ros.core.smoothing.fold_recovery import robust_odometry_solve, slipped_sample_scale
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.core.smoothing.local_map_state import LocalMapState, UpdateReport, check_state
 from csam_ros.core.smoothing.odometry_calibration import (
@@ -108,6 +111,8 @@ class LocalMap:
         self._system: NormalEquations | None = None
         self._inverse: SelectedInverse | None = None
         self.last_report: UpdateReport | None = None
+        self.fold_recoveries = 0  # recoveries that scaled some odometry (options.fold_recovery)
+        self._next_recovery_keys = 0
 
     # -- feeding ------------------------------------------------------------------------------
 
@@ -293,7 +298,7 @@ class LocalMap:
         if self.options.key_interval:
             # grid keys of the samples before the last update are keys already (or in a gap)
             since = max(int(np.searchsorted(self._odo_t, self._last_solved_odometry)) - 1, 0)
-            candidates.append(_regular_keys(self._odo_t[since:], self.options.key_interval, t0))
+            candidates.append(regular_stamps(self._odo_t[since:], self.options.key_interval, t0))
         cand = np.clip(np.unique(np.concatenate(candidates)), t0, t_end)
         new_keys = self._new_key_stamps(cand, tol)
         inserted = self._insert_keys(new_keys)
@@ -302,6 +307,8 @@ class LocalMap:
         solve = self._solve(
             self.options.solver if converge else self.options.online_solver, converge
         )
+        if self.options.fold_recovery and len(self._keys) > 1 and self._recover_fold():
+            self.fold_recoveries += 1
         self._last_solved_odometry = t_end
         self.last_report = UpdateReport(
             new_poses=len(new_keys),
@@ -386,16 +393,49 @@ class LocalMap:
             self._odo_t, self._odo_u, self._odo_q, keys, check=False, correlations=rho
         )
 
-    def _recompose_odometry(self, calibrator: OdometryCalibrator) -> None:
-        """Compose every odometry factor anew at the current calibration estimate."""
-        calibrator.linearised_at = calibrator.estimate.copy()
+    def _recompose_odometry(self) -> None:
+        """Compose every odometry factor anew (at the current calibration estimate)."""
+        calibrator = self._calibrator
+        if calibrator is not None:
+            calibrator.linearised_at = calibrator.estimate.copy()
         if len(self._keys) < 2:
             return
         odo = self._odometry_between(self._keys)
-        assert isinstance(odo, motion.CalibratedOdometryFactors)
         self._rel = odo.relative_poses
         self._rel_w = sqrt_information_from_covariance(odo.covariances, f"{self.name} odometry")
-        calibrator.jacobians = odo.calibration_jacobians
+        if calibrator is not None:
+            assert isinstance(odo, motion.CalibratedOdometryFactors)
+            calibrator.jacobians = odo.calibration_jacobians
+
+    def _take_solution(self, problem: Problem) -> bool:
+        """Take the poses, features (and calibration) solved in ``problem``; whether the
+        calibration moved enough to compose the odometry anew."""
+        n = len(self._keys)
+        self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
+        if self._landmark_labels:  # a calibration variable may sit between
+            ids = problem.indices([("l", lab) for lab in self._landmark_labels])
+            self._landmark_values = problem.values_of(ids).reshape(-1, 2).copy()
+        return self._calibrator is not None and n > 1 and self._calibrator.take(problem)
+
+    def _recover_fold(self) -> int:
+        """When the map fails its check, find the odometry it cannot believe and solve again
+        (:mod:`~csam_ros.core.smoothing.fold_recovery`); the odometry factors whose samples were
+        scaled. Tried again only once the map has grown by half since the last try."""
+        limits = ConsistencyOptions()
+        folded = factor_outliers(self.problem, limits.gate_probability).reasons(limits)
+        if not folded or len(self._keys) < self._next_recovery_keys:
+            return 0
+        self._next_recovery_keys = (3 * len(self._keys)) // 2
+        problem = self._build_problem(calibrated=self._calibrator is not None)
+        squared = robust_odometry_solve(problem, self.options.solver)
+        scale = slipped_sample_scale(self._odo_t, self._keys, squared, limits.gate_probability)
+        if not np.any(scale > 1.0):
+            return 0
+        self._take_solution(problem)
+        self._odo_q = self._odo_q * scale[:, None]
+        self._recompose_odometry()
+        self._solve(self.options.solver, converge=True)
+        return int(np.count_nonzero(squared > chi2_quantile(limits.gate_probability, 3)))
 
     def _with_key_pose(self, start: int, covered: int) -> int:
         """``covered`` less the last features with no key pose within ``stamp_tolerance``:
@@ -483,17 +523,9 @@ class LocalMap:
         for _ in range(CALIBRATION_ROUNDS if calibrating and converge else 1):
             problem = self._build_problem(calibrated=calibrating)
             report = problem.solve(options)
-            n = len(self._keys)
-            self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
-            if calibrator is None:
-                self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
+            if not self._take_solution(problem):
                 break
-            if self._landmark_labels:  # the calibration variable sits between
-                ids = problem.indices([("l", lab) for lab in self._landmark_labels])
-                self._landmark_values = problem.values_of(ids).reshape(-1, 2).copy()
-            if not calibrator.take(problem):
-                break
-            self._recompose_odometry(calibrator)
+            self._recompose_odometry()
         if calibrating:
             problem = self._build_problem()
         self._problem = problem
@@ -565,7 +597,7 @@ class LocalMap:
         local._last_solved_odometry = float(s.last_solved_odometry)
         if local._calibrator is not None:
             local._calibrator.restore(s.odometry_calibration, name)
-            local._recompose_odometry(local._calibrator)
+            local._recompose_odometry()
         if s.solved:
             local._problem = local._build_problem()
         return local
@@ -662,14 +694,3 @@ class LocalMap:
         keys = [("x", int(i)) for i in idx]
         r, _ = marginal_sqrt_information(self.problem, keys, self._factorization())
         return r, self._keys[idx].copy(), self._key_values[idx].copy()
-
-
-def _regular_keys(stamps: Array, interval: float, t0: float) -> Array:
-    """The grid ``t0 + k * interval`` over the span of sorted odometry ``stamps``, but only
-    where consecutive samples are at most ``interval`` apart, so that a gap in the odometry
-    adds no key pose (the grid points of each short interval ``(t_{i-1}, t_i]``)."""
-    scaled = (stamps - t0) / interval
-    dense = np.flatnonzero(np.diff(stamps) <= interval)
-    k = np.concatenate([np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
-    k = np.unique(k[(k >= 0) & (k <= np.floor(scaled[-1]))])
-    return t0 + interval * k

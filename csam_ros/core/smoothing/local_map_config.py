@@ -28,6 +28,7 @@ class LocalMapOptions:
     driving_speed: float = 0.02  # m/s: |v| above it turns with k_d, else k_s
     calibration_sigmas: tuple[float, float, float] = (0.1, 0.5, 0.5)  # prior at (1, 1, 1)
     calibration_relinearise: float = 1e-4  # recompose the odometry when c moved this much
+    fold_recovery: bool = False  # a map failing its check distrusts the odometry it refutes
 
 
 SMOOTHER = "smoother"  # the node that takes LocalMapConfig fields as parameters
@@ -110,12 +111,20 @@ class LocalMapConfig(Section):
         node=SMOOTHER,
     )
 
+    fold_recovery: bool = setting(
+        False,
+        "a local map that fails its consistency check finds the odometry it refutes and "
+        "solves again with it distrusted (docs/METHOD.md, a fold cannot persist)",
+        node=SMOOTHER,
+    )
+
     def options(self) -> LocalMapOptions:
         return LocalMapOptions(
             key_interval=self.key_interval or None,
             robust=robust_kernel(self.robust_kernel, self.robust_threshold),
             solver=SolverOptions(max_step_scale=self.converged_step_scale),
             odometry_calibration=self.odometry_calibration,
+            fold_recovery=self.fold_recovery,
             driving_speed=self.driving_speed,
             calibration_sigmas=(
                 self.calibration_sigma_distance,
