@@ -34,6 +34,8 @@ from pathlib import Path
 import zstandard
 from mcap.records import Channel, Schema
 
+from csam_ros.core.model.regular_files import open_regular
+
 MAGIC = b"\x89MCAP0\r\n"
 
 OP_FOOTER = 0x02
@@ -606,7 +608,7 @@ def _loose_record(scan: McapScan, opcode: int, body: _Cursor) -> None:
 
 def scan_file(path: Path) -> McapScan:
     """Check every chunk of an MCAP file and list what it holds (OSError if unreadable)."""
-    with path.open("rb") as stream:
+    with open_regular(path) as stream:
         size = stream.seek(0, 2)
         scan = McapScan(path=path, size=size, complete=False)
         if size <= len(MAGIC):
@@ -663,7 +665,7 @@ def iter_messages(
             message = heapq.heappop(heap)[3]
             yield scan.channels[message.channel_id], message
         return
-    with scan.path.open("rb") as stream:
+    with open_regular(scan.path) as stream:
         size = stream.seek(0, 2)
         with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
             i = 0
