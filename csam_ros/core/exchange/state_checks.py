@@ -138,6 +138,12 @@ def check_local_map_state(name: str, s: LocalMapState) -> None:
     if np.any(counts > 1):
         raise StateFieldError(f"{name}/landmark_labels: {int(labels[counts > 1][0])} appears twice")
     check_values(f"{name}/landmark_values", s.landmark_values, MAX_COORDINATE)
+    integrated = np.asarray(s.feature_labels[: s.integrated_features])
+    unknown = integrated[~np.isin(integrated, s.landmark_labels)]
+    if len(unknown):
+        raise StateFieldError(
+            f"{name}/feature_labels: integrated feature {int(unknown[0])} is no landmark"
+        )
     check_integer(f"{name}/dropped_features", s.dropped_features, 0, MAX_COUNT)
     if s.last_solved_odometry != -np.inf:
         check_number(
