@@ -38,11 +38,12 @@ bench: setup-dev
 	$(PY) -m csam_ros.bench.smoothing
 	$(PY) -m csam_ros.bench.joining
 
-# the fuzz tests of make test with many more examples (about 5 minutes)
+# the fuzz tests of make test with many more examples (about 6 minutes)
 fuzz: setup-dev
 	CSAM_FUZZ_EXAMPLES=1000 CSAM_BAG_FUZZ_EXAMPLES=3000 $(PY) -m pytest -q -p no:cacheprovider \
 		test/nodes/test_smoother_fuzz.py test/nodes/test_merger_fuzz.py \
-		test/bag/test_bag_fuzz.py test/datasets/test_importer_fuzz.py
+		test/bag/test_bag_fuzz.py test/datasets/test_importer_fuzz.py \
+		test/core/exchange/test_checkpoint_fuzz.py
 
 lint: setup-dev
 	$(VENV)/bin/ruff check .

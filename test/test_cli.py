@@ -650,3 +650,120 @@ def test_replay_of_a_bag_cut_in_half_says_what_it_recovered(mode: str, tmp_path:
     assert sorted(result.robots) == ["robot1", "robot2"]
     for robot in result.robots.values():  # the readable part: the whole bag gives 70 poses
         assert robot.alignment in ("reference", "aligned") and 0 < len(robot.stamps) < 70
+
+
+def _bag_copy(tmp: Path, **metadata: object) -> Path:
+    """A copy of bags/map_joining with ``metadata`` set in its metadata.yaml."""
+    import shutil
+
+    import yaml
+
+    bag = Path(shutil.copytree(BAG, tmp / "bag"))
+    document = yaml.safe_load((bag / "metadata.yaml").read_text())
+    document["rosbag2_bagfile_information"].update(metadata)
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(document))
+    return bag
+
+
+def _fifo_bag(tmp: Path) -> Path:
+    """A bag directory whose bag_0.mcap is a FIFO (no metadata.yaml)."""
+    import os
+
+    bag = tmp / "fifo_bag"
+    bag.mkdir()
+    os.mkfifo(bag / "bag_0.mcap")
+    return bag
+
+
+def _state_with_scalar(tmp: Path) -> Path:
+    """An offline replay's state whose odometry stamps are a scalar, not an array."""
+    from straight_logs import straight_robot
+
+    from csam_ros.core.exchange.checkpoint import FilterState, OfflineState, read_npz, write_npz
+
+    path = tmp / "state.npz"
+    OfflineState({"robot1": straight_robot("robot1", 4)}, FilterState({}, {})).write(path)
+    header, arrays = read_npz(path, "offline")
+    arrays["logs/robot1/odometry/stamps"] = np.float64(3.0)
+    write_npz(path, "offline", header, arrays)
+    return path
+
+
+def _fifo(path: Path) -> Path:
+    import os
+
+    os.mkfifo(path)
+    return path
+
+
+HOSTILE_FILES = {
+    # name: (arguments of csam given a tmp directory, what the one stderr line must name)
+    "bandwidth_files_not_a_list": (
+        lambda t: ["bandwidth", str(_bag_copy(t, files=5))],
+        "metadata.yaml: files is 5, not a list",
+    ),
+    "bag_recover_files_not_a_list": (
+        lambda t: ["bag", "recover", str(_bag_copy(t, files=5)), "--out", str(t / "r")],
+        "metadata.yaml: files is 5, not a list",
+    ),
+    "replay_topics_not_a_list": (
+        lambda t: ["replay", str(_bag_copy(t, topics_with_message_count=5)), "--offline"],
+        "metadata.yaml: topics_with_message_count is 5, not a list",
+    ),
+    "bandwidth_file_listed_twice": (
+        lambda t: ["bandwidth", str(_bag_copy(t, relative_file_paths=["bag_0.mcap"] * 2))],
+        "metadata.yaml names bag_0.mcap twice",
+    ),
+    "bandwidth_fifo": (
+        lambda t: ["bandwidth", str(_fifo_bag(t))],
+        "bag_0.mcap: a FIFO, not a regular file",
+    ),
+    "bag_recover_fifo": (
+        lambda t: ["bag", "recover", str(_fifo_bag(t)), "--out", str(t / "r")],
+        "bag_0.mcap: a FIFO, not a regular file",
+    ),
+    "import_slam2d_id_beyond_64_bits": (
+        lambda t: [
+            "import",
+            "slam2d",
+            str(_write(t / "f.g2o", "EDGE_SE2 0 100000000000000000000 1 0 0 1 0 0 1 0 1\n")),
+            "--out",
+            str(t / "out"),
+        ],
+        "f.g2o:1: EDGE_SE2 has an id beyond",
+    ),
+    "replay_resume_scalar_array": (
+        lambda t: ["replay", str(BAG), "--offline", "--resume", str(_state_with_scalar(t))],
+        "state.npz: array 'logs/robot1/odometry/stamps' is a scalar, not an array",
+    ),
+    "replay_save_state_onto_a_fifo": (
+        lambda t: ["replay", str(BAG), "--offline", "--save-state", str(_fifo(t / "s.npz"))],
+        "--save-state: " + "{t}/s.npz: a FIFO, not a regular file",
+    ),
+    "evaluate_summary_not_utf8": (
+        lambda t: ["evaluate", str(_write(t / "summary.json", BINARY).parent)],
+        "summary.json: not UTF-8 text (byte 0)",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_FILES))
+def test_hostile_files_end_in_one_line_and_exit_code_2(case: str, tmp_path: Path, capsys) -> None:
+    """Files made to break the command (a metadata.yaml section of the wrong kind, a FIFO
+    where a file belongs, an id beyond 64 bits, a scalar in a state file, a device or FIFO as
+    the output, a summary that is not text): one line naming the file, exit code 2, never a
+    traceback or a wait. Run in this process (no interpreter start per case)."""
+    from waiting import no_hang
+
+    from csam_ros.cli import main
+
+    make_args, expected = HOSTILE_FILES[case]
+    args = make_args(tmp_path)
+    if args[0] == "replay":
+        args += ["--out", str(tmp_path / "out")]
+    with no_hang(120.0):
+        code = main(args)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"csam {args[0]}: "), lines[0]
+    assert expected.format(t=tmp_path) in lines[0], lines[0]

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -21,3 +23,20 @@ def wait_until(
         else:
             step()
     return True
+
+
+@contextmanager
+def no_hang(seconds: float = 10.0) -> Iterator[None]:
+    """Fail with TimeoutError where the body blocks longer than ``seconds`` (SIGALRM: the
+    main thread only), e.g. a reader that would wait forever on a FIFO."""
+
+    def expired(signum: int, frame: Any) -> None:
+        raise TimeoutError(f"blocked for more than {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)

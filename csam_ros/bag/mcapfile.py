@@ -1,16 +1,21 @@
 """One MCAP file read so that damage never turns into a wrong message or a traceback.
 
 Every chunk is checked before any of its messages is used: its record must be whole, its data
-must decompress to the size it declares, and the CRC-32 of the decompressed records must match
-the one stored in the chunk. A chunk that fails is skipped and reported (file, offset, reason,
-and the messages lost, counted from the chunk's message index when that still reads).
+must decompress to the size it declares (decompressed no further than that: a chunk that
+declares 100 bytes and holds 4 GB is damaged, never a memory blow-up), and the CRC-32 of the
+decompressed records must match the one stored in the chunk. A chunk that fails is skipped and
+reported (file, offset, reason, and the messages lost, counted from the chunk's message index
+when that still reads).
 
-A complete file (footer, a summary whose CRC matches) is read through its chunk index. Any
-other file (cut short by SIGKILL, or with a damaged summary) is read linearly, record by
-record; when a record does not parse (a damaged length, say), reading resumes at the next
-chunk whose CRC matches. Schema, channel and message records outside chunks have no checksum
-of their own: they are used only while the file reads in step from its start (no damage met),
-so that bytes misread after damage can never pose as a message.
+A complete file (footer, a summary whose CRC matches, chunk indexes that do not overlap) is
+read through its chunk index. Any other file (cut short by SIGKILL, or with a damaged summary)
+is read linearly, record by record; when a record does not parse (a damaged length, say), or a
+chunk fails its checks (its length may be the damage), reading resumes at the next chunk whose
+CRC matches, searched from the byte after it. The chunk data a linear read checks, candidates
+included, is at most EXAMINED_PER_BYTE times the file's size, so records posing as overlapping
+chunks cannot make it quadratic. Schema, channel and message records outside chunks have no
+checksum of their own: they are used only while the file reads in step from its start (no
+damage met), so that bytes misread after damage can never pose as a message.
 
 Everything is parsed here with explicit bounds; damage surfaces only as :class:`ScanProblem`
 entries, never as an exception (other than OSError for a file that cannot be opened).
@@ -22,12 +27,14 @@ import heapq
 import mmap
 import struct
 import zlib
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import zstandard
 from mcap.records import Channel, Schema
+
+from csam_ros.core.model.regular_files import open_regular
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -44,6 +51,10 @@ _KNOWN_OPCODES = frozenset(range(0x01, 0x10))
 _FOOTER_RECORD = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, crc
 _CHUNK_FIXED = 8 + 8 + 8 + 4 + 4  # start, end, uncompressed size, crc, compression length
 _MAX_UNCOMPRESSED = 1 << 31  # a chunk declaring more is damaged (rosbag2 writes ~1 MB chunks)
+_PIECE = 1 << 20  # bytes decompressed at a time
+# The bytes of chunk data checked (CRC, decompression) in a linear read, at most this many
+# times the file's size: overlapping records posing as chunks cannot make the scan quadratic.
+EXAMINED_PER_BYTE = 2
 
 
 class _DamageError(Exception):
@@ -160,8 +171,21 @@ def _records(data: bytes, into: ChunkRecords) -> None:
             into.channels.append(_channel(_Cursor(data, start, pos)))
 
 
-def decode_chunk(data: bytes | mmap.mmap, offset: int, size: int) -> ChunkRecords:
-    """The records of the chunk record at ``offset``; _DamageError if any check fails."""
+@dataclass(frozen=True)
+class _ChunkHead:
+    """What a chunk record says of its data: where the compressed bytes lie in the file,
+    their compression, the size they decompress to and the CRC of that."""
+
+    uncompressed_size: int
+    crc: int
+    compression: str
+    start: int
+    end: int
+
+
+def _chunk_head(data: bytes | mmap.mmap, offset: int, size: int) -> _ChunkHead:
+    """The head of the chunk record at ``offset``, every field checked against the record and
+    the file (no byte of its data read); _DamageError if any does not fit."""
     cursor = _Cursor(data, offset, size)
     if cursor.take(1)[0] != OP_CHUNK:
         raise _DamageError("no chunk record at this offset")
@@ -172,38 +196,95 @@ def decode_chunk(data: bytes | mmap.mmap, offset: int, size: int) -> ChunkRecord
     body.take(16)  # message start and end time: not trusted, the messages carry their own
     uncompressed_size, crc = body.u64(), body.u32()
     compression = body.text()
-    compressed = body.take(body.u64())
-    if body.pos != body.end:
+    compressed = body.u64()
+    if body.pos + compressed != body.end:
         raise _DamageError("its record length does not match its contents")
     if uncompressed_size > _MAX_UNCOMPRESSED:
         raise _DamageError(f"it declares {uncompressed_size} bytes of records")
-    if compression == "zstd":
-        try:
-            records = zstandard.ZstdDecompressor().decompress(
-                compressed, max_output_size=uncompressed_size
-            )
-        except zstandard.ZstdError as error:
-            raise _DamageError(f"zstd decompression failed ({error})") from None
-    elif compression == "lz4":
-        try:
-            import lz4.frame
-
-            records = lz4.frame.decompress(compressed)
-        except ImportError:
-            raise _DamageError("lz4 compression, and the lz4 module is not installed") from None
-        except Exception as error:  # lz4 raises RuntimeError and others on damaged frames
-            raise _DamageError(f"lz4 decompression failed ({error})") from None
-    elif compression == "":
-        records = compressed
-    else:
+    if compression not in _DECOMPRESSORS:
         raise _DamageError(f"unknown compression {compression[:20]!r}")
-    if len(records) != uncompressed_size:
-        raise _DamageError(f"it decompresses to {len(records)} bytes, not {uncompressed_size}")
-    if crc != 0 and zlib.crc32(records) != crc:
+    if compression == "" and compressed != uncompressed_size:
+        raise _DamageError(f"it holds {compressed} bytes of records, not {uncompressed_size}")
+    return _ChunkHead(uncompressed_size, crc, compression, body.pos, body.end)
+
+
+def _read_bounded(read: Callable[[int], bytes], limit: int) -> bytes:
+    """What ``read(n)`` gives until it gives nothing, but never more than ``limit + 1`` bytes
+    (one more than ``limit`` says that there was more)."""
+    out = bytearray()
+    while len(out) <= limit:
+        piece = read(min(_PIECE, limit + 1 - len(out)))
+        if not piece:
+            break
+        out += piece
+    return bytes(out)
+
+
+def _zstd(compressed: bytes, limit: int) -> bytes:
+    # zstandard allocates the content size a frame names, whatever the bound given: at once
+    # only within the bound, else decompressed piece by piece (a size not named, or a lie)
+    named = zstandard.frame_content_size(compressed)
+    if 0 <= named <= limit:
+        return zstandard.ZstdDecompressor().decompress(compressed, max_output_size=limit)
+    with zstandard.ZstdDecompressor().stream_reader(compressed) as reader:
+        return _read_bounded(reader.read, limit)
+
+
+def _lz4(compressed: bytes, limit: int) -> bytes:
+    import lz4.frame
+
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    pending = [compressed]
+
+    def read(n: int) -> bytes:
+        if decompressor.eof:
+            return b""
+        piece = decompressor.decompress(pending.pop() if pending else b"", max_length=n)
+        return bytes(piece)
+
+    return _read_bounded(read, limit)
+
+
+_DECOMPRESSORS: dict[str, Callable[[bytes, int], bytes] | None] = {
+    "zstd": _zstd,
+    "lz4": _lz4,
+    "": None,
+}
+
+
+def _decompressed(head: _ChunkHead, compressed: bytes) -> bytes:
+    """The records of a chunk's data, decompressed no further than one byte past the size
+    the chunk declares: a chunk whose data holds more is damaged, never a memory blow-up."""
+    decompress = _DECOMPRESSORS[head.compression]
+    if decompress is None:
+        return compressed
+    try:
+        return decompress(compressed, head.uncompressed_size)
+    except ImportError:
+        raise _DamageError(f"{head.compression} compression, its module is not installed") from None
+    except Exception as error:  # zstd and lz4 raise their own errors, RuntimeError and others
+        raise _DamageError(f"{head.compression} decompression failed ({error})") from None
+
+
+def _chunk_records(data: bytes | mmap.mmap, head: _ChunkHead) -> ChunkRecords:
+    """The records of a chunk whose head was read: decompressed (bounded), their size and
+    CRC checked, parsed; _DamageError if any check fails."""
+    records = _decompressed(head, bytes(data[head.start : head.end]))
+    declared = head.uncompressed_size
+    if len(records) > declared:
+        raise _DamageError(f"it decompresses to more than the {declared} bytes it declares")
+    if len(records) != declared:
+        raise _DamageError(f"it decompresses to {len(records)} bytes, not {declared}")
+    if head.crc != 0 and zlib.crc32(records) != head.crc:
         raise _DamageError("chunk checksum mismatch")
     result = ChunkRecords()
     _records(records, result)
     return result
+
+
+def decode_chunk(data: bytes | mmap.mmap, offset: int, size: int) -> ChunkRecords:
+    """The records of the chunk record at ``offset``; _DamageError if any check fails."""
+    return _chunk_records(data, _chunk_head(data, offset, size))
 
 
 def _message_index_counts(data: bytes | mmap.mmap, pos: int, end: int) -> dict[int, int] | None:
@@ -253,6 +334,7 @@ class McapScan:
     cut_at: int | None = None  # linear read: where the readable data ends (file cut short)
     problems: list[str] = field(default_factory=list)  # damage other than skipped chunks
     orphans: int = 0  # messages whose channel definition was lost
+    examined: int = 0  # bytes of chunk data checked (decompressed, CRC), candidates included
 
     @property
     def skipped(self) -> list[ChunkInfo]:
@@ -332,17 +414,41 @@ def _read_summary(
             if not len(MAGIC) <= offset < offset + length + index_length <= summary_start:
                 return "a chunk index points outside the data section"
             chunks.append((offset, offset + length, offset + length + index_length))
+    chunks.sort()
+    if any(b[0] < a[2] for a, b in zip(chunks, chunks[1:], strict=False)):
+        return "its chunk indexes overlap"  # each chunk would be checked again and again
     return "" if chunks else "unindexed"
 
 
+class _SearchSpentError(Exception):
+    """The bytes a linear read may check (EXAMINED_PER_BYTE times the file) are spent."""
+
+
+def _verified(scan: McapScan, data: mmap.mmap, offset: int) -> ChunkRecords:
+    """The records of the chunk at ``offset`` (:func:`decode_chunk`), its data counted in
+    ``scan.examined``; _SearchSpentError instead when that would pass the linear read's bound."""
+    head = _chunk_head(data, offset, scan.size)
+    cost = head.end - head.start
+    if scan.examined + cost > EXAMINED_PER_BYTE * scan.size:
+        raise _SearchSpentError
+    scan.examined += cost
+    return _chunk_records(data, head)
+
+
 def _add_chunk(
-    scan: McapScan, data: mmap.mmap, offset: int, index: tuple[int, int] | None = None
+    scan: McapScan,
+    data: mmap.mmap,
+    offset: int,
+    index: tuple[int, int] | None = None,
+    records: ChunkRecords | None = None,
 ) -> ChunkInfo:
     """Check the chunk at ``offset`` and add it to ``scan`` (its records if it reads; else the
-    messages lost, from the message index records at ``data[slice(*index)]`` if given)."""
+    messages lost, from the message index records at ``data[slice(*index)]`` if given).
+    ``records``: the chunk's, verified already."""
     info = ChunkInfo(offset=offset, ok=True)
     try:
-        records = decode_chunk(data, offset, scan.size)
+        if records is None:
+            records = _verified(scan, data, offset)
     except _DamageError as error:
         info.ok, info.reason = False, str(error)
         if index is not None:
@@ -357,41 +463,63 @@ def _add_chunk(
     return info
 
 
-def _plausible_chunk(data: mmap.mmap, pos: int, size: int) -> bool:
-    """Whether a whole, CRC-checked chunk record starts at ``pos``."""
-    try:
-        decode_chunk(data, pos, size)
-    except _DamageError:
-        return False
-    return True
-
-
-def _next_chunk(data: mmap.mmap, start: int, size: int) -> int | None:
-    """The offset of the next readable chunk record at or after ``start``, or None."""
+def _next_chunk(
+    scan: McapScan, data: mmap.mmap, start: int, stop: int
+) -> tuple[int, ChunkRecords] | None:
+    """The offset and records of the first readable chunk record that starts in
+    ``[start, stop)``, or None (_SearchSpentError when the read's bound is reached)."""
+    size = scan.size
     pos = start
     while True:
-        pos = data.find(bytes([OP_CHUNK]), pos, size)
+        pos = data.find(bytes([OP_CHUNK]), pos, stop)
         if pos < 0:
             return None
         if pos + 9 + _CHUNK_FIXED + 8 <= size:
             length = int.from_bytes(data[pos + 1 : pos + 9], "little")
-            if _CHUNK_FIXED + 8 <= length <= size - pos - 9 and _plausible_chunk(data, pos, size):
-                return pos
+            if _CHUNK_FIXED + 8 <= length <= size - pos - 9:
+                try:
+                    return pos, _verified(scan, data, pos)
+                except _DamageError:
+                    pass
         pos += 1
 
 
 def _scan_linear(scan: McapScan, data: mmap.mmap) -> None:
-    """Read the data section record by record (see the module documentation)."""
-    size = scan.size
+    """Read the data section record by record (see the module documentation). The chunk data
+    checked, candidates included, is at most EXAMINED_PER_BYTE times the file: past that the
+    rest is reported as not searched (only records made to pose as chunks get there)."""
     pos = len(MAGIC)
+    try:
+        _scan_records(scan, data, pos)
+    except _SearchSpentError as spent:
+        at = spent.args[0] if spent.args else pos
+        if not scan.complete:
+            scan.cut_at = at
+        scan.problems.append(
+            f"bytes {at} to {scan.size} not searched: too many records that pose as chunks "
+            f"({scan.examined} bytes of chunk data checked, {EXAMINED_PER_BYTE} times the "
+            "file's size at most)"
+        )
+
+
+def _scan_records(scan: McapScan, data: mmap.mmap, pos: int) -> None:
+    size = scan.size
     in_step = True  # no damage met yet: records outside chunks can be trusted
     last_bad: ChunkInfo | None = None  # the messages it lost: from the index records after it
     lost: dict[int, int] | None = None
     ignored = 0
+    found: tuple[int, ChunkRecords] | None = None  # a chunk verified while searching
 
     def settle() -> None:
         if last_bad is not None:
             last_bad.lost = lost or None
+
+    def search(start: int, stop: int) -> tuple[int, ChunkRecords] | None:
+        try:
+            return _next_chunk(scan, data, start, stop)
+        except _SearchSpentError:
+            settle()
+            raise _SearchSpentError(start) from None
 
     while True:
         if pos >= size:
@@ -405,16 +533,16 @@ def _scan_linear(scan: McapScan, data: mmap.mmap) -> None:
         if opcode == OP_DATA_END and length != 4 or opcode == OP_FOOTER and length != 20:
             whole = False
         if not whole:
-            resume = _next_chunk(data, pos + 1, size)
-            if resume is None:
+            found = search(pos + 1, size)
+            if found is None:
                 if not scan.complete:
                     scan.cut_at = pos
                 if opcode not in _KNOWN_OPCODES or (length >= 0 and end <= size):
                     scan.problems.append(f"bytes {pos} to {size} do not read as MCAP records")
                 break
-            scan.problems.append(f"bytes {pos} to {resume} do not read as MCAP records")
+            scan.problems.append(f"bytes {pos} to {found[0]} do not read as MCAP records")
             settle()
-            in_step, last_bad, pos = False, None, resume
+            in_step, last_bad, pos = False, None, found[0]
             continue
         if opcode == OP_MESSAGE_INDEX:
             if last_bad is not None and lost is not None:
@@ -429,9 +557,21 @@ def _scan_linear(scan: McapScan, data: mmap.mmap) -> None:
         settle()
         last_bad = None
         if opcode == OP_CHUNK:
-            info = _add_chunk(scan, data, pos)
+            records = found[1] if found is not None and found[0] == pos else None
+            found = None
+            try:
+                info = _add_chunk(scan, data, pos, records=records)
+            except _SearchSpentError:
+                raise _SearchSpentError(pos) from None
             if not info.ok:
-                in_step, last_bad, lost = False, info, {}
+                in_step = False
+                # its length may be the damage: a whole chunk may start inside what it spans
+                found = search(pos + 1, end)
+                if found is not None:
+                    scan.problems.append(f"bytes {pos} to {found[0]} do not read as MCAP records")
+                    pos = found[0]
+                    continue
+                last_bad, lost = info, {}
         elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
             if not in_step:
                 ignored += 1
@@ -468,7 +608,7 @@ def _loose_record(scan: McapScan, opcode: int, body: _Cursor) -> None:
 
 def scan_file(path: Path) -> McapScan:
     """Check every chunk of an MCAP file and list what it holds (OSError if unreadable)."""
-    with path.open("rb") as stream:
+    with open_regular(path) as stream:
         size = stream.seek(0, 2)
         scan = McapScan(path=path, size=size, complete=False)
         if size <= len(MAGIC):
@@ -489,7 +629,7 @@ def scan_file(path: Path) -> McapScan:
                 _scan_linear(scan, data)
             else:
                 scan.complete = True
-                for offset, index_start, index_end in sorted(chunks):
+                for offset, index_start, index_end in chunks:
                     _add_chunk(scan, data, offset, (index_start, index_end))
     orphans = {k: n for k, n in scan.all_counts().items() if k not in scan.channels}
     scan.orphans = sum(orphans.values())
@@ -525,7 +665,7 @@ def iter_messages(
             message = heapq.heappop(heap)[3]
             yield scan.channels[message.channel_id], message
         return
-    with scan.path.open("rb") as stream:
+    with open_regular(scan.path) as stream:
         size = stream.seek(0, 2)
         with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
             i = 0

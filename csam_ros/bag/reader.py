@@ -34,8 +34,10 @@ from csam_ros.bag.mcapfile import McapScan, iter_messages, scan_file
 from csam_ros.bag.qos import QosDict, parse_qos_profiles
 from csam_ros.bag.types import MessageTypes, message_class
 from csam_ros.bag.writer import METADATA_FILE, BagError
+from csam_ros.core.model.regular_files import open_regular
 
 LOGGER = logging.getLogger("csam_ros.bag")
+MAX_METADATA_BYTES = 64 * 2**20  # a metadata.yaml larger than this is refused unread
 DamageHandler = Callable[[str], None]
 Decoder = Literal["rclpy", "rosbags"]
 
@@ -87,18 +89,28 @@ class BagInfo:
 
 
 def _load_metadata(path: Path) -> dict[str, Any] | None:
-    """metadata.yaml's ``rosbag2_bagfile_information``, or None if absent; BagError if bad."""
+    """metadata.yaml's ``rosbag2_bagfile_information``, or None if absent; BagError if bad
+    (not a regular file, not YAML, or a section that is not a list where one is)."""
     meta = path / METADATA_FILE
-    if not meta.is_file():
+    if not os.path.lexists(meta):
         return None
     try:
-        document = yaml.safe_load(meta.read_text(encoding="utf-8"))
+        with open_regular(meta) as stream:
+            text = stream.read(MAX_METADATA_BYTES + 1)
+        if len(text) > MAX_METADATA_BYTES:
+            raise ValueError(f"more than {MAX_METADATA_BYTES} bytes")
+        document = yaml.safe_load(text.decode("utf-8"))
         info = document["rosbag2_bagfile_information"]
         if not isinstance(info, dict):
             raise TypeError
-    except (yaml.YAMLError, OSError, UnicodeDecodeError, KeyError, TypeError) as error:
+    except OSError as error:
+        raise BagError(f"cannot read {meta}: {error.strerror or error}") from None
+    except (yaml.YAMLError, UnicodeDecodeError, KeyError, TypeError, ValueError) as error:
         cause = " ".join(str(error).split())
         raise BagError(f"{meta} is not a rosbag2 metadata file ({cause})") from None
+    for key in ("files", "relative_file_paths", "topics_with_message_count"):
+        if info.get(key) is not None and not isinstance(info[key], list):
+            raise BagError(f"{meta}: {key} is {info[key]!r:.40}, not a list")
     storage = info.get("storage_identifier", "mcap")
     if storage != "mcap":
         raise BagError(f"{path} uses storage {storage!r}; only mcap bags are supported")
@@ -119,9 +131,14 @@ def _bag_files(path: Path, metadata: dict[str, Any] | None) -> list[Path]:
         if not isinstance(names, list):
             raise BagError(f"{path / METADATA_FILE}: relative_file_paths is not a list of files")
         files = [_inside(path, name) for name in names]
-        missing = [f.name for f in files if not f.is_file()]
+        missing = [f.name for f in files if not os.path.lexists(f)]
         if missing:
             raise BagError(f"{path}: metadata.yaml names missing file(s) {', '.join(missing)}")
+        seen: set[Path] = set()
+        for file in files:
+            if file.resolve() in seen:  # every message would be read and counted twice
+                raise BagError(f"{path / METADATA_FILE} names {file.name} twice")
+            seen.add(file.resolve())
         return files
     files = sorted(path.glob("*.mcap"))
     if not files:
@@ -147,8 +164,11 @@ def _inside(path: Path, name: Any) -> Path:
 
 
 def _check_magic(file: Path) -> None:
-    with file.open("rb") as stream:
-        head = stream.read(len(MCAP_MAGIC))
+    try:
+        with open_regular(file) as stream:  # a FIFO would block here forever
+            head = stream.read(len(MCAP_MAGIC))
+    except OSError as error:
+        raise BagError(f"cannot read {file}: {error.strerror or error}") from None
     if not head:
         raise BagError(f"{file} is empty")
     if head != MCAP_MAGIC[: len(head)] or len(head) < len(MCAP_MAGIC):
@@ -213,7 +233,7 @@ def _listed_counts(path: Path, metadata: dict[str, Any] | None) -> dict[Path, in
     for entry in (metadata or {}).get("files") or []:
         try:
             counts[path / str(entry["path"])] = int(entry["message_count"])
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, OverflowError):
             continue
     return counts
 

@@ -22,7 +22,7 @@ or ``RobotN_Measurement.dat``, that is missing, unreadable or without one valid 
   in any robot file of the data set (all robots, whatever the selection), so a window
   ``[start, start + duration]`` means the same for every robot subset.
 - Malformed rows (wrong column count, non-numeric, NaN/inf, barcode not an integer,
-  range <= 0, |bearing| > pi) are dropped.
+  range <= 0 or beyond ``MAX_RANGE``, |bearing| > pi) are dropped.
 - Out-of-order rows are put in place by a stable sort on the stamp and counted.
 - Odometry rows sharing a stamp: the last one in file order is kept (the earlier ones would
   hold for zero seconds); the others are counted as duplicates.
@@ -92,6 +92,9 @@ LandmarkSwaps = Sequence[tuple[int, int]] | str  # subject pairs, or AUTO
 LANDMARKS_FILE = "Landmark_Groundtruth.dat"
 _ROBOT_FILE = re.compile(r"^Robot(\d+)_(Odometry|Measurement)\.dat$")
 _MAX_NOTES = 40
+# m: a range beyond it is no camera's (Dataset 1's are below 10 m): the row is dropped, as a
+# smoother's input: max_range drops it (its squares would overflow the calibration's sums)
+MAX_RANGE = 1000.0
 _NOTES_SHOWN = 10  # of the notes, in ImportReport.summary
 
 
@@ -809,6 +812,9 @@ def _measurement_logs(
     bad_range = ok & ~(values[:, 2] > 0)
     drop(bad_range, "measurement_non_positive_range", "range <= 0")
     ok &= ~bad_range
+    far = ok & (values[:, 2] > MAX_RANGE)
+    drop(far, "measurement_range_out_of_bounds", f"range beyond {MAX_RANGE:g} m")
+    ok &= ~far
     bad_bearing = ok & (np.abs(values[:, 3]) > np.pi)
     drop(bad_bearing, "measurement_bearing_out_of_range", "|bearing| > pi")
     ok &= ~bad_bearing

@@ -54,6 +54,9 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+MAX_ID = 2**62  # pose and landmark ids are 64-bit integers (labels of the log and the bag)
+
+
 class Slam2dFormatError(ValueError):
     """A line of a 2D SLAM file that cannot be read."""
 
@@ -148,6 +151,8 @@ def read_slam2d(path: str | Path) -> Slam2dData:
                     values = [float(t) for t in tokens[3:]]
             except ValueError:
                 raise Slam2dFormatError(f"{where}: {record} has a non-numeric field") from None
+            if any(abs(i) > MAX_ID for i in ids):
+                raise Slam2dFormatError(f"{where}: {record} has an id beyond +-2^62")
             if not all(np.isfinite(values)):
                 raise Slam2dFormatError(f"{where}: {record} has a non-finite value")
             if record == "VERTEX_SE2":

@@ -66,6 +66,7 @@ from std_srvs.srv import Trigger
 
 from csam_ros.core.exchange.checkpoint import (
     LOST_WHILE_DOWN,
+    UNUSABLE_STATE,
     CheckpointError,
     FilterState,
     SmootherCheckpoint,
@@ -452,6 +453,7 @@ class Smoother(Node):
         try:
             saved, local = self.read_checkpoint(path)
         except CheckpointError as err:
+            self.drops.add(UNUSABLE_STATE)
             self.get_logger().error(f"checkpoint not used, starting empty: {err}")
             return
         self.take_up(saved, local, f"resumed from {path}")

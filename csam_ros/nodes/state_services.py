@@ -37,9 +37,9 @@ from rclpy.node import Node
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
+from csam_ros.core.exchange.checkpoint import UNUSABLE_STATE, CheckpointError, MergerState
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter, LocalMapError
-from csam_ros.core.merging.notices import StateMissing, StateResumed
+from csam_ros.core.merging.notices import StateMissing, StateResumed, StateUnusable
 from csam_ros.core.merging.policy_inputs import joined_maps, read_state
 from csam_ros.ros.topics import LOAD_STATE, PAUSE, RESET, SAVE_STATE
 from csam_ros.solve_process import SolveProcess
@@ -171,6 +171,8 @@ class SmootherServices(StateServices):
             path = requested_path(request)
             node.load(path)
         except (CheckpointError, ValueError) as err:
+            if isinstance(err, CheckpointError):
+                node.drops.add(UNUSABLE_STATE)
             return answer(response, False, f"{UNCHANGED}: {err}")
         node.publish_status()
         loaded = f"loaded {path}: {_map_size(node)}, in session {node.sender.session}"
@@ -200,6 +202,8 @@ class MergerServices(StateServices):
         whether it was (a file that cannot be used is logged once: the merger starts empty)."""
         saved = read_state(path)
         if not isinstance(saved, MergerState):
+            if isinstance(saved, StateUnusable):
+                self.node.drops.add(UNUSABLE_STATE)
             self.node._note(saved)
             return False
         self._take_up(saved)
@@ -283,6 +287,7 @@ class MergerServices(StateServices):
         if isinstance(saved, StateMissing):
             return answer(response, False, f"{UNCHANGED}: {path}: no such file")
         if not isinstance(saved, MergerState):
+            self.node.drops.add(UNUSABLE_STATE)
             return answer(response, False, f"{UNCHANGED}: {saved.detail}")
         with self._quiet():
             self._take_up(saved)

@@ -59,8 +59,10 @@ def calibrate_dataset(
             rounds=rounds,
             progress=progress,
         )
-    except (MrclamFormatError, ValueError) as err:
+    except MrclamFormatError as err:  # names the file and line
         raise RunError(str(err)) from None
+    except ValueError as err:  # numbers the estimate cannot use (a LinAlgError too)
+        raise RunError(f"{source}: no calibration from this data ({err})") from None
     text = calibration_config(
         estimate, base, f"{source} (window {window}, robots {robots or 'all'})"
     )

@@ -64,12 +64,46 @@ def evaluate_run(run_dir: Path) -> Evaluation:
     if not summary_path.exists():
         raise RunError(f"{summary_path}: no such file (a run directory holds summary.json)")
     summary = RunSummary.read(summary_path)
+    check_scorable(summary, summary_path)
     truth = truth_of(run_dir, summary.source)
     if truth is None:
         raise RunError(f"{run_dir}: no ground truth (/sim/features_truth) in the run's bag")
-    metrics = evaluate(summary.result, truth)
+    try:
+        metrics = evaluate(summary.result, truth)
+    except ValueError as err:  # numpy's LinAlgError too
+        raise RunError(f"{summary_path}: cannot be scored ({err})") from None
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return Evaluation(run_dir, summary, truth, metrics)
+
+
+def check_scorable(summary: RunSummary, path: Path) -> None:
+    """RunError naming ``path`` and the entry where the joined map's features cannot be scored
+    or drawn: a member that is not ``<robot>/<label>``, a position that is not finite or
+    beyond MAX_COORDINATE (1e9 m), as of no run; or a robot pose likewise."""
+    from csam_ros.core.exchange.local_map_checks import MAX_COORDINATE
+
+    result = summary.result
+    for i, feature in enumerate(result.features):
+        for member in feature.members:
+            robot, slash, label = member.rpartition("/")
+            if not slash or not robot or not label.removeprefix("-").isdigit():
+                raise RunError(
+                    f"{path}: features[{i}]: member {member!r:.60} is not <robot>/<label>"
+                )
+    checked = [(f"features[{i}].xy", f.xy) for i, f in enumerate(result.features)]
+    for name, robot in result.robots.items():
+        checked += [(f"robots.{name}.poses_joined", robot.poses_joined)]
+        checked += [(f"robots.{name}.features_local", robot.features_local)]
+    for where, values in checked:
+        numbers = np.asarray(values if values is not None else [], dtype=float)
+        if not (np.isfinite(numbers) & (np.abs(numbers) <= MAX_COORDINATE)).all():
+            raise RunError(
+                f"{path}: {where}: a value that is not a finite number within {MAX_COORDINATE:g} m"
+            )
+
+
+def _ratio(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
 
 
 def evaluation_lines(evaluation: Evaluation) -> list[str]:
@@ -86,7 +120,8 @@ def evaluation_lines(evaluation: Evaluation) -> list[str]:
             f"{error['n_features']} features (after a rigid 2D alignment to the truth)"
         )
     lines.append(
-        f"  associations: precision {assoc['precision']:.3f}, recall {assoc['recall']:.3f} "
+        f"  associations: precision {_ratio(assoc['precision'])}, "
+        f"recall {_ratio(assoc['recall'])} "
         f"({assoc['true_positives']} of {assoc['true_pairs']} true pairs)"
     )
     for name, robot in metrics["robots"].items():

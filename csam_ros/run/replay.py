@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from csam_ros.core.model.regular_files import check_replaceable, open_regular
 from csam_ros.run.errors import RunError
 from csam_ros.run.launch import executable
 from csam_ros.run.offline import bag_contents
@@ -15,7 +16,9 @@ if TYPE_CHECKING:
 
 
 def check_replay(bag: Path, offline: bool, save_state: Path | None, resume: Path | None) -> None:
-    """That the bag exists and the state options go with an offline replay."""
+    """That the bag exists, the state options go with an offline replay and name regular
+    files (a FIFO would block the read, a device be replaced by the write), before any
+    work."""
     if not bag.exists():
         raise RunError(f"{bag}: no such bag")
     if (save_state or resume) and not offline:
@@ -23,6 +26,15 @@ def check_replay(bag: Path, offline: bool, save_state: Path | None, resume: Path
             "--save-state and --resume go with --offline (a live merger saves its state "
             "through its state_path parameter)"
         )
+    for option, path, check in (
+        ("--save-state", save_state, check_replaceable),
+        ("--resume", resume, lambda p: open_regular(p).close()),
+    ):
+        try:
+            if path is not None:
+                check(path)
+        except OSError as err:
+            raise RunError(f"{option}: {path}: {err.strerror or err}") from None
 
 
 def replay_live_run(

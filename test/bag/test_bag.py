@@ -532,3 +532,64 @@ def test_a_bag_cut_at_half_its_bytes_says_how_much_it_read_and_up_to_when(
     # the .mcap file alone has no metadata.yaml: the count read, without a total
     alone = inspect_bag(mcap).warnings
     assert len(alone) == 1 and f"read {len(stamps)} message(s), up to log time {last}" in alone[0]
+
+
+def _with_metadata(path: Path, **entries: Any) -> Path:
+    """``path``'s metadata.yaml with ``entries`` set in its bagfile information."""
+    metadata = yaml.safe_load((path / "metadata.yaml").read_text())
+    metadata["rosbag2_bagfile_information"].update(entries)
+    (path / "metadata.yaml").write_text(yaml.safe_dump(metadata))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("entries", "message"),
+    [
+        ({"files": 5}, "metadata.yaml: files is 5, not a list"),
+        ({"topics_with_message_count": 5}, "topics_with_message_count is 5, not a list"),
+        ({"relative_file_paths": "counter_0.mcap"}, "relative_file_paths is 'counter_0.mcap'"),
+        (
+            {"relative_file_paths": ["counter_0.mcap", "./counter_0.mcap"]},
+            "metadata.yaml names counter_0.mcap twice",
+        ),
+    ],
+    ids=["files", "topics", "file-paths", "file-twice"],
+)
+def test_metadata_sections_of_the_wrong_kind_are_refused_by_name(
+    tmp_path: Path, entries: dict[str, Any], message: str
+) -> None:
+    """A section that is not a list where rosbag2 writes one (a traceback in every command
+    that read the bag), or a file listed twice (every message read and counted twice)."""
+    bag = _with_metadata(_counter_bag(tmp_path / "counter").parent, **entries)
+    with pytest.raises(BagError, match=message):
+        inspect_bag(bag)
+    with pytest.raises(BagError, match=message):
+        list(read_bag(bag))
+
+
+def test_a_message_count_beyond_any_number_is_left_out(tmp_path: Path) -> None:
+    bag = _counter_bag(tmp_path / "counter").parent
+    _with_metadata(bag, files=[{"path": "counter_0.mcap", "message_count": float("inf")}])
+    assert inspect_bag(bag).message_count == 60
+
+
+@pytest.mark.parametrize("listed", [True, False], ids=["in-metadata", "found"])
+def test_a_fifo_where_a_bag_file_belongs_is_refused_at_once(tmp_path: Path, listed: bool) -> None:
+    """A FIFO named ``*.mcap`` (listed in metadata.yaml or found in the directory) or named
+    metadata.yaml: refused by name, never opened for a read that would wait forever."""
+    from waiting import no_hang
+
+    bag = _counter_bag(tmp_path / "counter").parent
+    (bag / "counter_0.mcap").unlink()
+    os.mkfifo(bag / "counter_0.mcap")
+    if not listed:
+        (bag / "metadata.yaml").unlink()
+    with no_hang(10.0):
+        with pytest.raises(BagError, match="counter_0.mcap: a FIFO, not a regular file"):
+            inspect_bag(bag)
+        with pytest.raises(BagError, match="counter_0.mcap: a FIFO, not a regular file"):
+            list(read_bag(bag))
+    if not listed:
+        os.mkfifo(bag / "metadata.yaml")
+        with no_hang(10.0), pytest.raises(BagError, match="metadata.yaml: a FIFO"):
+            inspect_bag(bag)

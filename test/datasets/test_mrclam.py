@@ -107,6 +107,7 @@ def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
         "1001.3 72 nan 0.1",  # NaN
         "1001.4 72 -1.0 0.1",  # negative range
         "1001.5 72 0.0 0.1",  # zero range
+        "1001.55 72 1e308 0.1",  # a range of no camera (its square overflows)
         "1001.6 72.5 2.0 0.1",  # barcode not an integer
         "1001.7 72 2.0 4.0",  # bearing beyond pi
         "1001.8 43 2.0 0.1",  # misread barcode (in no table)
@@ -126,6 +127,7 @@ def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
         "measurement_non_numeric": 1,
         "measurement_non_finite": 1,
         "measurement_non_positive_range": 2,
+        "measurement_range_out_of_bounds": 1,
         "measurement_bad_barcode": 1,
         "measurement_bearing_out_of_range": 1,
         "measurement_unknown_barcode": 1,
@@ -140,6 +142,7 @@ def test_malformed_measurement_rows_counted(tmp_path: Path) -> None:
     robot1 = log.robots["robot1"]
     assert robot1.features.ranges.tolist() == [2.0]
     assert robot1.rendezvous.observed == ["robot2"]
+    assert "Robot1_Measurement.dat:9: range beyond 1000 m" in report.notes
     assert "robot3" not in log.robots
     # epoch counts the unselected robot's files too: the measurement at 999.0 of robot1
     assert report.epoch == pytest.approx(999.0)

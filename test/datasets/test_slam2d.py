@@ -108,6 +108,10 @@ def test_odometry_given_backwards_initialises_by_inverse(tmp_path):
         ("LANDMARK 0 1 nan 0 1 0 1\n", r"bad.txt:1: LANDMARK has a non-finite value"),
         ("ODOMETRY 2 2 1 0 0 1 0 0 1 0 1\n", r"bad.txt:1: ODOMETRY connects pose 2 to itself"),
         ("", r"bad.txt: no records"),
+        (  # beyond 64 bits: a traceback where the ids became arrays
+            "ODOMETRY 0 1 1 0 0 1 0 0 1 0 1\nODOMETRY 1 100000000000000000000 1 0 0 1 0 0 1 0 1\n",
+            r"bad.txt:2: ODOMETRY has an id beyond",
+        ),
     ],
 )
 def test_malformed_lines_name_file_and_line(tmp_path, content, message):

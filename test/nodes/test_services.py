@@ -19,7 +19,13 @@ from merger_harness import ROBOTS, MergerHarness, joined_view, resent, run_messa
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from csam_ros.core.exchange.checkpoint import MergerState, SmootherCheckpoint
+from csam_ros.core.exchange.checkpoint import (
+    UNUSABLE_STATE,
+    MergerState,
+    SmootherCheckpoint,
+    read_npz,
+    write_npz,
+)
 from csam_ros.core.exchange.map_updates import HeldMap, KeyedMap, MissingBaseError, apply_update
 from csam_ros.core.merging.policy_inputs import NO_MAP_HELD
 from csam_ros.core.model.log import MultiRobotLog
@@ -356,6 +362,57 @@ def test_a_reset_writes_the_empty_state_where_the_smoother_keeps_its_checkpoint(
         # a smoother started from it starts empty
         restarted = client.start(checkpoint)
         assert len(restarted.map.stamps) == 0 and restarted.published_ns == -1
+    finally:
+        client.close()
+
+
+def test_a_smoother_given_a_checkpoint_no_run_could_write_keeps_its_state_and_answers(
+    ros_context, spin, tmp_path: Path
+) -> None:
+    """Whole files (their CRCs match) holding a stamp no ROS time holds (10^30 ns), reversed
+    odometry stamps or zero sigmas: at start each is refused, logged and counted
+    (``unusable_state``), the smoother starts empty and answers ``~/resync``; given to
+    ``~/load_state`` each is refused in one line and the map held stays."""
+    from std_srvs.srv import Trigger
+
+    from csam_ros.ros.topics import LOAD_STATE, RESYNC, SAVE_STATE, smoother_service
+
+    messages, t0 = _sensor_messages()
+    client = SmootherClient(ros_context, spin)
+    resync = client.node.create_client(Trigger, smoother_service("robot1", RESYNC))
+    try:
+        client.start()
+        client.send(_between(messages, t0, -1.0, 10.0))
+        client.flush()
+        good = tmp_path / "good.npz"
+        assert client.call(SAVE_STATE, path=str(good)).success
+        header, arrays = read_npz(good, "smoother")
+        stamps, sigmas = arrays["map/odometry_stamps"], arrays["map/odometry_sigmas"]
+        bad = {
+            "huge_stamp.npz": ({**header, "published_ns": 10**30}, arrays),
+            "reversed.npz": (header, {**arrays, "map/odometry_stamps": stamps[::-1].copy()}),
+            "zero_sigma.npz": (header, {**arrays, "map/odometry_sigmas": 0.0 * sigmas}),
+        }
+        for name, (h, a) in bad.items():
+            write_npz(tmp_path / name, "smoother", h, a)
+        for name in bad:
+            smoother = client.start(tmp_path / name)
+            assert len(smoother.map.stamps) == 0 and smoother.restarts == 0, name
+            assert smoother.drops.as_dict() == {UNUSABLE_STATE: 1}, name
+            reply = _call(spin, client.executor, resync, Trigger.Request())
+            assert not reply.success and reply.message == "0"  # nothing sent yet, alive
+
+        smoother = client.start(good)
+        held_map, held = smoother.map, _local_map(smoother)
+        assert len(held[0]) > 2 and smoother.restarts == 1
+        for count, name in enumerate(bad, 1):
+            reply = client.call(LOAD_STATE, path=str(tmp_path / name))
+            _refused(reply)
+            assert name in reply.message and "not loaded" in reply.message, reply.message
+            assert smoother.map is held_map
+            assert smoother.drops.as_dict()[UNUSABLE_STATE] == count
+        _same_local_map(_local_map(smoother), held)
+        assert _call(spin, client.executor, resync, Trigger.Request()).success
     finally:
         client.close()
 

@@ -1,6 +1,6 @@
 """Calibration's checks before any estimate: it never overwrites a file, needs a data set
-directory, at least one round and a readable config (the estimate itself: test_cli and
-test/datasets with MR.CLAM Dataset 1)."""
+directory, at least one round and a readable config; data it cannot estimate from is named
+(the estimate itself: test_cli and test/datasets with MR.CLAM Dataset 1)."""
 
 from __future__ import annotations
 
@@ -29,3 +29,16 @@ def test_what_calibrate_refuses_is_one_run_error(tmp_path: Path) -> None:
     with pytest.raises(RunError, match="^--robots: "):
         calibrate_dataset(tmp_path, tmp_path / "c.yaml", robots="a")
     assert taken.read_text() == "mine" and not (tmp_path / "c.yaml").exists() and not said
+
+
+def test_data_the_estimate_cannot_use_is_one_run_error_naming_the_data_set(
+    tmp_path: Path,
+) -> None:
+    """Too little data for an estimate (numbers the noise model refuses, or a singular
+    system): the error names the data set, not only the numbers."""
+    from mrclam_files import small_dataset
+
+    source = small_dataset(tmp_path / "small")
+    with pytest.raises(RunError, match=f"^{source}: no calibration from this data "):
+        calibrate_dataset(source, tmp_path / "c.yaml", progress=lambda line: None)
+    assert not (tmp_path / "c.yaml").exists()

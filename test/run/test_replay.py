@@ -37,3 +37,23 @@ def test_the_player_plays_the_bags_sensor_topics_at_the_rate(tmp_path: Path) -> 
     assert run.timeout_s == pytest.approx(600.0 + 1.2 * duration / 4.0)
     unpaced = replay_live_run(BAG, tmp_path, 0.0, {}, {})
     assert unpaced.timeout_s == pytest.approx(600.0 + duration) and not unpaced.isolated
+
+
+def test_state_options_naming_a_fifo_are_run_errors_before_any_work(tmp_path: Path) -> None:
+    """--resume naming a FIFO would block its read, --save-state naming one (or a device)
+    would be replaced by the state written: each refused by name at once."""
+    import os
+    import stat
+
+    from waiting import no_hang
+
+    fifo = tmp_path / "state.npz"
+    os.mkfifo(fifo)
+    with no_hang(10.0):
+        with pytest.raises(RunError, match="^--resume: .*state.npz: a FIFO, not a regular"):
+            check_replay(BAG, offline=True, save_state=None, resume=fifo)
+        with pytest.raises(RunError, match="^--save-state: .*state.npz: a FIFO, not a regular"):
+            check_replay(BAG, offline=True, save_state=fifo, resume=None)
+    with pytest.raises(RunError, match="^--resume: .*none.npz: No such file"):
+        check_replay(BAG, offline=True, save_state=None, resume=tmp_path / "none.npz")
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)

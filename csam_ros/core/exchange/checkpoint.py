@@ -16,15 +16,18 @@ the file and the fault.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
+import math
 import os
 import tokenize
 import zipfile
-from collections.abc import Mapping
+import zlib
+from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import Any, TypeVar, get_type_hints
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,9 +35,27 @@ from numpy.typing import NDArray
 from csam_ros.core.exchange.local_map_checks import LocalMapArrays
 from csam_ros.core.exchange.map_arrays import robot_map_arrays, robot_map_from_arrays
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
+from csam_ros.core.exchange.state_checks import (
+    MAX_COUNT,
+    MAX_STAMP_NS,
+    MAX_STAMP_S,
+    StateFieldError,
+    check_correlations,
+    check_counts,
+    check_feature_log,
+    check_integer,
+    check_local_map_state,
+    check_number,
+    check_odometry_log,
+    check_point_log,
+    check_rendezvous_log,
+    check_stamps,
+    check_values,
+)
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog, RobotLog
+from csam_ros.core.model.regular_files import check_replaceable, read_regular
 from csam_ros.core.smoothing.local_map_state import LocalMapState
 from csam_ros.core.smoothing.robot_map import RobotMap
 
@@ -46,8 +67,17 @@ OFFLINE = "offline"
 # a smoother's drop reason: odometry samples that came while it was down (after a restart
 # from a checkpoint, estimated from the step of its odometry stamps)
 LOST_WHILE_DOWN = "lost_while_down"
+# a node's drop reason: a checkpoint or state file it was given (at start or by ~/load_state)
+# that cannot be used; the node keeps the state it had
+UNUSABLE_STATE = "unusable_state"
+
+# The most bytes a state file may hold, and its arrays uncompressed (their sizes in its zip
+# directory are checked before any is read): a checkpoint of an MR.CLAM robot is 8.6 MB.
+MAX_STATE_BYTES = 512 * 2**20
 
 Array = NDArray[np.float64]
+R = TypeVar("R")
+_STAMPS = (-MAX_STAMP_S, MAX_STAMP_S)  # the range of a stamp in seconds
 
 
 class CheckpointError(ValueError):
@@ -58,7 +88,11 @@ class CheckpointError(ValueError):
 
 
 def write_npz(path: Path, kind: str, header: Mapping[str, Any], arrays: Mapping[str, Any]) -> int:
-    """Write ``header`` (JSON) and ``arrays`` to ``path`` atomically; the bytes written."""
+    """Write ``header`` (JSON) and ``arrays`` to ``path`` atomically; the bytes written.
+
+    OSError, with nothing written, when ``path`` is a FIFO, a device or a socket (a rename
+    would replace it) or the file would hold more than :data:`MAX_STATE_BYTES`; the
+    temporary file is removed whenever the write fails."""
     path = Path(path)
     document = {"format": FORMAT, "version": VERSION, "kind": kind, **header}
     buffer = io.BytesIO()
@@ -68,13 +102,23 @@ def write_npz(path: Path, kind: str, header: Mapping[str, Any], arrays: Mapping[
         **{k: np.asarray(v) for k, v in arrays.items()},
     )
     data = buffer.getvalue()
+    if len(data) > MAX_STATE_BYTES:
+        raise OSError(errno.EFBIG, f"{len(data)} bytes, more than a state file holds", str(path))
+    check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as out:
-        out.write(data)
-        out.flush()
-        os.fsync(out.fileno())
-    os.replace(tmp, path)
+    check_replaceable(tmp)  # the leftover of a writer killed before its rename is replaced
+    tmp.unlink(missing_ok=True)
+    out = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+    try:
+        with os.fdopen(out, "wb") as stream:
+            stream.write(data)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     folder = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(folder)
@@ -83,21 +127,59 @@ def write_npz(path: Path, kind: str, header: Mapping[str, Any], arrays: Mapping[
     return len(data)
 
 
+def _npy_array(raw: bytes) -> np.ndarray:
+    """The array of one ``.npy`` entry, its header checked against its size before any array
+    is made (numpy's reader would allocate the shape its header names first)."""
+    stream = io.BytesIO(raw)
+    version = np.lib.format.read_magic(stream)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
+    else:
+        raise ValueError(f"unsupported .npy version {version}")
+    if dtype.hasobject or dtype.itemsize == 0:
+        raise ValueError(f"an array of {dtype}")
+    count = math.prod(shape)
+    if count * dtype.itemsize != len(raw) - stream.tell():
+        raise ValueError(
+            f"shape {shape} of {dtype} in {len(raw) - stream.tell()} bytes of array data"
+        )
+    array = np.frombuffer(raw, dtype=dtype, count=count, offset=stream.tell())
+    return array.reshape(shape, order="F" if fortran else "C").copy()
+
+
+def _npz_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file's bytes; the sizes its zip directory declares are checked
+    first (no entry is decompressed beyond its declared size), then every entry whole (its
+    CRC)."""
+    arrays = {}
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        entries = archive.infolist()
+        declared = sum(entry.file_size for entry in entries)
+        if declared > MAX_STATE_BYTES:
+            raise CheckpointError(
+                f"{path}: its entries declare {declared} bytes, more than the "
+                f"{MAX_STATE_BYTES} a state file may hold"
+            )
+        for entry in entries:
+            name = entry.filename.removesuffix(".npy")
+            if name == entry.filename or name in arrays:
+                raise CheckpointError(f"{path}: entry {entry.filename!r:.80} is not one array")
+            arrays[name] = _npy_array(archive.read(entry))
+    return arrays
+
+
 def read_npz(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The header and arrays of a file of ``kind`` written by :func:`write_npz`."""
+    """The header and arrays of a file of ``kind`` written by :func:`write_npz`; at most
+    :data:`MAX_STATE_BYTES` of file and of arrays, a regular file only."""
     path = Path(path)
     try:
-        data = path.read_bytes()
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-        # np.load stops at the rows an .npy header names: a damaged header would read
-        # short arrays without reaching their CRC, so every entry is checked whole
-        with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            damaged = archive.testzip()
+        arrays = _npz_arrays(path, read_regular(path, MAX_STATE_BYTES))
     except FileNotFoundError:
         raise CheckpointError(f"{path}: no such file") from None
     # zipfile raises NotImplementedError and RuntimeError for damaged flags and methods,
-    # numpy's .npy header parser TokenError
+    # numpy's .npy header parser TokenError; an OSError may be a FIFO or a file too large
     except (
         OSError,
         ValueError,
@@ -106,25 +188,27 @@ def read_npz(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, np.ndarra
         NotImplementedError,
         RuntimeError,
         tokenize.TokenError,
+        zlib.error,
     ) as err:
-        raise CheckpointError(f"{path}: not a readable .npz file ({err})") from None
-    if damaged is not None:
-        raise CheckpointError(f"{path}: damaged entry {damaged!r} (its CRC does not match)")
+        if isinstance(err, CheckpointError):
+            raise
+        cause = err.strerror if isinstance(err, OSError) and err.strerror else err
+        raise CheckpointError(f"{path}: not a readable .npz file ({cause})") from None
     raw = arrays.pop("header", None)
     if raw is None or raw.shape != () or raw.dtype.kind != "U":
         raise CheckpointError(f"{path}: not a {FORMAT} file (no header)")
     try:
         header = json.loads(str(raw))
-    except json.JSONDecodeError as err:
+    except (ValueError, RecursionError) as err:  # JSONDecodeError, or an int of 5000 digits
         raise CheckpointError(f"{path}: damaged header ({err})") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a {FORMAT} file")
     if header.get("version") != VERSION:
         raise CheckpointError(
-            f"{path}: version {header.get('version')!r}, this csam_ros reads version {VERSION}"
+            f"{path}: version {header.get('version')!r:.40}, this csam_ros reads version {VERSION}"
         )
     if header.get("kind") != kind:
-        raise CheckpointError(f"{path}: a {header.get('kind')!r} file, not a {kind!r} one")
+        raise CheckpointError(f"{path}: a {header.get('kind')!r:.40} file, not a {kind!r} one")
     return header, arrays
 
 
@@ -146,19 +230,40 @@ class _Reader:
             raise self.fail(f"header {key!r}: unexpected value {value!r:.80}")
         return value
 
+    def integer(self, key: str, low: int, high: int) -> int:
+        """A header integer within ``[low, high]``."""
+        return self.checked(check_integer, key, self.value(key, int), low, high)
+
+    def checked(self, check: Callable[..., R], *args: Any) -> R:
+        """``check(*args)`` (a check of :mod:`state_checks`), its fault a CheckpointError."""
+        try:
+            return check(*args)
+        except StateFieldError as err:
+            raise self.fail(str(err)) from None
+
     def array(
         self, key: str, dtype: Any = float, tail: tuple[int, ...] | None = None
     ) -> np.ndarray:
+        """An array of numbers (never a scalar), as ``dtype``; of shape ``(n, *tail)`` when
+        ``tail`` is given. Floats must be finite."""
         if key not in self.arrays:
             raise self.fail(f"no array {key!r}")
         value = self.arrays[key]
         if value.dtype.kind not in ("f", "i", "u", "b") or (
-            np.dtype(dtype).kind == "i" and value.dtype.kind == "f"
+            np.dtype(dtype).kind in "iu" and value.dtype.kind == "f"
         ):
             raise self.fail(f"array {key!r} holds {value.dtype}, not numbers")
+        if value.ndim == 0:
+            raise self.fail(f"array {key!r} is a scalar, not an array")
+        if value.dtype.kind in "iu" and value.size and np.dtype(dtype).kind == "i":
+            info = np.iinfo(dtype)
+            if value.min() < info.min or value.max() > info.max:
+                raise self.fail(f"array {key!r} holds integers beyond {np.dtype(dtype)}")
         value = value.astype(dtype)
         if tail is not None and (value.ndim != len(tail) + 1 or value.shape[1:] != tail):
             raise self.fail(f"array {key!r} has shape {value.shape}, expected (n, {tail})")
+        if value.dtype.kind == "f" and not np.isfinite(value).all():
+            raise self.fail(f"array {key!r} holds a number that is not finite")
         return value
 
 
@@ -205,24 +310,42 @@ class FilterState:
         }
 
     @classmethod
-    def from_header(cls, node: Any, r: _Reader) -> FilterState:
+    def from_header(cls, node: Any, r: _Reader, where: str = "filter") -> FilterState:
+        """The state of a header's ``node``, every stamp, sample and count checked."""
         try:
             streams = {}
             for row in node["streams"]:
+                if not isinstance(row, list) or len(row) not in (3, 7):
+                    raise StateFieldError(f"{where}: a stream entry is not 3 or 7 items")
+                robot, stream = row[0], row[1]
+                if not isinstance(robot, str) or not isinstance(stream, str):
+                    raise StateFieldError(f"{where}: a stream entry without robot and stream names")
+                name = f"{where}/{robot}/{stream}"
+                last = -np.inf if row[2] is None else check_number(name, row[2], *_STAMPS)
                 held = None
                 if len(row) == 7:  # stamp, input, sigmas, correlations
-                    held = (float(row[3]), *(np.array(v, float) for v in row[4:]))
+                    pose = stream.endswith(("/pose", "/held_pose"))  # a pose, no sigmas
+                    held = (
+                        -np.inf
+                        if pose and row[3] == -np.inf
+                        else check_number(f"{name}/held", row[3], *_STAMPS),
+                        *(np.array(v, float) for v in row[4:]),
+                    )
                     if any(a.shape != (3,) for a in held[1:]):
-                        raise ValueError("a held odometry sample is not 3 + 3 + 3 numbers")
-                elif len(row) != 3:
-                    raise ValueError(f"stream entry of {len(row)} items")
-                streams[(str(row[0]), str(row[1]))] = (_unstamp(row[2]), held)
+                        raise StateFieldError(f"{name}: a held sample is not 3 + 3 + 3 numbers")
+                    check_values(f"{name}/held", np.concatenate(held[1:])[None])
+                    if not pose:
+                        check_values(f"{name}/held sigmas", held[2][None], positive=True)
+                        check_correlations(f"{name}/held correlations", held[3][None])
+                streams[(robot, stream)] = (last, held)
             drops = {
-                str(robot): {str(k): int(v) for k, v in counts.items()}
+                str(robot): check_counts(f"{where}/drops/{robot}", counts)
                 for robot, counts in node["drops"].items()
             }
+        except StateFieldError as err:
+            raise r.fail(str(err)) from None
         except (KeyError, TypeError, ValueError, AttributeError) as err:
-            raise r.fail(f"filter state: {err}") from None
+            raise r.fail(f"{where}: {err}") from None
         return cls(streams, drops)
 
 
@@ -249,9 +372,18 @@ class ThinningState:
 
     @classmethod
     def from_header(cls, node: Any, r: _Reader) -> ThinningState:
+        """The state of a header's ``node``: each pair's kept stamps sorted, its interval a
+        non-negative number."""
         try:
             kept = {(str(a), str(b)): [float(t) for t in s] for a, b, s in node["kept"]}
-            interval = {(str(a), str(b)): float(v) for a, b, v in node["interval"]}
+            interval = {
+                (str(a), str(b)): check_number(f"thinning/interval/{a}/{b}", v, 0.0, MAX_STAMP_S)
+                for a, b, v in node["interval"]
+            }
+            for (a, b), stamps in kept.items():
+                check_stamps(f"thinning/kept/{a}/{b}", np.array(stamps), "sorted")
+        except StateFieldError as err:
+            raise r.fail(str(err)) from None
         except (KeyError, TypeError, ValueError) as err:
             raise r.fail(f"thinning state: {err}") from None
         return cls(kept, interval)
@@ -274,9 +406,11 @@ def _rendezvous_log(prefix: str, observed: Any, r: _Reader) -> RendezvousLog:
     parts = [
         r.array(f"{prefix}/{k}") for k in ("ranges", "bearings", "sigma_range", "sigma_bearing")
     ]
-    if any(p.shape != stamps.shape for p in parts):
+    if stamps.ndim != 1 or any(p.shape != stamps.shape for p in parts):
         raise r.fail(f"{prefix}: arrays of different lengths")
-    return RendezvousLog(stamps, [str(o) for o in observed], *parts)
+    log = RendezvousLog(stamps, [str(o) for o in observed], *parts)
+    r.checked(check_rendezvous_log, prefix, log)
+    return log
 
 
 # --------------------------------------------------------------------------- the smoother
@@ -322,11 +456,12 @@ class SmootherCheckpoint:
 
     @classmethod
     def read(cls, path: Path, robot: str | None = None) -> SmootherCheckpoint:
-        """Read a smoother checkpoint (of ``robot`` when given: another robot's is an error)."""
+        """Read a smoother checkpoint (of ``robot`` when given: another robot's is an error),
+        every field checked (:mod:`~csam_ros.core.exchange.state_checks`)."""
         r = _Reader(path, *read_npz(path, SMOOTHER))
         name = r.value("robot", str)
         if robot is not None and name != robot:
-            raise r.fail(f"the checkpoint of {name!r}, not of {robot!r}")
+            raise r.fail(f"the checkpoint of {name!r:.80}, not of {robot!r}")
         scalars = r.value("map", dict)
         try:
             local_map = LocalMapState(
@@ -336,28 +471,41 @@ class SmootherCheckpoint:
                     # a field added since (it has a default) may be absent from older files
                     if f"map/{f.name}" in r.arrays or f.default_factory is MISSING
                 },
-                integrated_features=int(scalars["integrated_features"]),
-                dropped_features=int(scalars["dropped_features"]),
+                integrated_features=check_integer(
+                    "map/integrated_features", scalars["integrated_features"], 0, MAX_COUNT
+                ),
+                dropped_features=check_integer(
+                    "map/dropped_features", scalars["dropped_features"], 0, MAX_COUNT
+                ),
                 last_solved_odometry=_unstamp(scalars["last_solved_odometry"]),
-                solved=bool(scalars["solved"]),
+                solved=scalars["solved"],
             )
+            if not isinstance(local_map.solved, bool):
+                raise StateFieldError(f"map/solved: {local_map.solved!r:.40} is not true or false")
+        except StateFieldError as err:
+            raise r.fail(str(err)) from None
         except (KeyError, TypeError, ValueError) as err:
             raise r.fail(f"local map: {err}") from None
+        r.checked(check_local_map_state, "map", local_map)
+        rendezvous_stamps = r.array("rendezvous_stamps")
+        r.checked(check_stamps, "rendezvous_stamps", rendezvous_stamps, "increasing")
         return cls(
             robot=name,
             local_map=local_map,
             filter=FilterState.from_header(r.value("filter", dict), r),
-            peer_filter=FilterState.from_header(r.value("peer_filter", dict), r),
+            peer_filter=FilterState.from_header(r.value("peer_filter", dict), r, "peer_filter"),
             thinning=ThinningState.from_header(r.value("thinning", dict), r),
             own_rendezvous=_rendezvous_log(
                 "own_rendezvous", r.value("own_rendezvous_observed", list), r
             ),
-            rendezvous_stamps=r.array("rendezvous_stamps"),
-            last_odometry_ns=r.value("last_odometry_ns", int),
-            published_ns=r.value("published_ns", int),
-            errors=r.value("errors", int),
-            restarts=r.value("restarts", int),
-            lost_seconds=float(r.value("lost_seconds", (int, float))),
+            rendezvous_stamps=rendezvous_stamps,
+            last_odometry_ns=r.integer("last_odometry_ns", -1, MAX_STAMP_NS),
+            published_ns=r.integer("published_ns", -1, MAX_STAMP_NS),
+            errors=r.integer("errors", 0, MAX_COUNT),
+            restarts=r.integer("restarts", 0, MAX_COUNT),
+            lost_seconds=r.checked(
+                check_number, "lost_seconds", r.value("lost_seconds", (int, float)), 0.0, 1e12
+            ),
         )
 
 
@@ -390,6 +538,29 @@ _MAP_ARRAYS = [
     if f.name not in ("robust_kernel", "robust_parameter", "cost", "odometry_calibration")
 ]
 _MAP_INTS = ("feature_labels", "odometry_ends", "observation_pose", "observation_label")
+# each array's shape after its rows (None: any 1-D array), and the arrays of one length
+_MAP_TAILS: dict[str, tuple[int, ...] | None] = {
+    "stamps": (),
+    "poses": (3,),
+    "pose_covariances": (),
+    "feature_labels": (),
+    "feature_xy": (2,),
+    "feature_cov": (3,),
+    "prior_sqrt_information": (),
+    "odometry_ends": (2,),
+    "odometry_delta": (3,),
+    "odometry_sqrt_information": (9,),
+    "observation_pose": (),
+    "observation_label": (),
+    "observation_xy": (2,),
+    "observation_sqrt_information": (4,),
+}
+_MAP_LENGTHS = (
+    ("stamps", "poses"),
+    ("feature_labels", "feature_xy", "feature_cov"),
+    ("odometry_ends", "odometry_delta", "odometry_sqrt_information"),
+    ("observation_pose", "observation_label", "observation_xy", "observation_sqrt_information"),
+)
 
 
 @dataclass
@@ -439,9 +610,14 @@ class MergerState:
         maps = {}
         for robot, (kernel, parameter) in _pairs(r.value("maps", dict), r, "maps"):
             values = {
-                k: r.array(f"maps/{robot}/{k}", np.int64 if k in _MAP_INTS else float)
-                for k in _MAP_ARRAYS
+                k: r.array(f"maps/{robot}/{k}", np.int64 if k in _MAP_INTS else float, tail)
+                for k, tail in _MAP_TAILS.items()
             }
+            for group in _MAP_LENGTHS:
+                if len({len(values[k]) for k in group}) > 1:
+                    raise r.fail(f"maps/{robot}: {', '.join(group)} of different lengths")
+            if values["prior_sqrt_information"].shape != (9,):
+                raise r.fail(f"maps/{robot}: prior_sqrt_information is not 9 numbers")
             if not isinstance(kernel, str) or not isinstance(parameter, int | float):
                 raise r.fail(f"maps/{robot}: bad robust kernel entry")
             try:
@@ -459,13 +635,12 @@ class MergerState:
             for robot, names in observed.items()
         }
         stamps = r.value("map_stamps", dict)
-        if set(stamps) != set(maps) or not all(isinstance(v, int) for v in stamps.values()):
+        if set(stamps) != set(maps):
             raise r.fail("map_stamps: not one integer stamp per local map")
+        for robot, stamp in stamps.items():
+            r.checked(check_integer, f"map_stamps/{robot}", stamp, 0, MAX_STAMP_NS)
         result = r.value("result", (dict, type(None)))
-        try:
-            parsed = None if result is None else CsamResult.from_dict(result)
-        except ValueError as err:
-            raise r.fail(f"result: {err}") from None
+        parsed = None if result is None else _result(result, r)
         reference = r.value("reference", str)
         heard = [str(h) for h in r.value("heard", list)]
         if reference and reference not in heard or not set(heard) <= set(maps):
@@ -477,14 +652,21 @@ class MergerState:
             maps=maps,
             map_stamps=dict(stamps),
             rendezvous=rendezvous,
-            solves=r.value("solves", int),
-            dropped=_counts(r.value("dropped", dict), r, "dropped"),
-            restarts=_counts(r.value("restarts", dict), r, "restarts"),
-            restart_poses_lost=_counts(
-                r.value("restart_poses_lost", dict), r, "restart_poses_lost"
+            solves=r.integer("solves", 0, MAX_COUNT),
+            dropped=r.checked(check_counts, "dropped", r.value("dropped", dict)),
+            restarts=r.checked(check_counts, "restarts", r.value("restarts", dict)),
+            restart_poses_lost=r.checked(
+                check_counts, "restart_poses_lost", r.value("restart_poses_lost", dict)
             ),
             result=parsed,
         )
+
+
+def _result(node: dict[str, Any], r: _Reader) -> CsamResult:
+    try:
+        return CsamResult.from_dict(node)
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
+        raise r.fail(f"result: {err}") from None
 
 
 def _pairs(node: Mapping[str, Any], r: _Reader, where: str) -> list[tuple[str, Any]]:
@@ -494,12 +676,6 @@ def _pairs(node: Mapping[str, Any], r: _Reader, where: str) -> list[tuple[str, A
             raise r.fail(f"{where}/{k}: expected a pair")
         out.append((k, v))
     return out
-
-
-def _counts(node: Mapping[str, Any], r: _Reader, where: str) -> dict[str, int]:
-    if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in node.values()):
-        raise r.fail(f"{where}: expected counts")
-    return {str(k): int(v) for k, v in node.items()}
 
 
 # --------------------------------------------------------------------------- offline replay
@@ -544,32 +720,47 @@ class OfflineState:
 
     @classmethod
     def read(cls, path: Path) -> OfflineState:
+        """Read an offline replay's state, every field of every log checked."""
         r = _Reader(path, *read_npz(path, OFFLINE))
         lists = r.value("lists", dict)
         logs = {}
         for name in r.value("robots", list):
+            if not isinstance(name, str) or name in logs:
+                raise r.fail(f"robots: {name!r:.40} is not the name of one more robot")
             parts: dict[str, Any] = {}
             for part, kind in _log_parts().items():
                 values: dict[str, Any] = {}
                 for f in fields(kind):
                     key = f"logs/{name}/{part}/{f.name}"
                     if key in lists:
+                        if not isinstance(lists[key], list):
+                            raise r.fail(f"lists/{key}: not a list")
                         values[f.name] = [str(v) for v in lists[key]]
                     elif key in r.arrays:
-                        values[f.name] = r.array(key, r.arrays[key].dtype)
+                        dtype = np.int64 if f.name == "labels" else float
+                        values[f.name] = r.array(key, dtype, _LOG_TAILS.get(f.name, ()))
                     elif f.default is MISSING and f.default_factory is MISSING:
                         raise r.fail(f"no array {key!r}")
                 lengths = {len(v) for v in values.values()}
                 if len(lengths) > 1:
                     raise r.fail(f"logs/{name}/{part}: fields of different lengths")
                 parts[part] = kind(**values)
-            logs[str(name)] = RobotLog(str(name), **parts)
+                r.checked(_LOG_CHECKS[part], f"logs/{name}/{part}", parts[part])
+            logs[name] = RobotLog(name, **parts)
         result = r.value("result", (dict, type(None)))
-        try:
-            parsed = None if result is None else CsamResult.from_dict(result)
-        except ValueError as err:
-            raise r.fail(f"result: {err}") from None
+        parsed = None if result is None else _result(result, r)
         return cls(logs, FilterState.from_header(r.value("filter", dict), r), parsed)
+
+
+# the shape after its rows of each array field of a log part (others: one number a row)
+_LOG_TAILS = {"inputs": (3,), "sigmas": (3,), "correlations": (3,), "points": (2,)}
+_LOG_TAILS["covariances"] = (2, 2)
+_LOG_CHECKS: dict[str, Callable[[str, Any], None]] = {
+    "odometry": check_odometry_log,
+    "features": check_feature_log,
+    "rendezvous": check_rendezvous_log,
+    "points": check_point_log,
+}
 
 
 def joined_logs(first: Mapping[str, RobotLog], then: Mapping[str, RobotLog]) -> dict[str, RobotLog]:

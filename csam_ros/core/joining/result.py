@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from csam_ros.core.joining.alignment import joined
 from csam_ros.core.joining.notes import Note, NoteKind
 from csam_ros.core.joining.rendezvous_filters import FilterReport
+from csam_ros.core.model.regular_files import open_regular
 
 Array = NDArray[np.float64]
 
@@ -558,10 +559,13 @@ class RunSummary:
     @classmethod
     def read(cls, path: Path) -> RunSummary:
         """The summary in the file ``path``; a malformed file is a :class:`SummaryError`."""
+        with open_regular(path) as stream:  # a FIFO would block the read forever
+            data = stream.read()
         try:
-            document = json.loads(Path(path).read_text(encoding="utf-8"))
-            return cls.from_dict(document)
-        except (json.JSONDecodeError, SummaryError) as err:
+            return cls.from_dict(json.loads(data.decode("utf-8")))
+        except UnicodeDecodeError as err:
+            raise SummaryError(f"{path}: not UTF-8 text (byte {err.start})") from None
+        except (json.JSONDecodeError, SummaryError, RecursionError) as err:
             raise SummaryError(f"{path}: {err}") from None
 
 

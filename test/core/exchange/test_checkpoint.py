@@ -3,8 +3,11 @@ bad files refused with one clear error."""
 
 from __future__ import annotations
 
+import io
 import json
+import os
 import re
+import stat
 import zipfile
 from dataclasses import fields, is_dataclass
 from pathlib import Path
@@ -386,3 +389,267 @@ def test_named_damage_raises_checkpoint_error(written_checkpoint, tmp_path, dama
     }[damage]()
     assert damaged != data and len(damaged) == len(data)
     assert not _read_damaged(tmp_path / "bad.npz", damaged, written)
+
+
+def _rewritten(tmp_path: Path, data: bytes, name: str, change: Any) -> Path:
+    """A whole file (CRCs that match) of the checkpoint ``data`` with ``change(header,
+    arrays)`` applied."""
+    good = tmp_path / "source.npz"
+    good.write_bytes(data)
+    header, arrays = read_npz(good, "smoother")
+    change(header, arrays)
+    path = tmp_path / name
+    write_npz(path, "smoother", header, arrays)
+    return path
+
+
+def _set(where: str, key: str, value: Any) -> Any:
+    """A change of ``_rewritten``: the header's (or the arrays') ``key`` set to ``value``."""
+
+    def change(header: dict, arrays: dict) -> None:
+        target = header if where == "header" else arrays
+        for part in key.split(".")[:-1]:
+            target = target[part]
+        target[key.split(".")[-1]] = value(target.get(key.split(".")[-1]))
+
+    return change
+
+
+# a field no run could have written, and the words its error names it by
+FIELD_CASES = {
+    "stamp_beyond_ros_time": (_set("header", "published_ns", lambda _: 10**30), "published_ns"),
+    "odometry_stamp_huge": (_set("header", "last_odometry_ns", lambda _: 2**63), "last_odometry"),
+    "negative_count": (_set("header", "errors", lambda _: -3), "errors"),
+    "count_a_bool": (_set("header", "errors", lambda _: False), "errors"),
+    "lost_seconds_nan": (_set("header", "lost_seconds", lambda _: float("nan")), "lost_seconds"),
+    "integrated_beyond": (
+        _set("header", "map.integrated_features", lambda _: 10**6),
+        "integrated",
+    ),
+    "solved_a_string": (_set("header", "map.solved", lambda _: "yes"), "map/solved"),
+    "last_solved_inf": (
+        _set("header", "map.last_solved_odometry", lambda _: float("inf")),
+        "last_solved_odometry",
+    ),
+    "reversed_odometry": (
+        _set("arrays", "map/odometry_stamps", lambda a: a[::-1].copy()),
+        "map/odometry_stamps",
+    ),
+    "reversed_keys": (_set("arrays", "map/keys", lambda a: a[::-1].copy()), "map/keys"),
+    "zero_sigma": (
+        _set("arrays", "map/odometry_sigmas", lambda a: np.where(a > 0, 0.0, a)),
+        "map/odometry_sigmas",
+    ),
+    "negative_sigma": (
+        _set("arrays", "own_rendezvous/sigma_range", lambda a: -a),
+        "own_rendezvous/sigma_range",
+    ),
+    "nan_key_pose": (
+        _set("arrays", "map/key_values", lambda a: np.where(a == a[1, 1], np.nan, a)),
+        "map/key_values",
+    ),
+    "scalar_array": (_set("arrays", "rendezvous_stamps", lambda a: np.float64(3.0)), "scalar"),
+    "text_array": (_set("arrays", "map/keys", lambda a: np.array(["a", "b"])), "map/keys"),
+    "labels_beyond_int64": (
+        _set("arrays", "map/landmark_labels", lambda a: a.astype(np.uint64) + 2**63),
+        "map/landmark_labels",
+    ),
+    "repeated_landmark": (
+        _set("arrays", "map/landmark_labels", lambda a: np.zeros_like(a)),
+        "map/landmark_labels",
+    ),
+    "unsorted_rendezvous_stamps": (
+        _set("arrays", "rendezvous_stamps", lambda a: a[::-1].copy()),
+        "rendezvous_stamps",
+    ),
+    "held_sample_zero_sigma": (
+        _set(
+            "header",
+            "filter.streams",
+            lambda rows: [r[:5] + [[0.0, 0.0, 0.0]] + r[6:] if len(r) == 7 else r for r in rows],
+        ),
+        "held sigmas",
+    ),
+    "thinning_interval_negative": (
+        _set("header", "thinning.interval", lambda rows: [[a, b, -1.0] for a, b, _ in rows]),
+        "thinning/interval",
+    ),
+    "drop_count_huge": (
+        _set("header", "filter.drops", lambda d: {r: {"x": 10**40} for r in d}),
+        "filter/drops",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(FIELD_CASES))
+def test_a_whole_checkpoint_with_a_field_no_run_could_write_is_refused(
+    written_checkpoint, tmp_path, case: str
+) -> None:
+    """The file reads (every CRC matches) but a field breaks its meaning: CheckpointError
+    naming the file and the field, before any of it is used."""
+    _, data = written_checkpoint
+    change, field_name = FIELD_CASES[case]
+    path = _rewritten(tmp_path, data, f"{case}.npz", change)
+    with pytest.raises(CheckpointError) as caught:
+        SmootherCheckpoint.read(path, "robot1")
+    message = str(caught.value)
+    assert str(path) in message and field_name in message, message
+    assert "\n" not in message
+
+
+def test_the_field_cases_change_what_they_name(written_checkpoint, tmp_path) -> None:
+    """Each case of FIELD_CASES changes the file (a case that changed nothing would pass for
+    the wrong reason): the header or arrays differ from the written ones."""
+    _, data = written_checkpoint
+    good = tmp_path / "good.npz"
+    good.write_bytes(data)
+    header, arrays = read_npz(good, "smoother")
+    for case, (change, _) in FIELD_CASES.items():
+        changed_header, changed_arrays = json.loads(json.dumps(header)), dict(arrays)
+        change(changed_header, changed_arrays)
+        same_arrays = all(
+            np.shape(changed_arrays[k]) == np.shape(v)
+            and np.asarray(changed_arrays[k]).dtype == v.dtype
+            and np.array_equal(changed_arrays[k], v, equal_nan=True)
+            for k, v in arrays.items()
+        )
+        assert changed_header != header or not same_arrays, case
+
+
+def _merger_and_offline(run: MultiRobotLog, tmp_path: Path) -> tuple[Path, Path]:
+    """Small whole merger and offline state files of the run's first 25 s."""
+    logs = {n: robot_log_between(r, end=25.0) for n, r in run.robots.items()}
+    offline = tmp_path / "offline.npz"
+    OfflineState(logs, FilterState.of(MeasurementFilter(list(logs)))).write(offline)
+    local = LocalMap("robot1")
+    local.add_log(logs["robot1"])
+    local.update(converge=True)
+    robot_map = robot_map_from_local_map(local)
+    merger = tmp_path / "merger.npz"
+    MergerState(
+        "robot1",
+        ["robot1"],
+        ["robot1", "robot2"],
+        {"robot1": robot_map},
+        {"robot1": 10**9},
+        {"robot1": logs["robot1"].rendezvous},
+        3,
+        {},
+    ).write(merger)
+    return merger, offline
+
+
+MERGER_CASES = {
+    "map_stamp_beyond_ros_time": ("header", "map_stamps", lambda v: {"robot1": 10**30}),
+    "solves_negative": ("header", "solves", lambda v: -1),
+    "dropped_not_counts": ("header", "dropped", lambda v: {"x": "many"}),
+    "rendezvous_nan_range": ("arrays", "rendezvous/robot1/ranges", lambda a: a * np.nan),
+    "poses_a_scalar": ("arrays", "maps/robot1/poses", lambda a: np.float64(1.0)),
+    "ends_one_column": ("arrays", "maps/robot1/odometry_ends", lambda a: a[:, 0].copy()),
+}
+OFFLINE_CASES = {
+    "odometry_zero_sigma": ("arrays", "logs/robot1/odometry/sigmas", lambda a: 0.0 * a),
+    "odometry_reversed": ("arrays", "logs/robot1/odometry/stamps", lambda a: a[::-1].copy()),
+    "stamps_a_scalar": ("arrays", "logs/robot1/odometry/stamps", lambda a: np.float64(1.0)),
+    "range_negative": ("arrays", "logs/robot1/features/ranges", lambda a: -a),
+    "observed_not_a_list": ("header", "lists", lambda v: {k: 5 for k in v}),
+    "robot_twice": ("header", "robots", lambda v: [*v, v[0]]),
+}
+
+
+@pytest.mark.parametrize(
+    "kind, case", [("merger", c) for c in MERGER_CASES] + [("offline", c) for c in OFFLINE_CASES]
+)
+def test_merger_and_offline_states_with_a_field_no_run_could_write_are_refused(
+    run, tmp_path, kind: str, case: str
+) -> None:
+    merger, offline = _merger_and_offline(run, tmp_path)
+    if kind == "merger":
+        source, reader, (where, key, value) = merger, MergerState.read, MERGER_CASES[case]
+    else:
+        source, reader, (where, key, value) = offline, OfflineState.read, OFFLINE_CASES[case]
+    reader(source)  # the whole file reads
+    header, arrays = read_npz(source, kind)
+    target = header if where == "header" else arrays
+    target[key] = value(target[key])
+    path = tmp_path / f"{case}.npz"
+    write_npz(path, kind, header, arrays)
+    with pytest.raises(CheckpointError) as caught:
+        reader(path)
+    message = str(caught.value)
+    assert str(path) in message and "\n" not in message, message
+
+
+def _declaring(data: bytes, member: str, size: int) -> bytes:
+    """``data`` with ``member`` deflated and its zip directory entry declaring ``size`` bytes
+    uncompressed (its CRC that of the bytes it holds): cheap to build, a decompression bomb
+    to a reader that trusts the declared size."""
+    source = zipfile.ZipFile(io.BytesIO(data))
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as target:
+        for info in source.infolist():
+            content = source.read(info)
+            info.compress_type = zipfile.ZIP_DEFLATED if info.filename == member else 0
+            target.writestr(info, content)
+    deflated = out.getvalue()
+    entry = _central_entry(deflated, member)  # its uncompressed size: 4 bytes at 24
+    return _patched(deflated, entry + 24, size.to_bytes(4, "little"))
+
+
+def test_a_state_declaring_more_than_the_maximum_is_refused_before_decompression(
+    written_checkpoint, tmp_path
+) -> None:
+    """An entry declaring 3 GB uncompressed (a 3 MB file may expand to that) is refused by
+    the sizes in the zip directory, before any is decompressed; one declaring a few bytes
+    less than it holds, and an .npy header naming a shape its bytes do not hold (10^12
+    rows: numpy would allocate them first), are refused as damaged."""
+    _, data = written_checkpoint
+    member = "map/feature_sqrt_information.npy"
+    bomb = tmp_path / "bomb.npz"
+    bomb.write_bytes(_declaring(data, member, 3 * 10**9))
+    with pytest.raises(CheckpointError, match=r"declare \d+ bytes, more than the 536870912"):
+        SmootherCheckpoint.read(bomb, "robot1")
+    held = zipfile.ZipFile(io.BytesIO(data)).getinfo(member).file_size
+    short = tmp_path / "short.npz"  # decompressed no further than it declares: a CRC error
+    short.write_bytes(_declaring(data, member, held - 7))
+    with pytest.raises(CheckpointError, match="short.npz: not a readable .npz file"):
+        SmootherCheckpoint.read(short, "robot1")
+    huge_shape = tmp_path / "huge_shape.npz"
+    start, end = _npy_header(data, member)
+    header = data[start:end].decode("latin1")
+    rows = re.search(r"'shape': \((\d+),", header)
+    assert rows is not None
+    claimed = (header[: rows.start(1)] + "1000000000000" + header[rows.end(1) :]).rstrip()
+    assert len(claimed) < len(header)  # the header's padding takes the longer number
+    claimed = claimed.ljust(len(header) - 1) + "\n"
+    patched = data[:start] + claimed.encode("latin1") + data[end:]
+    huge_shape.write_bytes(patched)
+    with pytest.raises(CheckpointError, match="huge_shape.npz"):
+        SmootherCheckpoint.read(huge_shape, "robot1")
+
+
+def test_state_files_are_read_and_written_as_regular_files_only(
+    written_checkpoint, tmp_path
+) -> None:
+    """A FIFO named as a state file is refused at once (a read would wait for a writer
+    forever); one named as the output is refused and stays a FIFO (a rename would replace
+    it, as it would a device). A write whose final rename fails leaves no temporary file."""
+    from waiting import no_hang
+
+    written, _ = written_checkpoint
+    fifo = tmp_path / "fifo.npz"
+    os.mkfifo(fifo)
+    with no_hang(10.0), pytest.raises(CheckpointError, match="fifo.npz: .*a FIFO"):
+        SmootherCheckpoint.read(fifo, "robot1")
+    with pytest.raises(OSError, match="a FIFO, not a regular file"):
+        written.write(fifo)
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert not list(tmp_path.glob(".*.tmp"))
+    folder = tmp_path / "taken"
+    (folder / "inside").mkdir(parents=True)
+    with pytest.raises(OSError):
+        written.write(folder)  # a rename onto a folder that holds something fails
+    assert not list(tmp_path.glob(".*.tmp")), list(tmp_path.glob(".*"))
+    back = tmp_path / "back.npz"
+    written.write(back)
+    _assert_same(SmootherCheckpoint.read(back, "robot1"), written)
