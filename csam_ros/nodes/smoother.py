@@ -11,10 +11,12 @@ nanoseconds), it publishes:
   (:mod:`csam_ros.core.exchange.map_updates`; poses that moved beyond ``update_tolerance_m`` or
   ``update_tolerance_rad``, features and rendezvous poses beyond ``update_key_tolerance``,
   every one exactly after ``~/flush``; a flush with no new data since the last sends nothing
-  again). The first update of a run is
-  the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
-  for a receiver that missed one. While a reliable subscriber has not acknowledged the last
-  update (a slow link), the next is deferred (``deferred_updates``): the one sent once all is
+  again). The first update of a run is the whole map; ``~/resync`` (std_srvs/Trigger)
+  publishes the whole map again as one update for a receiver that missed one, at once (also
+  while the last update is unacknowledged), and answers with the session and that update's
+  sequence (``session S sequence N``: by it a receiver tells a restart, a new session, from
+  another publisher's map). While a reliable subscriber has not acknowledged the last update
+  (a slow link), the next is deferred (``deferred_updates``): the one sent once all is
   acknowledged holds every change since, so a slow link carries fewer, larger updates instead
   of a queue it cannot drain. An update after ``~/flush`` is never deferred;
 - ``rendezvous_poses`` when its measurements changed (latched);
@@ -74,7 +76,7 @@ from csam_ros.core.exchange.checkpoint import (
     odometry_period,
 )
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
-from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance
+from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance, resync_answer
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.validation import (
     ODOMETRY_DEFAULT_SIGMAS,
@@ -340,13 +342,9 @@ class Smoother(Node):
 
     def on_resync(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Publish the whole local map as it was last sent, as one update (a receiver missed
-        one); the reply's message is that update's sequence number (0: nothing sent yet).
-        While the last update is unacknowledged it is on its way: no other is added to the
-        link, and the reply names it."""
-        if self.sender.held is not None and not self.update_pub.wait_for_all_acked(NO_WAIT):
-            response.success = True
-            response.message = str(self.sender.held.sequence)
-            return response
+        one, or asks whose a whole map of another session is), also while the last update is
+        unacknowledged (that one may be lost); the reply's message names the session and
+        that update's sequence number (0: nothing sent yet)."""
         update = self.sender.resend()
         if update is not None:
             self.resyncs += 1
@@ -354,7 +352,7 @@ class Smoother(Node):
                 local_map_update_message(update, self.robot, max(self.published_ns, 0))
             )
         response.success = update is not None
-        response.message = str(update.sequence if update is not None else 0)
+        response.message = resync_answer(self.sender.session, update.sequence if update else 0)
         return response
 
     def solve_and_publish(self, converge: bool = False) -> None:
