@@ -25,7 +25,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
-from csam_ros.core.exchange.map_updates import UpdateSender
+from csam_ros.core.exchange.map_updates import UpdateSender, resync_answer
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.log import RobotLog
 from csam_ros.core.model.rendezvous import required_stamps
@@ -129,7 +129,8 @@ def joined_view(msg: JoinedMap) -> tuple[Any, ...]:
 class Smoothers:
     """What the robots' smoothers offer a merger, on one node: a publisher of each robot's
     local map updates and its ``/<robot>/smoother/resync`` service, which publishes
-    ``answer[robot]()`` (by default ``whole[robot]``, the map a test says the smoother has)."""
+    ``answer[robot]()`` (by default ``whole[robot]``, the map a test says the smoother has)
+    and names its session and sequence."""
 
     def __init__(self, node: Any, robots: list[str]) -> None:
         from std_srvs.srv import Trigger
@@ -158,7 +159,8 @@ class Smoothers:
         if msg is not None:
             self.updates[robot].publish(msg)
         response.success = msg is not None
-        response.message = str(msg.sequence if msg is not None else 0)
+        # as a smoother answers: its session, and the sequence of the whole map sent
+        response.message = resync_answer(msg.session, msg.sequence) if msg is not None else ""
         return response
 
     def destroy(self, robot: str) -> None:

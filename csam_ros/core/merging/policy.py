@@ -23,6 +23,18 @@ measurements, the reference, the counts, the last result) and decides with it:
   in the status and the summary;
 - staleness: a robot without a new local map for ``stale_after`` s is reported stale; its
   last map stays joined;
+- sessions: a robot's held map changes only by an update that applies to it and passes the
+  checks. A whole map of another session than the one held, or an older one of the same
+  session, is set aside (:class:`~csam_ros.core.merging.policy_inputs.PendingMap`) until the
+  robot's smoother, asked for its whole map, names its session and sequence
+  (:meth:`MergerPolicy.resync_answered`): taken if they are the map's (the smoother
+  restarted), else dropped and counted (``foreign_session``, ``replayed_update``). A map of
+  another session is taken at once when the held one is stale and its smoother's service is
+  gone; an update older than the one held is counted and makes the merger ask the smoother;
+- robots found: joined if ``robot_pattern`` and the allow-list admit them, at most
+  ``max_robots`` at once (the others counted once, ``too_many_robots``, and joined when room
+  is made); one found (not listed) that sends no map for ``forget_after`` s leaves the status
+  and is unsubscribed (its map stays joined), and may be found again ``forget_after`` s later;
 - when to ask a smoother for its whole map (``RESYNC_*``);
 - the status content (:class:`~csam_ros.core.merging.status.MergerStatus`);
 - the state services: the state of the last joined map to save (:meth:`MergerPolicy.saved_state`,
@@ -46,6 +58,9 @@ from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import (
     FAILED_SOLVE,
+    FOREIGN_SESSION,
+    REPLAYED_UPDATE,
+    TOO_MANY_ROBOTS,
     DropCounter,
     RefusedMessageError,
 )
@@ -66,14 +81,17 @@ from csam_ros.core.merging.notices import (
 from csam_ros.core.merging.policy_inputs import (
     BEHIND,
     NO_MAP_HELD,
+    OLDER,
     RESYNC_FIRST_S,
     RESYNC_RETRY_S,
     RESYNC_TIMEOUT_S,
+    SESSION_CHECK,
     UPDATE,
     Arrival,
     Found,
     MapTaken,
     MergerSettings,
+    PendingMap,
     ProvisionalMap,
     SolveInputs,
     SolveStart,
@@ -125,8 +143,20 @@ class MergerPolicy:
         self._joined: SolveInputs | None = None  # the inputs of the last joined map
         self._first_heard_at = 0.0  # clock s of the first local map
         self._late_reference_noted = False
-        self._behind: set[str] = set()  # an update of did not apply: resync until one does
+        # why a robot's whole map is wanted (an update did not apply, or an older one came):
+        # asked for until a map is taken
+        self._behind: dict[str, str] = {}
         self._resync_next: dict[str, float] = {}  # clock s from which to ask again
+        # whole maps set aside until their smoother's answer (module docstring), the last
+        # answer's (session, sequence), the last session an answer refuted (and when), and
+        # when the last answer about a map set aside was asked for
+        self._pending: dict[str, PendingMap] = {}
+        self._vouched: dict[str, tuple[int, int]] = {}
+        self._refuted: dict[str, tuple[int, float]] = {}
+        self._checked_at: dict[str, float] = {}
+        self._subscribed_at: dict[str, float] = {}  # clock s each robot was subscribed to
+        self._forgotten: dict[str, float] = {}  # clock s each robot was forgotten
+        self.turned_away: set[str] = set()  # robots found while max_robots were joined
         # robots whose next local map gives up a running solve (after ~/flush)
         self._after_flush: frozenset[str] = frozenset()
         # the local map stamps the last joined map and the last provisional map used
@@ -138,30 +168,78 @@ class MergerPolicy:
     # robots and resyncs
 
     def found(self, robot: str) -> Found | None:
-        """What to do with ``robot``, seen publishing local map updates (None: nothing, it is
-        subscribed to or was left out already)."""
+        """What to do with ``robot``, seen publishing local map updates (None: nothing now,
+        it is subscribed to, was left out or turned away already, or was forgotten less than
+        ``forget_after`` s ago)."""
         if robot in self.robots or robot in self.ignored:
             return None
-        if self.settings.admits(robot):
-            return Found.JOIN
-        self.ignored.add(robot)
-        return Found.LEAVE_OUT
+        if not self.settings.admits(robot):
+            self.ignored.add(robot)
+            return Found.LEAVE_OUT
+        forgotten = self._forgotten.get(robot)
+        if forgotten is not None and self.clock() - forgotten < self.settings.forget_after:
+            return None
+        if len(self.robots) >= self.settings.max_robots and not self.settings.listed(robot):
+            if robot in self.turned_away:
+                return None
+            self.turned_away.add(robot)
+            self.drops.add(TOO_MANY_ROBOTS)
+            return Found.TOO_MANY
+        self.turned_away.discard(robot)
+        self._forgotten.pop(robot, None)
+        return Found.JOIN
 
     def subscribed(self, robot: str) -> None:
         """``robot``'s topics are subscribed to: its map is asked for if none comes soon."""
-        self._resync_next[robot] = self.clock() + RESYNC_FIRST_S
+        now = self.clock()
+        self._resync_next[robot] = now + RESYNC_FIRST_S
+        self._subscribed_at[robot] = now
         self.robots = [*self.robots, robot]
 
+    def forget_silent(self) -> list[str]:
+        """The robots found (not listed) that sent no local map for ``forget_after`` s (0:
+        never), or none since they were subscribed to: no longer subscribed to nor in the
+        status (their maps stay joined). The node unsubscribes them."""
+        after, now = self.settings.forget_after, self.clock()
+        silent = [
+            r
+            for r in self.robots
+            if not self.settings.listed(r)
+            and 0.0 < after < now - self.map_arrival.get(r, self._subscribed_at.get(r, now))
+        ]
+        for robot in silent:
+            self._forgotten[robot] = now
+            for wanted in (self._behind, self._resync_next, self._pending, self._checked_at):
+                wanted.pop(robot, None)
+        self.robots = [r for r in self.robots if r not in silent]
+        return silent
+
+    def known_robots(self) -> tuple[str, ...]:
+        """The robots a rendezvous measurement may name: the allow-list, else every robot
+        subscribed to or heard from."""
+        return self.settings.robots or (
+            *self.robots,
+            *(r for r in self.heard if r not in self.robots),
+        )
+
     def resyncs_wanted(self) -> Iterator[tuple[str, str]]:
-        """The robots whose whole map is wanted (none is held, or an update did not apply),
-        with why, none while paused; :meth:`resync_due` says whether to ask now."""
+        """The robots whose whole map is wanted (none is held, an update did not apply or was
+        older than the one held, or a whole map is set aside), with why, none while paused;
+        :meth:`resync_due` says whether to ask now."""
         if self.paused:
             return
         for robot in self.robots:
             if robot not in self.held:
                 yield robot, NO_MAP_HELD
             elif robot in self._behind:
-                yield robot, BEHIND
+                yield robot, self._behind[robot]
+            elif robot in self._pending and self._check_due(robot):
+                yield robot, SESSION_CHECK
+
+    def _check_due(self, robot: str) -> bool:
+        """Whether the smoother may be asked about a map set aside (at most every
+        ``RESYNC_RETRY_S``: another publisher's maps ask no more often)."""
+        return self.clock() - self._checked_at.get(robot, -RESYNC_RETRY_S) >= RESYNC_RETRY_S
 
     def resync_due(self, robot: str) -> bool:
         """Whether a request for ``robot``'s whole map may be made now (none stands)."""
@@ -171,6 +249,8 @@ class MergerPolicy:
         """A request for ``robot``'s whole map was made: it stands ``RESYNC_TIMEOUT_S``."""
         self._resync_next[robot] = self.clock() + RESYNC_TIMEOUT_S
         self.resync_requests[robot] = self.resync_requests.get(robot, 0) + 1
+        if robot in self._pending:
+            self._checked_at[robot] = self.clock()
 
     def resync_refused(self, robot: str) -> None:
         """``robot``'s smoother had nothing to send: ask again after ``RESYNC_RETRY_S``."""
@@ -178,23 +258,114 @@ class MergerPolicy:
 
     # inputs
 
-    def map_arrived(self, robot: str, arrived: Arrival, stamp_ns: int) -> MapTaken:
-        """Take what an update on ``robot``'s topic (stamped ``stamp_ns``) built: the map held
-        of it, and its new local map when that is usable (a refused one is dropped, and the
-        last valid map stays in use); a smoother restart is counted."""
+    def map_arrived(
+        self, robot: str, arrived: Arrival, stamp_ns: int, answers: bool = True
+    ) -> MapTaken:
+        """Take what an update on ``robot``'s topic (stamped ``stamp_ns``) built, when it is
+        usable and the sessions allow (module docstring; ``answers``: whether the robot's
+        smoother's resync service is there to ask): the map held of it and its new local
+        map. A refused one is dropped and the last valid map (and the sequence it expects
+        next) stays in use; a smoother restart is counted."""
         if arrived.behind:
-            self._behind.add(robot)
+            self._behind[robot] = BEHIND
             return MapTaken(behind=arrived.behind)
-        if arrived.held is not None:
-            self.held = {**self.held, robot: arrived.held}
-            self._behind.discard(robot)
-            if arrived.whole:
-                self._resync_next.pop(robot, None)
         if arrived.refused is not None:
             return MapTaken(notices=(self.refused(robot, UPDATE, arrived.refused),))
         if arrived.held is None or arrived.checked is None:
+            if not arrived.older:
+                return MapTaken()  # delivered again
+            self._behind[robot] = OLDER
+            detail = f"{robot}: an update older than update {self.held[robot].sequence} held"
+            notice = self.refused(robot, UPDATE, RefusedMessageError(detail, REPLAYED_UPDATE))
+            return MapTaken((notice,), behind=OLDER)
+        aside = self._set_aside(robot, arrived.held, arrived.checked, stamp_ns, answers)
+        if aside is not None:
+            return aside
+        return self._take(robot, arrived.held, arrived.checked, stamp_ns, arrived.whole)
+
+    def _set_aside(
+        self, robot: str, new: HeldMap, checked: RobotMap, stamp_ns: int, answers: bool
+    ) -> MapTaken | None:
+        """What became of ``new``, a map built by an update, if it is not to be taken now:
+        dropped, or set aside for its smoother's answer (module docstring); None: take it."""
+        held = self.held.get(robot)
+        if held is None or (new.session, new.sequence) == self._vouched.get(robot):
+            return None
+        if new.session == held.session:
+            if new.sequence > held.sequence:
+                return None
+            reason = REPLAYED_UPDATE
+        else:
+            if not answers and self.stale(robot):
+                return None  # the old session is gone and no smoother answers for it
+            refuted = self._refuted.get(robot, (-1, -RESYNC_TIMEOUT_S))
+            if refuted[0] == new.session and self.clock() - refuted[1] < RESYNC_TIMEOUT_S:
+                return MapTaken(notices=(self._dropped(robot, new, FOREIGN_SESSION),))
+            reason = FOREIGN_SESSION
+        old = self._pending.get(robot)
+        notices: tuple[Notice, ...] = ()
+        if old is not None and old.held.session != new.session:
+            notices = (self._dropped(robot, old.held, old.reason),)
+        self._pending = {**self._pending, robot: PendingMap(new, checked, stamp_ns, reason)}
+        return MapTaken(notices, behind=SESSION_CHECK if self._check_due(robot) else "")
+
+    def _dropped(self, robot: str, m: HeldMap, reason: str) -> Refused:
+        """A whole map not taken, counted under ``reason``."""
+        held = self.held[robot]
+        why = (
+            f"older than update {held.sequence} held"
+            if reason == REPLAYED_UPDATE
+            else f"of another session than {held.session}, which its smoother did not name"
+        )
+        detail = f"{robot}: whole map {m.sequence} of session {m.session} not taken: {why}"
+        self.drops.add(reason)
+        return Refused(robot, UPDATE, reason, detail)
+
+    def _take(
+        self, robot: str, new: HeldMap, checked: RobotMap, stamp_ns: int, whole: bool
+    ) -> MapTaken:
+        """Hold ``new`` (checked: ``checked``) as ``robot``'s map."""
+        self.held = {**self.held, robot: new}
+        self._behind.pop(robot, None)
+        if whole:
+            self._resync_next.pop(robot, None)
+        vouched = self._vouched.get(robot)
+        if vouched is not None and (vouched[0] != new.session or new.sequence >= vouched[1]):
+            self._vouched = {r: v for r, v in self._vouched.items() if r != robot}
+        pending = self._pending.get(robot)
+        if pending is not None and pending.held.session == new.session:
+            self._pending = {r: p for r, p in self._pending.items() if r != robot}
+        return self._map_taken(robot, new, checked, stamp_ns)
+
+    def resync_answered(self, robot: str, sent: bool, session: int, sequence: int) -> MapTaken:
+        """``robot``'s smoother answered a resync request: its session is ``session``, and it
+        ``sent`` its whole map as update ``sequence`` (else it has sent nothing yet). A map
+        set aside is taken if it is the smoother's (its session, or that very update, for one
+        of the session held), else dropped and counted; the update named is taken when it
+        comes, whatever the map held."""
+        self._vouched = {**self._vouched, robot: (session, sequence)} if sent else self._vouched
+        pending = self._pending.get(robot)
+        if pending is None:
             return MapTaken()
-        return self._map_taken(robot, arrived.held, arrived.checked, stamp_ns)
+        self._pending = {r: p for r, p in self._pending.items() if r != robot}
+        m = pending.held
+        own = (m.session, m.sequence) == (session, sequence) or (
+            pending.reason == FOREIGN_SESSION and m.session == session and sent
+        )
+        if own:
+            return self._take(robot, m, pending.checked, pending.stamp_ns, whole=True)
+        if pending.reason == FOREIGN_SESSION:
+            self._refuted = {**self._refuted, robot: (m.session, self.clock())}
+        return MapTaken(notices=(self._dropped(robot, m, pending.reason),))
+
+    def smoother_absent(self, robot: str) -> MapTaken:
+        """``robot``'s smoother's resync service is not there: a map of another session set
+        aside is taken once the session held is stale (its smoother is gone)."""
+        pending = self._pending.get(robot)
+        if pending is None or pending.reason != FOREIGN_SESSION or not self.stale(robot):
+            return MapTaken()
+        self._pending = {r: p for r, p in self._pending.items() if r != robot}
+        return self._take(robot, pending.held, pending.checked, pending.stamp_ns, whole=True)
 
     def _map_taken(self, robot: str, held: HeldMap, new: RobotMap, stamp_ns: int) -> MapTaken:
         now = self.clock()
