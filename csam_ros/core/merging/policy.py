@@ -332,10 +332,16 @@ class MergerPolicy:
         vouched = self._vouched.get(robot)
         if vouched is not None and (vouched[0] != new.session or new.sequence >= vouched[1]):
             self._vouched = {r: v for r, v in self._vouched.items() if r != robot}
+        # a map set aside of the same session: older than this one (the smoother's own, or a
+        # replay of the session held, counted)
         pending = self._pending.get(robot)
+        dropped: tuple[Notice, ...] = ()
         if pending is not None and pending.held.session == new.session:
             self._pending = {r: p for r, p in self._pending.items() if r != robot}
-        return self._map_taken(robot, new, checked, stamp_ns)
+            if pending.reason == REPLAYED_UPDATE:
+                dropped = (self._dropped(robot, pending.held, REPLAYED_UPDATE),)
+        taken = self._map_taken(robot, new, checked, stamp_ns)
+        return replace(taken, notices=(*dropped, *taken.notices))
 
     def resync_answered(self, robot: str, sent: bool, session: int, sequence: int) -> MapTaken:
         """``robot``'s smoother answered a resync request: its session is ``session``, and it

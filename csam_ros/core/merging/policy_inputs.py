@@ -40,7 +40,7 @@ NO_MAP_HELD = "no local map held yet"
 UPDATE = "local map update"  # what a refused map update is called
 BEHIND = "an update did not apply to the map held"
 OLDER = "an update older than the map held came"
-SESSION_CHECK = "a whole map of another session came: did the smoother restart?"
+SESSION_CHECK = "a whole map of another session, or an older one, came: is it the smoother's?"
 
 
 @dataclass(frozen=True)

@@ -741,6 +741,12 @@ def test_an_old_whole_map_of_the_session_held_rolls_nothing_back(run: Run) -> No
     (dropped,) = merger.policy.resync_answered("robot2", True, 1, 3).notices
     assert dropped.reason == REPLAYED_UPDATE and merger.drops.as_dict() == {REPLAYED_UPDATE: 1}
     assert merger.policy.held["robot2"] is held
+    # the smoother's whole map may come before its answer: the replay is counted then
+    assert not _arrive(merger, "robot2", old).taken
+    taken = _arrive(merger, "robot2", _whole(run.late["robot2"], session=1, sequence=3))
+    assert taken.taken and [n.reason for n in taken.notices] == [REPLAYED_UPDATE]
+    assert merger.drops.as_dict() == {REPLAYED_UPDATE: 2}
+    assert merger.policy.resync_answered("robot2", True, 1, 3) == MapTaken()
 
 
 def test_an_update_older_than_the_held_one_asks_and_the_answer_is_taken(run: Run) -> None:
