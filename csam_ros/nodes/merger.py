@@ -7,7 +7,8 @@ robot's local map by applying its updates (:mod:`csam_ros.core.exchange.map_upda
 a smoother for its whole map (``/<robot>/smoother/resync``) when it holds none, an update does
 not apply, or a whole map of another session came (its answer names its session). Every
 message is checked whole when it arrives (``ros/map_messages.py``): a malformed one is dropped
-and counted, and the robot's last valid inputs stay in use.
+and counted, and the robot's last valid inputs stay in use. With ``team_key_file``, only
+messages signed with the team key are taken (:mod:`csam_ros.nodes.merger_auth`).
 
 Its decisions are :class:`~csam_ros.core.merging.policy.MergerPolicy`'s: the reference, when to
 solve, when the provisional map goes out, smoother restarts, stale robots and what
@@ -50,6 +51,7 @@ from csam_ros.core.merging.policy_inputs import (
 )
 from csam_ros.core.merging.status import SharedDropCounter
 from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe, watch_parameters
+from csam_ros.nodes.merger_auth import SignedInputs
 from csam_ros.nodes.merger_output import MergerOutput
 from csam_ros.nodes.merger_parameters import declare_merger_parameters, live_merger_parameters
 from csam_ros.nodes.merger_rendezvous import RendezvousInput
@@ -84,6 +86,7 @@ class Merger(Node):
         self._lock = threading.Lock()
         self.resyncs = ResyncClients(self, self.policy, self._lock, self._taken)
         self.rendezvous_input = RendezvousInput(self)
+        self.signed = SignedInputs(self, params.team_key, self.drops)  # with a key: signed only
         self._robot_inputs: dict[str, tuple[Subscription, ...]] = {}
         self._wake = threading.Condition(self._lock)
         self._provisional_wake = threading.Condition(self._lock)
@@ -166,8 +169,8 @@ class Merger(Node):
         self.output.add_robot(robot)
         inputs = ((LOCAL_MAP_UPDATES, self._on_map), (RENDEZVOUS_POSES, self._on_rendezvous))
         self._robot_inputs[robot] = tuple(
-            subscribe(self, topic, lambda m, on=on: on(robot, m), topic.of(robot))
-            for topic, on in inputs
+            subscribe(self, t, self.signed.gate(robot, t.of(robot), on), t.of(robot))
+            for t, on in inputs
         )
         self.resyncs.add(robot)
         with self._lock:
@@ -201,6 +204,7 @@ class Merger(Node):
             for subscription in self._robot_inputs.pop(robot, ()):
                 self.destroy_subscription(subscription)
             self.resyncs.remove(robot)
+            self.signed.remove(robot)
 
     def _refuse(self, robot: str, what: str, error: RefusedMessageError) -> None:
         with self._lock:
@@ -248,6 +252,7 @@ class Merger(Node):
         for robot, reason in wanted:
             self.resyncs.ask(robot, reason)
         self.forget_silent()
+        self.signed.expire()
         with self._lock:
             if self.policy.solve_wanted():
                 self._requested = True

@@ -16,6 +16,7 @@ from rclpy.node import Node
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.merging.policy_inputs import MergerSettings
 from csam_ros.nodes.common import Declared, Live, declare_each, declare_settings
+from csam_ros.ros.signing import read_team_key
 
 _DEFAULTS = MergerSettings()
 # the merger's own parameters, in the order they are declared
@@ -67,6 +68,12 @@ MERGER_PARAMETERS = (
         "status and is unsubscribed from, its map kept joined; found again after as long "
         "(0: never)",
         0.0,
+    ),
+    Declared(
+        "team_key_file",
+        "",
+        "file of the team key (at least 16 bytes): take only local map updates and rendezvous "
+        "poses signed with it, as smoothers given it sign them ('': any)",
     ),
     Declared("summary_path", "", "write summary.json here after each solve"),
     Declared(
@@ -131,6 +138,7 @@ class MergerParameters:
     summary_path: Path | None  # write summary.json here after each solve
     state_path: Path | None  # write the merger's state here, and resume from it
     solve_niceness: int
+    team_key: bytes | None  # take only inputs signed with it
 
 
 def declare_merger_parameters(node: Node) -> MergerParameters:
@@ -156,6 +164,7 @@ def declare_merger_parameters(node: Node) -> MergerParameters:
         summary_path=Path(own["summary_path"]) if own["summary_path"] else None,
         state_path=Path(own["state_path"]) if own["state_path"] else None,
         solve_niceness=own["solve_niceness"],
+        team_key=read_team_key(own["team_key_file"]) if own["team_key_file"] else None,
     )
 
 

@@ -38,6 +38,9 @@ logged, and the odometry samples missed are counted as ``lost_while_down`` (``/c
 with ``restarts`` and ``lost_seconds``). A checkpoint that cannot be read, or of another
 robot, is one logged error: the node starts empty.
 
+With ``team_key_file`` set, it signs its local map updates and rendezvous poses, for a merger
+given the same key (:mod:`csam_ros.ros.signing`).
+
 Its state services (:mod:`csam_ros.nodes.state_services`, docs/ARCHITECTURE.md): ``~/save_state``
 writes such a checkpoint to a path, ``~/load_state`` takes one up as a restart from it would
 and publishes its map, ``~/reset`` forgets everything as a start without one would (both in a
@@ -121,6 +124,7 @@ from csam_ros.ros.map_messages import (
     rendezvous_poses_message,
     robot_map_to_message,
 )
+from csam_ros.ros.signing import SignedPublisher, read_team_key
 from csam_ros.ros.topics import (
     FEATURE_POINTS,
     FEATURES,
@@ -151,6 +155,12 @@ SMOOTHER_PARAMETERS = (
         "checkpoint_path",
         "",
         "write a checkpoint here at every publication and resume from it at start ('': off)",
+    ),
+    Declared(
+        "team_key_file",
+        "",
+        "file of the team key (at least 16 bytes): sign local map updates and rendezvous "
+        "poses with it, for a merger given the same ('': unsigned)",
     ),
 )
 
@@ -231,6 +241,10 @@ class Smoother(Node):
         self.local_map_pub = publisher(self, LOCAL_MAP)
         self.update_pub = publisher(self, LOCAL_MAP_UPDATES)
         self.rendezvous_pub = publisher(self, RENDEZVOUS_POSES)
+        if own["team_key_file"]:  # each message after its signature (ros/signing.py)
+            key = read_team_key(own["team_key_file"])
+            self.update_pub = SignedPublisher(self, self.update_pub, key)
+            self.rendezvous_pub = SignedPublisher(self, self.rendezvous_pub, key)
         self.path_pub = publisher(self, PATH)
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)

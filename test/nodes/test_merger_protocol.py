@@ -10,6 +10,7 @@
 - A rendezvous message whose only measurement names an unknown robot changes nothing.
 - Discovery is bounded: ``max_robots`` at once, ``robot_pattern``, and robots silent for
   ``forget_after`` leave the status (their maps stay joined).
+- With a team key, only inputs signed with it are taken.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from merger_harness import (
     complete_update,
     copied,
     joined_view,
+    resent,
     run_messages,
     with_robot2,
 )
@@ -47,6 +49,7 @@ from csam_ros.core.exchange.validation import (
     MALFORMED_LOCAL_MAP,
     REPLAYED_UPDATE,
     TOO_MANY_ROBOTS,
+    UNAUTHENTICATED,
     UNKNOWN_ROBOT,
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
@@ -388,3 +391,110 @@ def test_a_robot_found_and_silent_leaves_the_status_its_map_stays_joined(make, g
     joined = h.resolve()
     assert {t.robot for t in joined.trajectories} == set(ROBOTS)
     assert "robot2" in h.merger.policy.local_maps
+
+
+# signed inputs (team_key_file)
+
+KEY = b"the team's key, 32 bytes long..."
+
+
+def _key_file(path: Any, key: bytes = KEY) -> str:
+    path.write_bytes(key + b"\n")
+    return str(path)
+
+
+def test_with_a_team_key_only_signed_inputs_are_taken(ros_context, spin, good, tmp_path) -> None:
+    from csam_ros.nodes.common import publisher
+    from csam_ros.ros.signing import SignedPublisher
+    from csam_ros.ros.topics import RENDEZVOUS_POSES
+
+    h = MergerHarness(ros_context, spin, key=KEY, team_key_file=_key_file(tmp_path / "key"))
+    try:
+        before = joined_view(h.start(good))  # signed by the injector: taken
+        held = h.merger.policy.held["robot2"]
+        unsigned = publisher(h.injector, LOCAL_MAP_UPDATES, LOCAL_MAP_UPDATES.of("robot2"))
+        other_key = SignedPublisher(h.injector, unsigned, b"another team's key, 32 bytes...")
+        again = resent(good.local_maps["robot2"])
+        for n, pub in enumerate((unsigned, other_key), start=1):
+            h.wait(lambda pub=pub: pub.get_subscription_count() > 0)
+            pub.publish(again)
+            h.wait(lambda n=n: h.merger.drops.total == n)
+        stray = publisher(h.injector, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of("robot2"))
+        h.wait(lambda: stray.get_subscription_count() > 0)
+        rows = h.merger.policy.rendezvous["robot2"]
+        stray.publish(copied(good.rendezvous["robot1"]))  # unsigned (and another robot's)
+        h.wait(lambda: h.merger.drops.total == 3)
+        assert h.merger.drops.as_dict() == {UNAUTHENTICATED: 3}
+        assert h.merger.policy.held["robot2"] is held
+        assert h.merger.policy.rendezvous["robot2"] is rows
+        assert joined_view(h.resolve()) == before
+        h.publish("robot2", again)  # signed with the team key: taken
+        h.wait(lambda: h.merger.policy.held["robot2"].sequence == again.sequence)
+    finally:
+        h.close()
+
+
+def test_a_smoother_given_the_team_key_signs_what_the_merger_takes(
+    ros_context, spin, tmp_path
+) -> None:
+    from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
+
+    from csam_ros.nodes.merger import Merger
+    from csam_ros.nodes.smoother import Smoother
+
+    key_file = _key_file(tmp_path / "key")
+    smoother = Smoother(
+        context=ros_context,
+        namespace="robot1",
+        parameter_overrides=[
+            Parameter("robots", value=["robot1"]),
+            Parameter("publish_period", value=1000.0),
+            Parameter("team_key_file", value=key_file),
+        ],
+    )
+    merger = Merger(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("robots", value=["robot1"]),
+            Parameter("solve_period", value=0.05),
+            Parameter("team_key_file", value=key_file),
+        ],
+    )
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (smoother, merger):
+        executor.add_node(node)
+    try:
+        assert spin(executor, lambda: smoother.update_pub.get_subscription_count() == 1, 30.0)
+        subscriptions = {s.topic_name: s for s in smoother.subscriptions}
+        for m in _robot1_chunks()[0]:
+            subscriptions[m.topic].callback(m.message)
+        assert smoother.on_flush(Trigger.Request(), Trigger.Response()).success
+        assert spin(
+            executor,
+            lambda: "robot1" in merger.policy.held and "robot1" in merger.policy.rendezvous,
+            20.0,
+        )
+        sent = smoother.sender.held
+        assert sent is not None and merger.policy.held["robot1"].sequence == sent.sequence
+        assert merger.drops.total == 0
+    finally:
+        for node in (merger, smoother):
+            node.destroy_node()
+        executor.shutdown()
+
+
+def test_a_team_key_file_that_cannot_be_used_stops_the_node_naming_it(
+    ros_context, tmp_path
+) -> None:
+    from csam_ros.nodes.merger import Merger
+    from csam_ros.ros.signing import TeamKeyError
+
+    for path, why in ((tmp_path / "none", "No such file"), (tmp_path / "short", "at least 16")):
+        if path.name == "short":
+            path.write_bytes(b"short\n")
+        with pytest.raises(TeamKeyError, match=why):
+            Merger(
+                context=ros_context,
+                parameter_overrides=[Parameter("team_key_file", value=str(path))],
+            )

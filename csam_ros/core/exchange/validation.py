@@ -59,6 +59,7 @@ FAILED_SOLVE = "failed_solve"  # a merger solve that raised or gave non-finite n
 FOREIGN_SESSION = "foreign_session"
 REPLAYED_UPDATE = "replayed_update"
 TOO_MANY_ROBOTS = "too_many_robots"  # a robot found when the merger joins max_robots already
+UNAUTHENTICATED = "unauthenticated"  # with a team key: a message whose signature did not come
 
 # A noisy bearing may fall a little outside the field of view: allow this many sigmas.
 BEARING_MARGIN_SIGMAS = 5.0
