@@ -24,17 +24,11 @@ measurements, the reference, the counts, the last result) and decides with it:
 - staleness: a robot without a new local map for ``stale_after`` s is reported stale; its
   last map stays joined;
 - sessions: a robot's held map changes only by an update that applies to it and passes the
-  checks. A whole map of another session than the one held, or an older one of the same
-  session, is set aside (:class:`~csam_ros.core.merging.policy_inputs.PendingMap`) until the
-  robot's smoother, asked for its whole map, names its session and sequence
-  (:meth:`MergerPolicy.resync_answered`): taken if they are the map's (the smoother
-  restarted), else dropped and counted (``foreign_session``, ``replayed_update``). A map of
-  another session is taken at once when the held one is stale and its smoother's service is
-  gone; an update older than the one held is counted and makes the merger ask the smoother;
-- robots found: joined if ``robot_pattern`` and the allow-list admit them, at most
-  ``max_robots`` at once (the others counted once, ``too_many_robots``, and joined when room
-  is made); one found (not listed) that sends no map for ``forget_after`` s leaves the status
-  and is unsubscribed (its map stays joined), and may be found again ``forget_after`` s later;
+  checks; whole maps of another session, or older ones, wait for the smoother's answer
+  (:meth:`MergerPolicy.resync_answered`), as :mod:`~csam_ros.core.merging.sessions` decides;
+  an update older than the one held is counted and makes the merger ask the smoother;
+- robots found: joined, turned away or forgotten as :mod:`~csam_ros.core.merging.discovery`
+  decides (``robot_pattern``, ``max_robots``, ``forget_after``);
 - when to ask a smoother for its whole map (``RESYNC_*``);
 - the status content (:class:`~csam_ros.core.merging.status.MergerStatus`);
 - the state services: the state of the last joined map to save (:meth:`MergerPolicy.saved_state`,
@@ -58,7 +52,6 @@ from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import (
     FAILED_SOLVE,
-    FOREIGN_SESSION,
     REPLAYED_UPDATE,
     TOO_MANY_ROBOTS,
     DropCounter,
@@ -66,6 +59,7 @@ from csam_ros.core.exchange.validation import (
 )
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.result import CsamResult, MergerStats
+from csam_ros.core.merging.discovery import RobotDiscovery
 from csam_ros.core.merging.joiner import JoinReply, JoinRequest, MapSource
 from csam_ros.core.merging.notices import (
     Notice,
@@ -96,6 +90,7 @@ from csam_ros.core.merging.policy_inputs import (
     SolveInputs,
     SolveStart,
 )
+from csam_ros.core.merging.sessions import SessionPins, not_taken
 from csam_ros.core.merging.status import MergerStatus, RobotStatus, outside_trajectory
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.robot_map import RobotMap
@@ -124,7 +119,7 @@ class MergerPolicy:
         self.local_map_stamps: dict[str, int] = {}
         self.rendezvous: dict[str, RendezvousLog] = {}
         self.robots: list[str] = []  # subscribed to, in the order found
-        self.ignored: set[str] = set()  # robots found outside the allow-list
+        self.discovery = RobotDiscovery()  # robots left out, turned away, forgotten
         self.heard: list[str] = []  # robots in the order their first local map arrived
         self.reference = ""  # made at the first solve, then kept
         self.map_arrival: dict[str, float] = {}  # clock s of each robot's last map
@@ -147,16 +142,7 @@ class MergerPolicy:
         # asked for until a map is taken
         self._behind: dict[str, str] = {}
         self._resync_next: dict[str, float] = {}  # clock s from which to ask again
-        # whole maps set aside until their smoother's answer (module docstring), the last
-        # answer's (session, sequence), the last session an answer refuted (and when), and
-        # when the last answer about a map set aside was asked for
-        self._pending: dict[str, PendingMap] = {}
-        self._vouched: dict[str, tuple[int, int]] = {}
-        self._refuted: dict[str, tuple[int, float]] = {}
-        self._checked_at: dict[str, float] = {}
-        self._subscribed_at: dict[str, float] = {}  # clock s each robot was subscribed to
-        self._forgotten: dict[str, float] = {}  # clock s each robot was forgotten
-        self.turned_away: set[str] = set()  # robots found while max_robots were joined
+        self.sessions = SessionPins()  # whole maps set aside until their smoother's answer
         # robots whose next local map gives up a running solve (after ~/flush)
         self._after_flush: frozenset[str] = frozenset()
         # the local map stamps the last joined map and the last provisional map used
@@ -167,50 +153,35 @@ class MergerPolicy:
 
     # robots and resyncs
 
+    @property
+    def ignored(self) -> set[str]:
+        """The robots found that the allow-list or ``robot_pattern`` leaves out."""
+        return self.discovery.ignored
+
     def found(self, robot: str) -> Found | None:
-        """What to do with ``robot``, seen publishing local map updates (None: nothing now,
-        it is subscribed to, was left out or turned away already, or was forgotten less than
-        ``forget_after`` s ago)."""
-        if robot in self.robots or robot in self.ignored:
-            return None
-        if not self.settings.admits(robot):
-            self.ignored.add(robot)
-            return Found.LEAVE_OUT
-        forgotten = self._forgotten.get(robot)
-        if forgotten is not None and self.clock() - forgotten < self.settings.forget_after:
-            return None
-        if len(self.robots) >= self.settings.max_robots and not self.settings.listed(robot):
-            if robot in self.turned_away:
-                return None
-            self.turned_away.add(robot)
+        """What to do with ``robot``, seen publishing local map updates
+        (:meth:`RobotDiscovery.found`); one turned away is counted."""
+        found = self.discovery.found(robot, self.robots, self.settings, self.clock())
+        if found is Found.TOO_MANY:
             self.drops.add(TOO_MANY_ROBOTS)
-            return Found.TOO_MANY
-        self.turned_away.discard(robot)
-        self._forgotten.pop(robot, None)
-        return Found.JOIN
+        return found
 
     def subscribed(self, robot: str) -> None:
         """``robot``'s topics are subscribed to: its map is asked for if none comes soon."""
         now = self.clock()
         self._resync_next[robot] = now + RESYNC_FIRST_S
-        self._subscribed_at[robot] = now
+        self.discovery.subscribed(robot, now)
         self.robots = [*self.robots, robot]
 
     def forget_silent(self) -> list[str]:
-        """The robots found (not listed) that sent no local map for ``forget_after`` s (0:
-        never), or none since they were subscribed to: no longer subscribed to nor in the
-        status (their maps stay joined). The node unsubscribes them."""
-        after, now = self.settings.forget_after, self.clock()
-        silent = [
-            r
-            for r in self.robots
-            if not self.settings.listed(r)
-            and 0.0 < after < now - self.map_arrival.get(r, self._subscribed_at.get(r, now))
-        ]
+        """The robots found (not listed) that sent no local map for ``forget_after`` s
+        (:meth:`RobotDiscovery.silent`): no longer subscribed to nor in the status (their maps
+        stay joined). The node unsubscribes them."""
+        silent = self.discovery.silent(self.robots, self.map_arrival, self.settings, self.clock())
         for robot in silent:
-            self._forgotten[robot] = now
-            for wanted in (self._behind, self._resync_next, self._pending, self._checked_at):
+            for wanted in (self._behind, self._resync_next):
                 wanted.pop(robot, None)
+            self.sessions.forget(robot)
         self.robots = [r for r in self.robots if r not in silent]
         return silent
 
@@ -233,13 +204,8 @@ class MergerPolicy:
                 yield robot, NO_MAP_HELD
             elif robot in self._behind:
                 yield robot, self._behind[robot]
-            elif robot in self._pending and self._check_due(robot):
+            elif self.sessions.check_wanted(robot, self.clock()):
                 yield robot, SESSION_CHECK
-
-    def _check_due(self, robot: str) -> bool:
-        """Whether the smoother may be asked about a map set aside (at most every
-        ``RESYNC_RETRY_S``: another publisher's maps ask no more often)."""
-        return self.clock() - self._checked_at.get(robot, -RESYNC_RETRY_S) >= RESYNC_RETRY_S
 
     def resync_due(self, robot: str) -> bool:
         """Whether a request for ``robot``'s whole map may be made now (none stands)."""
@@ -249,8 +215,7 @@ class MergerPolicy:
         """A request for ``robot``'s whole map was made: it stands ``RESYNC_TIMEOUT_S``."""
         self._resync_next[robot] = self.clock() + RESYNC_TIMEOUT_S
         self.resync_requests[robot] = self.resync_requests.get(robot, 0) + 1
-        if robot in self._pending:
-            self._checked_at[robot] = self.clock()
+        self.sessions.asked(robot, self.clock())
 
     def resync_refused(self, robot: str) -> None:
         """``robot``'s smoother had nothing to send: ask again after ``RESYNC_RETRY_S``."""
@@ -287,90 +252,54 @@ class MergerPolicy:
         self, robot: str, new: HeldMap, checked: RobotMap, stamp_ns: int, answers: bool
     ) -> MapTaken | None:
         """What became of ``new``, a map built by an update, if it is not to be taken now:
-        dropped, or set aside for its smoother's answer (module docstring); None: take it."""
+        dropped, or set aside for its smoother's answer (:meth:`SessionPins.arrived`); None:
+        take it."""
+        gone = not answers and self.stale(robot)
         held = self.held.get(robot)
-        if held is None or (new.session, new.sequence) == self._vouched.get(robot):
+        aside = self.sessions.arrived(robot, held, new, checked, stamp_ns, gone, self.clock())
+        if aside is None:
             return None
-        if new.session == held.session:
-            if new.sequence > held.sequence:
-                return None
-            reason = REPLAYED_UPDATE
-        else:
-            if not answers and self.stale(robot):
-                return None  # the old session is gone and no smoother answers for it
-            refuted = self._refuted.get(robot, (-1, -RESYNC_TIMEOUT_S))
-            if refuted[0] == new.session and self.clock() - refuted[1] < RESYNC_TIMEOUT_S:
-                return MapTaken(notices=(self._dropped(robot, new, FOREIGN_SESSION),))
-            reason = FOREIGN_SESSION
-        old = self._pending.get(robot)
-        notices: tuple[Notice, ...] = ()
-        if old is not None and old.held.session != new.session:
-            notices = (self._dropped(robot, old.held, old.reason),)
-        self._pending = {**self._pending, robot: PendingMap(new, checked, stamp_ns, reason)}
-        return MapTaken(notices, behind=SESSION_CHECK if self._check_due(robot) else "")
+        notices = () if aside.dropped is None else (self._dropped(robot, aside.dropped),)
+        return MapTaken(notices, behind=SESSION_CHECK if aside.ask else "")
 
-    def _dropped(self, robot: str, m: HeldMap, reason: str) -> Refused:
-        """A whole map not taken, counted under ``reason``."""
-        held = self.held[robot]
-        why = (
-            f"older than update {held.sequence} held"
-            if reason == REPLAYED_UPDATE
-            else f"of another session than {held.session}, which its smoother did not name"
-        )
-        detail = f"{robot}: whole map {m.sequence} of session {m.session} not taken: {why}"
-        self.drops.add(reason)
-        return Refused(robot, UPDATE, reason, detail)
+    def _dropped(self, robot: str, pending: PendingMap) -> Refused:
+        """A whole map not taken, counted under its reason."""
+        self.drops.add(pending.reason)
+        return not_taken(robot, self.held[robot], pending.held, pending.reason)
 
     def _take(
         self, robot: str, new: HeldMap, checked: RobotMap, stamp_ns: int, whole: bool
     ) -> MapTaken:
-        """Hold ``new`` (checked: ``checked``) as ``robot``'s map."""
+        """Hold ``new`` (checked: ``checked``) as ``robot``'s map; a replay of its session set
+        aside is counted."""
         self.held = {**self.held, robot: new}
         self._behind.pop(robot, None)
         if whole:
             self._resync_next.pop(robot, None)
-        vouched = self._vouched.get(robot)
-        if vouched is not None and (vouched[0] != new.session or new.sequence >= vouched[1]):
-            self._vouched = {r: v for r, v in self._vouched.items() if r != robot}
-        # a map set aside of the same session: older than this one (the smoother's own, or a
-        # replay of the session held, counted)
-        pending = self._pending.get(robot)
-        dropped: tuple[Notice, ...] = ()
-        if pending is not None and pending.held.session == new.session:
-            self._pending = {r: p for r, p in self._pending.items() if r != robot}
-            if pending.reason == REPLAYED_UPDATE:
-                dropped = (self._dropped(robot, pending.held, REPLAYED_UPDATE),)
+        replay = self.sessions.taken(robot, new)
+        dropped = () if replay is None else (self._dropped(robot, replay),)
         taken = self._map_taken(robot, new, checked, stamp_ns)
         return replace(taken, notices=(*dropped, *taken.notices))
 
     def resync_answered(self, robot: str, sent: bool, session: int, sequence: int) -> MapTaken:
         """``robot``'s smoother answered a resync request: its session is ``session``, and it
         ``sent`` its whole map as update ``sequence`` (else it has sent nothing yet). A map
-        set aside is taken if it is the smoother's (its session, or that very update, for one
-        of the session held), else dropped and counted; the update named is taken when it
-        comes, whatever the map held."""
-        self._vouched = {**self._vouched, robot: (session, sequence)} if sent else self._vouched
-        pending = self._pending.get(robot)
-        if pending is None:
+        set aside is taken if it is the smoother's (:meth:`SessionPins.answered`), else
+        dropped and counted; the update named is taken when it comes, whatever the map held."""
+        answer = self.sessions.answered(robot, sent, session, sequence, self.clock())
+        if answer is None:
             return MapTaken()
-        self._pending = {r: p for r, p in self._pending.items() if r != robot}
-        m = pending.held
-        own = (m.session, m.sequence) == (session, sequence) or (
-            pending.reason == FOREIGN_SESSION and m.session == session and sent
-        )
+        pending, own = answer
         if own:
-            return self._take(robot, m, pending.checked, pending.stamp_ns, whole=True)
-        if pending.reason == FOREIGN_SESSION:
-            self._refuted = {**self._refuted, robot: (m.session, self.clock())}
-        return MapTaken(notices=(self._dropped(robot, m, pending.reason),))
+            return self._take(robot, pending.held, pending.checked, pending.stamp_ns, True)
+        return MapTaken(notices=(self._dropped(robot, pending),))
 
     def smoother_absent(self, robot: str) -> MapTaken:
         """``robot``'s smoother's resync service is not there: a map of another session set
         aside is taken once the session held is stale (its smoother is gone)."""
-        pending = self._pending.get(robot)
-        if pending is None or pending.reason != FOREIGN_SESSION or not self.stale(robot):
+        pending = self.sessions.released(robot, self.stale(robot))
+        if pending is None:
             return MapTaken()
-        self._pending = {r: p for r, p in self._pending.items() if r != robot}
         return self._take(robot, pending.held, pending.checked, pending.stamp_ns, whole=True)
 
     def _map_taken(self, robot: str, held: HeldMap, new: RobotMap, stamp_ns: int) -> MapTaken:
@@ -457,7 +386,7 @@ class MergerPolicy:
         robots, ignored, paused = self.robots, self.ignored, self.paused
         self.drops.counts.clear()  # the node's counter, shared: cleared, never replaced
         vars(self).update(vars(MergerPolicy(self.settings, self.clock, self.config, self.drops)))
-        self.ignored, self.paused = ignored, paused
+        self.discovery.ignored, self.paused = ignored, paused
         for robot in robots:
             self.subscribed(robot)
 
@@ -725,18 +654,23 @@ class MergerPolicy:
     # going back
 
     def copy(self) -> MergerPolicy:
-        """This policy as it is now, to go back to with :meth:`restore`: its own dicts, lists
-        and sets; the maps, results, settings, clock and drop counter shared (never changed in
-        place, or meant to be shared)."""
+        """This policy as it is now, to go back to with :meth:`restore`: its own dicts, lists,
+        sets, discovery and session pins; the maps, results, settings, clock and drop counter
+        shared (never changed in place, or meant to be shared)."""
         twin = object.__new__(MergerPolicy)
-        vars(twin).update(
-            {
-                name: type(value)(value) if isinstance(value, dict | list | set) else value
-                for name, value in vars(self).items()
-            }
-        )
+        vars(twin).update({name: _own(value) for name, value in vars(self).items()})
         return twin
 
     def restore(self, saved: MergerPolicy) -> None:
         """Go back to the state ``saved`` (a :meth:`copy`) holds; ``saved`` stays as it is."""
         vars(self).update(vars(saved.copy()))
+
+
+def _own(value: object) -> object:
+    """``value`` as a policy's copy holds it: containers and state objects copied, the rest
+    shared."""
+    if isinstance(value, dict | list | set):
+        return type(value)(value)
+    if isinstance(value, RobotDiscovery | SessionPins):
+        return value.copy()
+    return value
