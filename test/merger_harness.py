@@ -25,7 +25,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
-from csam_ros.core.exchange.map_updates import UpdateSender
+from csam_ros.core.exchange.map_updates import UpdateSender, resync_answer
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.log import RobotLog
 from csam_ros.core.model.rendezvous import required_stamps
@@ -126,21 +126,28 @@ def joined_view(msg: JoinedMap) -> tuple[Any, ...]:
     )
 
 
+def input_publisher(node: Any, topic: Any, robot: str, key: bytes | None) -> Any:
+    """A publisher of ``robot``'s merger input ``topic``, signing with ``key`` (if given)."""
+    from csam_ros.nodes.common import publisher
+    from csam_ros.ros.signing import SignedPublisher
+
+    plain = publisher(node, topic, topic.of(robot))
+    return plain if key is None else SignedPublisher(node, plain, key)
+
+
 class Smoothers:
     """What the robots' smoothers offer a merger, on one node: a publisher of each robot's
     local map updates and its ``/<robot>/smoother/resync`` service, which publishes
-    ``answer[robot]()`` (by default ``whole[robot]``, the map a test says the smoother has)."""
+    ``answer[robot]()`` (by default ``whole[robot]``, the map a test says the smoother has)
+    and names its session and sequence."""
 
-    def __init__(self, node: Any, robots: list[str]) -> None:
+    def __init__(self, node: Any, robots: list[str], key: bytes | None = None) -> None:
         from std_srvs.srv import Trigger
 
-        from csam_ros.nodes.common import publisher
         from csam_ros.ros.topics import LOCAL_MAP_UPDATES, RESYNC, smoother_service
 
         self.node = node
-        self.updates = {
-            r: publisher(node, LOCAL_MAP_UPDATES, LOCAL_MAP_UPDATES.of(r)) for r in robots
-        }
+        self.updates = {r: input_publisher(node, LOCAL_MAP_UPDATES, r, key) for r in robots}
         self.whole: dict[str, LocalMapUpdate] = {}
         self.answer: dict[str, Callable[[], LocalMapUpdate | None]] = {}
         self.resyncs: Counter[str] = Counter()  # requests served, per robot
@@ -158,7 +165,8 @@ class Smoothers:
         if msg is not None:
             self.updates[robot].publish(msg)
         response.success = msg is not None
-        response.message = str(msg.sequence if msg is not None else 0)
+        # as a smoother answers: its session, and the sequence of the whole map sent
+        response.message = resync_answer(msg.session, msg.sequence) if msg is not None else ""
         return response
 
     def destroy(self, robot: str) -> None:
@@ -171,10 +179,12 @@ class MergerHarness:
     """A real merger and an injector node that publishes on every robot's map topics and
     answers the merger's resync requests (:class:`Smoothers`)."""
 
-    def __init__(self, context: Any, spin: Any, **parameters: Any) -> None:
+    def __init__(
+        self, context: Any, spin: Any, key: bytes | None = None, **parameters: Any
+    ) -> None:
+        """``key``: the team key the injector signs with (None: it does not sign)."""
         import rclpy
 
-        from csam_ros.nodes.common import publisher
         from csam_ros.nodes.merger import Merger
         from csam_ros.ros.topics import JOINED_MAP, RENDEZVOUS_POSES, STATUS
 
@@ -185,9 +195,9 @@ class MergerHarness:
             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
         )
         self.injector = rclpy.create_node("injector", context=context)
-        self.smoothers = Smoothers(self.injector, ROBOTS)
+        self.smoothers = Smoothers(self.injector, ROBOTS, key)
         self.rendezvous = {
-            r: publisher(self.injector, RENDEZVOUS_POSES, RENDEZVOUS_POSES.of(r)) for r in ROBOTS
+            r: input_publisher(self.injector, RENDEZVOUS_POSES, r, key) for r in ROBOTS
         }
         self.joined: list[JoinedMap] = []
         self.injector.create_subscription(

@@ -1,11 +1,14 @@
 """merger: joins every robot's local map by C-SAM and publishes the joined map.
 
 Subscribes to ``/<robot>/local_map_updates`` and ``/<robot>/rendezvous_poses`` of every robot
-found publishing local map updates (or of those in ``robots``), holds each robot's local map by
-applying its updates (:mod:`csam_ros.core.exchange.map_updates`) and asks a smoother for its
-whole map (``/<robot>/smoother/resync``) when it holds none or an update does not apply. Every
+found publishing local map updates (or of those in ``robots``; at most ``max_robots`` found at
+once, named by ``robot_pattern``, one silent for ``forget_after`` s forgotten), holds each
+robot's local map by applying its updates (:mod:`csam_ros.core.exchange.map_updates`) and asks
+a smoother for its whole map (``/<robot>/smoother/resync``) when it holds none, an update does
+not apply, or a whole map of another session came (its answer names its session). Every
 message is checked whole when it arrives (``ros/map_messages.py``): a malformed one is dropped
-and counted, and the robot's last valid inputs stay in use.
+and counted, and the robot's last valid inputs stay in use. With ``team_key_file``, only
+messages signed with the team key are taken (:mod:`csam_ros.nodes.merger_auth`).
 
 Its decisions are :class:`~csam_ros.core.merging.policy.MergerPolicy`'s: the reference, when to
 solve, when the provisional map goes out, smoother restarts, stale robots and what
@@ -31,21 +34,31 @@ from typing import Any
 from csam_msgs.msg import LocalMapUpdate, RendezvousPoses
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_srvs.srv import Trigger
 
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter, RefusedMessageError
 from csam_ros.core.merging.notices import Notice
 from csam_ros.core.merging.policy import MergerPolicy
-from csam_ros.core.merging.policy_inputs import Flushed, Found, ProvisionalMap, SolveInputs, arrival
+from csam_ros.core.merging.policy_inputs import (
+    Flushed,
+    Found,
+    MapTaken,
+    ProvisionalMap,
+    SolveInputs,
+    arrival,
+)
 from csam_ros.core.merging.status import SharedDropCounter
 from csam_ros.nodes.common import guarded, run_node, steady_clock, subscribe, watch_parameters
+from csam_ros.nodes.merger_auth import SignedInputs
 from csam_ros.nodes.merger_output import MergerOutput
 from csam_ros.nodes.merger_parameters import declare_merger_parameters, live_merger_parameters
+from csam_ros.nodes.merger_rendezvous import RendezvousInput
 from csam_ros.nodes.merger_resync import ResyncClients
 from csam_ros.nodes.state_services import MergerServices
 from csam_ros.ros.conversions import time_to_ns
-from csam_ros.ros.map_messages import map_update_from_message, rendezvous_log_from_message
+from csam_ros.ros.map_messages import map_update_from_message
 from csam_ros.ros.merger_reports import log_notice, status_array
 from csam_ros.ros.topics import FLUSH, LOCAL_MAP_UPDATES, MERGER_NODE, RENDEZVOUS_POSES
 from csam_ros.solve_process import SolveProcess
@@ -71,7 +84,10 @@ class Merger(Node):
         # the policy is read and written under _lock; one solve at a time holds _solve_lock;
         # publications of a solve hold _publish_lock (destroy_node waits on it)
         self._lock = threading.Lock()
-        self.resyncs = ResyncClients(self, self.policy, self._lock)
+        self.resyncs = ResyncClients(self, self.policy, self._lock, self._taken)
+        self.rendezvous_input = RendezvousInput(self)
+        self.signed = SignedInputs(self, params.team_key, self.drops)  # with a key: signed only
+        self._robot_inputs: dict[str, tuple[Subscription, ...]] = {}
         self._wake = threading.Condition(self._lock)
         self._provisional_wake = threading.Condition(self._lock)
         self._solve_lock = threading.Lock()
@@ -151,22 +167,20 @@ class Merger(Node):
     def _subscribe(self, robot: str) -> None:
         """Subscribe to ``robot``'s local map updates and rendezvous poses; publish its pose."""
         self.output.add_robot(robot)
-        subscribe(
-            self, LOCAL_MAP_UPDATES, lambda m: self._on_map(robot, m), LOCAL_MAP_UPDATES.of(robot)
+        inputs = ((LOCAL_MAP_UPDATES, self._on_map), (RENDEZVOUS_POSES, self._on_rendezvous))
+        self._robot_inputs[robot] = tuple(
+            subscribe(self, t, self.signed.gate(robot, t.of(robot), on), t.of(robot))
+            for t, on in inputs
         )
         self.resyncs.add(robot)
-        subscribe(
-            self,
-            RENDEZVOUS_POSES,
-            lambda m: self._on_rendezvous(robot, m),
-            RENDEZVOUS_POSES.of(robot),
-        )
         with self._lock:
             self.policy.subscribed(robot)
+        self.rendezvous_input.robot_found(robot)
 
     def discover(self) -> None:
         """Subscribe to every robot newly seen publishing local map updates on the ROS graph
-        (``/<robot>/local_map_updates``), unless an allow-list leaves it out (logged once)."""
+        (``/<robot>/local_map_updates``), unless the allow-list or ``robot_pattern`` leaves it
+        out or ``max_robots`` are joined (logged once)."""
         for name, types in self.get_topic_names_and_types():
             robot = LOCAL_MAP_UPDATES.robot_of(name)
             if robot is None or LOCAL_MAP_UPDATES.type_name not in types:
@@ -174,10 +188,23 @@ class Merger(Node):
             with self._lock:
                 found = self.policy.found(robot)
             if found is Found.LEAVE_OUT:
-                self.get_logger().info(f"{robot} publishes a local map but is not in robots")
+                self.get_logger().info(f"{robot} publishes a local map: not in robots or pattern")
+            elif found is Found.TOO_MANY:
+                self.get_logger().warning(f"{robot} publishes a local map: max_robots joined")
             elif found is Found.JOIN:
                 self.get_logger().info(f"{robot} found: joining its local map")
                 self._subscribe(robot)
+
+    def forget_silent(self) -> None:
+        """Unsubscribe from the robots found that were silent for ``forget_after`` s."""
+        with self._lock:
+            silent = self.policy.forget_silent()
+        for robot in silent:
+            self.get_logger().info(f"{robot}: no local map for forget_after s, forgotten")
+            for subscription in self._robot_inputs.pop(robot, ()):
+                self.destroy_subscription(subscription)
+            self.resyncs.remove(robot)
+            self.signed.remove(robot)
 
     def _refuse(self, robot: str, what: str, error: RefusedMessageError) -> None:
         with self._lock:
@@ -196,9 +223,15 @@ class Merger(Node):
             self._refuse(robot, "local map update", error)
             return
         arrived = arrival(robot, self.policy.held.get(robot), update)  # only this thread holds
+        answers = self.resyncs.ready(robot)
         with self._lock:
-            taken = self.policy.map_arrived(robot, arrived, time_to_ns(msg.header.stamp))
-            if taken.give_up_solve:
+            taken = self.policy.map_arrived(robot, arrived, time_to_ns(msg.header.stamp), answers)
+        self._taken(robot, taken)
+
+    def _taken(self, robot: str, taken: MapTaken) -> None:
+        """Act on what a map on ``robot``'s topic (or its smoother's answer) led to."""
+        if taken.give_up_solve:
+            with self._lock:
                 self._solve_newest()
         for notice in taken.notices:
             self._note(notice)
@@ -209,26 +242,7 @@ class Merger(Node):
 
     def on_rendezvous_poses(self, robot: str, msg: RendezvousPoses) -> None:
         """Keep the valid rendezvous measurements on ``robot``'s topic (the last ones if none)."""
-        robot_map = self.policy.local_maps.get(robot)
-        rows = DropCounter()
-        try:
-            log = rendezvous_log_from_message(
-                msg,
-                robot,
-                # without an allow-list, a robot heard from later is joined then: its rows
-                # stay, and the core leaves them out until its map is there
-                self.policy.settings.robots or None,
-                robot_map.stamps if robot_map is not None else None,
-                self.config.stamp_tolerance,
-                rows,
-            )
-        except RefusedMessageError as error:
-            self._refuse(robot, "rendezvous poses message", error)
-            return
-        with self._lock:
-            notices = self.policy.rendezvous_arrived(robot, log, rows.as_dict())
-        for notice in notices:
-            self._note(notice)
+        self.rendezvous_input.arrived(robot, msg)
 
     def on_timer(self) -> None:
         """Wake the solve worker when a solve is to start; ask for the maps of robots none is
@@ -237,6 +251,8 @@ class Merger(Node):
             wanted = list(self.policy.resyncs_wanted())
         for robot, reason in wanted:
             self.resyncs.ask(robot, reason)
+        self.forget_silent()
+        self.signed.expire()
         with self._lock:
             if self.policy.solve_wanted():
                 self._requested = True

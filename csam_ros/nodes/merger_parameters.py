@@ -5,6 +5,7 @@ those of its own it applies while it runs (:func:`live_merger_parameters`)."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,7 @@ from rclpy.node import Node
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.merging.policy_inputs import MergerSettings
 from csam_ros.nodes.common import Declared, Live, declare_each, declare_settings
+from csam_ros.ros.signing import read_team_key
 
 _DEFAULTS = MergerSettings()
 # the merger's own parameters, in the order they are declared
@@ -44,6 +46,34 @@ MERGER_PARAMETERS = (
         _DEFAULTS.stale_after,
         "wall-clock s without a local map after which a robot is reported stale (0: never)",
         0.0,
+    ),
+    Declared(
+        "max_robots",
+        _DEFAULTS.max_robots,
+        "most robots found (not listed) joined at once; one found beyond them is refused and "
+        "counted (too_many_robots) until one is forgotten",
+        1,
+        100000,
+    ),
+    Declared(
+        "robot_pattern",
+        _DEFAULTS.robot_pattern,
+        "regular expression every robot's whole name must match to be joined (with the "
+        "allow-list, both must admit it)",
+    ),
+    Declared(
+        "forget_after",
+        _DEFAULTS.forget_after,
+        "wall-clock s without a local map after which a robot found (not listed) leaves the "
+        "status and is unsubscribed from, its map kept joined; found again after as long "
+        "(0: never)",
+        0.0,
+    ),
+    Declared(
+        "team_key_file",
+        "",
+        "file of the team key (at least 16 bytes): take only local map updates and rendezvous "
+        "poses signed with it, as smoothers given it sign them ('': any)",
     ),
     Declared("summary_path", "", "write summary.json here after each solve"),
     Declared(
@@ -92,6 +122,8 @@ LIVE_SETTINGS = (
     "provisional_period",
     "provisional_quiet",
 )
+# the MergerSettings of robots found, set at start
+FOUND_SETTINGS = ("max_robots", "robot_pattern", "forget_after")
 # online, a rendezvous stamp may reach the merger before the observed robot's map has its pose:
 # leave such a measurement out until the next solve instead of failing
 MERGER_CSAM_DEFAULTS = CsamConfig(skip_missing_poses=True)
@@ -106,6 +138,7 @@ class MergerParameters:
     summary_path: Path | None  # write summary.json here after each solve
     state_path: Path | None  # write the merger's state here, and resume from it
     solve_niceness: int
+    team_key: bytes | None  # take only inputs signed with it
 
 
 def declare_merger_parameters(node: Node) -> MergerParameters:
@@ -116,10 +149,14 @@ def declare_merger_parameters(node: Node) -> MergerParameters:
         isinstance(allowed, list | tuple) and all(isinstance(r, str) and r for r in allowed)
     ):
         raise ValueError(f"parameter robots: expected a list of robot names, got {allowed!r}")
+    try:
+        re.compile(own["robot_pattern"])
+    except re.error as error:
+        raise ValueError(f"parameter robot_pattern: not a regular expression: {error}") from None
     config = declare_settings(node, CsamConfig, MERGER_CSAM_DEFAULTS)
     settings = MergerSettings(
         robots=tuple(allowed or ()),
-        **{name: own[name] for name in ("reference", *LIVE_SETTINGS)},
+        **{name: own[name] for name in ("reference", *LIVE_SETTINGS, *FOUND_SETTINGS)},
     )
     return MergerParameters(
         settings=settings,
@@ -127,6 +164,7 @@ def declare_merger_parameters(node: Node) -> MergerParameters:
         summary_path=Path(own["summary_path"]) if own["summary_path"] else None,
         state_path=Path(own["state_path"]) if own["state_path"] else None,
         solve_niceness=own["solve_niceness"],
+        team_key=read_team_key(own["team_key_file"]) if own["team_key_file"] else None,
     )
 
 

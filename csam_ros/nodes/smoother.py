@@ -11,10 +11,12 @@ nanoseconds), it publishes:
   (:mod:`csam_ros.core.exchange.map_updates`; poses that moved beyond ``update_tolerance_m`` or
   ``update_tolerance_rad``, features and rendezvous poses beyond ``update_key_tolerance``,
   every one exactly after ``~/flush``; a flush with no new data since the last sends nothing
-  again). The first update of a run is
-  the whole map; ``~/resync`` (std_srvs/Trigger) publishes the whole map again as one update
-  for a receiver that missed one. While a reliable subscriber has not acknowledged the last
-  update (a slow link), the next is deferred (``deferred_updates``): the one sent once all is
+  again). The first update of a run is the whole map; ``~/resync`` (std_srvs/Trigger)
+  publishes the whole map again as one update for a receiver that missed one, at once (also
+  while the last update is unacknowledged), and answers with the session and that update's
+  sequence (``session S sequence N``: by it a receiver tells a restart, a new session, from
+  another publisher's map). While a reliable subscriber has not acknowledged the last update
+  (a slow link), the next is deferred (``deferred_updates``): the one sent once all is
   acknowledged holds every change since, so a slow link carries fewer, larger updates instead
   of a queue it cannot drain. An update after ``~/flush`` is never deferred;
 - ``rendezvous_poses`` when its measurements changed (latched);
@@ -35,6 +37,9 @@ What came while it was down is lost: the step of its odometry stamps across the 
 logged, and the odometry samples missed are counted as ``lost_while_down`` (``/csam/status``,
 with ``restarts`` and ``lost_seconds``). A checkpoint that cannot be read, or of another
 robot, is one logged error: the node starts empty.
+
+With ``team_key_file`` set, it signs its local map updates and rendezvous poses, for a merger
+given the same key (:mod:`csam_ros.ros.signing`).
 
 Its state services (:mod:`csam_ros.nodes.state_services`, docs/ARCHITECTURE.md): ``~/save_state``
 writes such a checkpoint to a path, ``~/load_state`` takes one up as a restart from it would
@@ -75,7 +80,7 @@ from csam_ros.core.exchange.checkpoint import (
     odometry_period,
 )
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
-from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance
+from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance, resync_answer
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.validation import (
     ODOMETRY_DEFAULT_SIGMAS,
@@ -120,6 +125,7 @@ from csam_ros.ros.map_messages import (
     rendezvous_poses_message,
     robot_map_to_message,
 )
+from csam_ros.ros.signing import SignedPublisher, read_team_key
 from csam_ros.ros.topics import (
     FEATURE_POINTS,
     FEATURES,
@@ -150,6 +156,12 @@ SMOOTHER_PARAMETERS = (
         "checkpoint_path",
         "",
         "write a checkpoint here at every publication and resume from it at start ('': off)",
+    ),
+    Declared(
+        "team_key_file",
+        "",
+        "file of the team key (at least 16 bytes): sign local map updates and rendezvous "
+        "poses with it, for a merger given the same ('': unsigned)",
     ),
 )
 
@@ -230,6 +242,10 @@ class Smoother(Node):
         self.local_map_pub = publisher(self, LOCAL_MAP)
         self.update_pub = publisher(self, LOCAL_MAP_UPDATES)
         self.rendezvous_pub = publisher(self, RENDEZVOUS_POSES)
+        if own["team_key_file"]:  # each message after its signature (ros/signing.py)
+            key = read_team_key(own["team_key_file"])
+            self.update_pub = SignedPublisher(self, self.update_pub, key)
+            self.rendezvous_pub = SignedPublisher(self, self.rendezvous_pub, key)
         self.path_pub = publisher(self, PATH)
         self.status_pub = publisher(self, STATUS)
         self.create_service(Trigger, "~/flush", self.on_flush)
@@ -341,13 +357,9 @@ class Smoother(Node):
 
     def on_resync(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Publish the whole local map as it was last sent, as one update (a receiver missed
-        one); the reply's message is that update's sequence number (0: nothing sent yet).
-        While the last update is unacknowledged it is on its way: no other is added to the
-        link, and the reply names it."""
-        if self.sender.held is not None and not self.update_pub.wait_for_all_acked(NO_WAIT):
-            response.success = True
-            response.message = str(self.sender.held.sequence)
-            return response
+        one, or asks whose a whole map of another session is), also while the last update is
+        unacknowledged (that one may be lost); the reply's message names the session and
+        that update's sequence number (0: nothing sent yet)."""
         update = self.sender.resend()
         if update is not None:
             self.resyncs += 1
@@ -355,7 +367,7 @@ class Smoother(Node):
                 local_map_update_message(update, self.robot, max(self.published_ns, 0))
             )
         response.success = update is not None
-        response.message = str(update.sequence if update is not None else 0)
+        response.message = resync_answer(self.sender.session, update.sequence if update else 0)
         return response
 
     def solve_and_publish(self, converge: bool = False) -> None:

@@ -257,7 +257,9 @@ def local_map_update_message(
 
 def map_update_from_message(msg: LocalMapUpdate, robot: str | None = None) -> MapUpdate:
     """The update a message carries; :class:`LocalMapError` when its fields do not fit
-    together (the map it leads to is checked where it is applied, :func:`checked_robot_map`)."""
+    together, or its sequence numbers cannot be a sender's (an update on top of another is
+    the next after it); the map it leads to is checked where it is applied
+    (:func:`checked_robot_map`)."""
     name = _robot_of(msg, robot, LocalMapError)
 
     def rows(
@@ -315,6 +317,10 @@ def map_update_from_message(msg: LocalMapUpdate, robot: str | None = None) -> Ma
     if msg.sequence == 0 or msg.base_sequence >= msg.sequence:
         raise LocalMapError(
             f"{name}: update {msg.sequence} cannot apply to update {msg.base_sequence}"
+        )
+    if msg.base_sequence and msg.sequence != msg.base_sequence + 1:  # a sender's next is base + 1
+        raise LocalMapError(
+            f"{name}: update {msg.sequence} on update {msg.base_sequence} skips sequence numbers"
         )
     return MapUpdate(
         int(msg.session),

@@ -263,6 +263,7 @@ def test_smoother_restart_is_reported_once_and_its_new_map_taken(harness, good, 
         10,
     )
     solves = harness.merger.policy.solves
+    harness.smoothers.whole["robot2"] = new_map  # the restarted smoother answers with it
     harness.publish("robot2", restarted.rendezvous["robot2"])
     harness.publish("robot2", new_map)
     harness.wait(
@@ -311,6 +312,7 @@ def test_a_running_solve_blocks_neither_status_nor_input(harness, good) -> None:
 
         restarted = run_messages(restart_at=RESTART_AT)
         new_map = restarted.local_maps["robot2"]
+        harness.smoothers.whole["robot2"] = new_map  # the restarted smoother answers with it
         harness.publish("robot2", new_map)
         harness.wait(
             lambda: (
@@ -694,7 +696,9 @@ def test_a_provisional_map_waits_for_quiet_unless_every_robot_has_a_new_map(
             JoinedMap, PROVISIONAL_MAP.of(), provisional.append, PROVISIONAL_MAP.qos
         )
         newer = STAMP_NS + 10**9
-        robot1 = UpdateSender(12).update(robot_map_arrays(last.robot_maps["robot1"]))
+        robot1_sender = UpdateSender(1)  # robot1's smoother: its first update is held
+        robot1_sender.update(robot_map_arrays(middle.robot_maps["robot1"]))
+        robot1 = robot1_sender.update(robot_map_arrays(last.robot_maps["robot1"]))
         robot2 = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
         policy = harness.merger.policy
         harness.publish("robot2", local_map_update_message(robot2, "robot2", newer))

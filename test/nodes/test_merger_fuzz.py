@@ -11,8 +11,15 @@ runs). Properties, for every message:
   was;
 - a message the merger takes is one it can solve with.
 
-Under the test profile each of the three tests draws ``CSAM_FUZZ_EXAMPLES`` examples
-(default 60, all three in about 10 s on 2 cores); for a longer run:
+The delta protocol is fuzzed by runs of events on robot2's topic: its smoother's real updates
+(deltas, whole maps, resync answers with the map and the reply in either order) among
+another publisher's (whole maps and deltas of other sessions, replays of earlier updates,
+real updates with a bad kernel, a NaN or a sequence that skips). After every event the map
+held of robot2 is the last one its smoother sent, and nothing raised.
+
+Under the test profile each of the first three tests draws ``CSAM_FUZZ_EXAMPLES`` examples
+(default 60, all three in about 10 s on 2 cores), the protocol test a third as many runs;
+for a longer run:
 
     CSAM_FUZZ_EXAMPLES=1000 .venv/bin/python -m pytest -q -s test/nodes/test_merger_fuzz.py
 
@@ -25,8 +32,10 @@ import math
 import os
 from collections import Counter
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import pytest
 from csam_msgs.msg import (
     LocalMapUpdate,
@@ -37,16 +46,31 @@ from csam_msgs.msg import (
 from geometry_msgs.msg import Pose2D
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from merger_harness import ROBOTS, MergerHarness, copied, resent, run_messages
+from merger_harness import (
+    ROBOTS,
+    STAMP_NS,
+    MergerHarness,
+    RunMessages,
+    copied,
+    resent,
+    run_messages,
+    with_robot2,
+)
+from rclpy.task import Future
+from std_srvs.srv import Trigger
 
+from csam_ros.core.exchange.map_arrays import robot_map_arrays
+from csam_ros.core.exchange.map_updates import MapUpdate, UpdateSender, resync_answer
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.ros.conversions import ns_to_time
+from csam_ros.ros.map_messages import local_map_update_message
 
 EXAMPLES = int(os.environ.get("CSAM_FUZZ_EXAMPLES", "60"))
 FUZZ = settings(
     max_examples=EXAMPLES,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
+PROTOCOL_FUZZ = settings(FUZZ, max_examples=max(EXAMPLES // 3, 10))
 TALLY: Counter[str] = Counter()
 
 floats = st.one_of(
@@ -359,3 +383,148 @@ def test_good_messages_are_taken_unchanged(fuzzer: Fuzzer) -> None:
     """The fuzzer's baseline: the good messages again leave the joined map as it was."""
     fuzzer.feed("robot2", GOOD.rendezvous["robot2"])
     assert _view(fuzzer.merger.policy.last_result) == fuzzer.view
+
+
+# the delta protocol: runs of events on robot2's topic
+
+PROTOCOL_CUTS = (20.0, 30.0, None)  # s: robot2's map at these moments (None: the run's end)
+SESSION = 1  # robot2's smoother's, held at the start
+other_sessions = st.one_of(st.integers(2, 5), st.sampled_from([0, 2**31, 2**32 - 1]))
+EVENTS = st.one_of(
+    st.tuples(st.just("next"), st.integers(0, len(PROTOCOL_CUTS) - 1)),
+    st.tuples(st.just("resync"), st.booleans()),  # the whole map before the reply, or after
+    st.tuples(st.just("foreign whole"), other_sessions, st.integers(0, len(PROTOCOL_CUTS) - 1)),
+    st.tuples(st.just("foreign delta"), other_sessions, uint32),
+    st.tuples(st.just("replay"), st.integers(0, 20)),
+    st.tuples(st.just("bad"), st.sampled_from(["kernel", "nan", "skip", "last"])),
+)
+
+
+@dataclass
+class Smoother2:
+    """robot2's smoother as the protocol fuzz plays it: its sender and what it sent."""
+
+    sender: UpdateSender
+    sent: list[LocalMapUpdate]
+
+    def message(self, update: MapUpdate) -> LocalMapUpdate:
+        return local_map_update_message(update, "robot2", STAMP_NS)
+
+
+class ProtocolFuzzer:
+    """A merger holding robot1's map and robot2's first one (its smoother's update 1); each
+    run starts from that state."""
+
+    def __init__(self, harness: MergerHarness, maps: list[Any], first: LocalMapUpdate) -> None:
+        self.merger = harness.merger
+        self.maps = maps
+        self.first = first
+        self.on_map = {s.topic_name: s.callback for s in self.merger.subscriptions}[
+            "/robot2/local_map_updates"
+        ]
+        self.saved = self.merger.policy.copy()
+
+    def smoother(self) -> Smoother2:
+        sender = UpdateSender(SESSION)
+        sender.update(robot_map_arrays(self.maps[0]))
+        return Smoother2(sender, [self.first])
+
+    def answer(self, sent: bool, session: int, sequence: int) -> None:
+        """A reply to a resync request, as the merger's client takes it."""
+        reply = Trigger.Response(success=sent, message=resync_answer(session, sequence))
+        future = Future()
+        future.set_result(reply)
+        self.merger.resyncs._on_reply("robot2", future)
+
+    def play(self, events: list[tuple[Any, ...]]) -> None:
+        m = self.merger
+        m.policy.restore(self.saved)
+        smoother = self.smoother()
+        errors = m.drops.as_dict().get("callback_error", 0)
+        for event in events:
+            self.event(smoother, event)
+            assert m.drops.as_dict().get("callback_error", 0) == errors, event
+            held, sent = m.policy.held["robot2"], smoother.sender.held
+            assert sent is not None and (held.session, held.sequence) == (
+                sent.session,
+                sent.sequence,
+            ), event
+            assert np.array_equal(held.map.pose_stamps, sent.map.pose_stamps)
+            assert np.array_equal(held.map.poses, sent.map.poses)
+            assert len(m.policy.local_maps["robot2"].stamps) == len(sent.map.pose_stamps)
+        m.solve_pending()
+        assert m.drops.as_dict().get("failed_solve", 0) == 0, m.policy.last_error
+        TALLY["protocol runs"] += 1
+
+    def event(self, smoother: Smoother2, event: tuple[Any, ...]) -> None:
+        kind, *args = event
+        sender, sent = smoother.sender, smoother.sent
+        if kind == "next":  # its next update, whole when the map did not grow
+            msg = smoother.message(sender.update(robot_map_arrays(self.maps[args[0]])))
+            sent.append(msg)
+            self.on_map(msg)
+        elif kind == "resync":
+            update = sender.resend()
+            assert update is not None
+            msg = smoother.message(update)
+            sent.append(msg)
+            if args[0]:
+                self.on_map(msg)
+            self.answer(True, SESSION, update.sequence)
+            if not args[0]:
+                self.on_map(msg)
+        elif kind == "foreign whole":
+            session, cut = args
+            msg = smoother.message(UpdateSender(session).update(robot_map_arrays(self.maps[cut])))
+            self.on_map(msg)
+        elif kind == "foreign delta":
+            session, sequence = args
+            sequence = min(sequence, 2**32 - 2)
+            msg = copied(sent[-1])
+            msg.session, msg.sequence, msg.base_sequence = session, sequence + 1, sequence
+            self.on_map(msg)
+        elif kind == "replay":
+            self.on_map(copied(sent[args[0] % len(sent)]))
+        elif kind == "bad":
+            twin = UpdateSender(SESSION)
+            twin.held = sender.held
+            msg = smoother.message(twin.update(robot_map_arrays(self.maps[-1])))
+            if msg.base_sequence == 0:
+                return  # not a growth: a whole map of the session, newer, is the smoother's
+            if args[0] == "kernel":
+                msg.observation_robust_kernel = "tukey"
+            elif args[0] == "nan":
+                msg.poses = [math.nan, *list(msg.poses)[1:]]
+            elif args[0] == "skip":
+                msg.sequence += 1
+            else:
+                msg.sequence = 2**32 - 1
+            self.on_map(msg)
+
+
+@pytest.fixture(scope="module")
+def protocol_runs() -> list[RunMessages]:
+    return [run_messages(end=t) for t in PROTOCOL_CUTS]
+
+
+@pytest.fixture
+def protocol_fuzzer(ros_context, spin, protocol_runs) -> Iterator[ProtocolFuzzer]:
+    harness = MergerHarness(ros_context, spin, solve_period=3600.0)
+    try:
+        maps = [r.robot_maps["robot2"] for r in protocol_runs]
+        first = local_map_update_message(
+            UpdateSender(SESSION).update(robot_map_arrays(maps[0])), "robot2", STAMP_NS
+        )
+        harness.hold(with_robot2(protocol_runs[0], first))
+        yield ProtocolFuzzer(harness, maps, first)
+    finally:
+        print(f"\nmerger fuzz: {sum(TALLY.values())} examples so far: {dict(TALLY)}")
+        harness.close()
+
+
+@PROTOCOL_FUZZ
+@given(events=st.lists(EVENTS, min_size=1, max_size=8))
+def test_the_held_map_is_the_last_one_the_smoother_sent(
+    protocol_fuzzer: ProtocolFuzzer, events: list[tuple[Any, ...]]
+) -> None:
+    protocol_fuzzer.play(events)

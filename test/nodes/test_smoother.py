@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 from rclpy.parameter import Parameter
 
+from csam_ros.core.exchange.map_updates import resync_answer
 from csam_ros.core.joining.rendezvous_filters import select_rendezvous, thin_rendezvous
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.ros.conversions import rendezvous_message, stamp_to_ns
@@ -394,12 +395,13 @@ def test_smoother_updates_build_its_map_at_a_receiver_and_resync_resends_it(
         np.testing.assert_array_equal(exact.feature_xy, final.feature_xy)
 
 
-def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
+def test_smoother_defers_updates_until_the_last_is_acknowledged_but_never_a_resync(
     ros_context, spin
 ) -> None:
-    """While the last update is unacknowledged no update goes out, nor a resync; the next
-    update holds every change since, so a receiver still builds the smoother's map; a flush
-    is never deferred."""
+    """While the last update is unacknowledged no update goes out; the next update holds
+    every change since, so a receiver still builds the smoother's map; a flush is never
+    deferred. A resync is answered by the whole map at once all the same (the last update may
+    be the one lost), the answer naming the session and its sequence."""
     from std_srvs.srv import Trigger
 
     messages = _good_messages()
@@ -421,12 +423,14 @@ def test_smoother_defers_updates_and_resyncs_until_the_last_is_acknowledged(
         tolerance = node.sender.tolerance.position
         assert np.abs(within.poses[:, :2] - current.poses[:, :2]).max() <= tolerance
         publisher.wait_for_all_acked = lambda timeout: False
-        # a resync while the last update is unacknowledged adds nothing: that one is on its way
         response = node.on_resync(Trigger.Request(), Trigger.Response())
-        assert response.success and response.message == str(node.sender.held.sequence)
-        assert node.resyncs == 0
-        flushed_map(node)
+        sent = node.sender.held
+        assert response.success and node.resyncs == 1
+        assert response.message == resync_answer(node.sender.session, sent.sequence)
         assert spin(executor, lambda: len(received) == 3)
+        assert received[-1].base_sequence == 0 and received[-1].sequence == sent.sequence
+        flushed_map(node)
+        assert spin(executor, lambda: len(received) == 4)
         assert received[-1].base_sequence == received[-2].sequence
         np.testing.assert_array_equal(held_arrays(received).poses, current_arrays(node).poses)
         assert node.deferred_updates == 2

@@ -21,7 +21,9 @@ Updates of one sender chain: each names the ``sequence`` of the update it applie
 (``base_sequence``; 0 for a complete one), within a ``session`` drawn when the sender starts.
 A receiver applies an update only on top of that one (:func:`apply_update`); an update already
 applied changes nothing, and one whose base it does not hold raises :class:`MissingBaseError`,
-after which it asks the sender for a complete update.
+after which it asks the sender for a complete update. The sender's answer names its session
+and the sequence of the complete update it sent (:func:`resync_answer`), so that a receiver
+can tell a restart of the sender (a new session) from another publisher's map.
 """
 
 from __future__ import annotations
@@ -162,6 +164,29 @@ class HeldMap:
     session: int
     sequence: int
     map: KeyedMap
+
+
+RESYNC_ANSWER = "session {session} sequence {sequence}"
+
+
+def resync_answer(session: int, sequence: int) -> str:
+    """A sender's answer to a resync request: its session, and the sequence of the complete
+    update it sent (0: it has sent nothing yet)."""
+    return RESYNC_ANSWER.format(session=session, sequence=sequence)
+
+
+def read_resync_answer(text: str) -> tuple[int, int] | None:
+    """The (session, sequence) of :func:`resync_answer`'s text; None when it is not one."""
+    words = text.split()
+    if len(words) != 4 or words[0] != "session" or words[2] != "sequence":
+        return None
+    try:
+        session, sequence = int(words[1]), int(words[3])
+    except ValueError:
+        return None
+    if not (0 <= session < 2**32 and 0 <= sequence < 2**32):
+        return None
+    return session, sequence
 
 
 class MissingBaseError(ValueError):

@@ -54,6 +54,12 @@ MALFORMED_RENDEZVOUS_POSES = "malformed_rendezvous_poses"
 ROBOT_MISMATCH = "robot_mismatch"  # a message naming another robot than the one of its topic
 NO_POSE_AT_STAMP = "no_pose_at_stamp"  # a rendezvous row inside the map's span but at no pose
 FAILED_SOLVE = "failed_solve"  # a merger solve that raised or gave non-finite numbers
+# A whole local map of another session than the one held, its smoother's answer to a resync
+# naming another (another publisher's, not a restart), and an update older than the one held.
+FOREIGN_SESSION = "foreign_session"
+REPLAYED_UPDATE = "replayed_update"
+TOO_MANY_ROBOTS = "too_many_robots"  # a robot found when the merger joins max_robots already
+UNAUTHENTICATED = "unauthenticated"  # with a team key: a message whose signature did not come
 
 # A noisy bearing may fall a little outside the field of view: allow this many sigmas.
 BEARING_MARGIN_SIGMAS = 5.0

@@ -23,6 +23,12 @@ measurements, the reference, the counts, the last result) and decides with it:
   in the status and the summary;
 - staleness: a robot without a new local map for ``stale_after`` s is reported stale; its
   last map stays joined;
+- sessions: a robot's held map changes only by an update that applies to it and passes the
+  checks; whole maps of another session, or older ones, wait for the smoother's answer
+  (:meth:`MergerPolicy.resync_answered`), as :mod:`~csam_ros.core.merging.sessions` decides;
+  an update older than the one held is counted and makes the merger ask the smoother;
+- robots found: joined, turned away or forgotten as :mod:`~csam_ros.core.merging.discovery`
+  decides (``robot_pattern``, ``max_robots``, ``forget_after``);
 - when to ask a smoother for its whole map (``RESYNC_*``);
 - the status content (:class:`~csam_ros.core.merging.status.MergerStatus`);
 - the state services: the state of the last joined map to save (:meth:`MergerPolicy.saved_state`,
@@ -46,11 +52,14 @@ from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import (
     FAILED_SOLVE,
+    REPLAYED_UPDATE,
+    TOO_MANY_ROBOTS,
     DropCounter,
     RefusedMessageError,
 )
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.result import CsamResult, MergerStats
+from csam_ros.core.merging.discovery import RobotDiscovery
 from csam_ros.core.merging.joiner import JoinReply, JoinRequest, MapSource
 from csam_ros.core.merging.notices import (
     Notice,
@@ -66,18 +75,22 @@ from csam_ros.core.merging.notices import (
 from csam_ros.core.merging.policy_inputs import (
     BEHIND,
     NO_MAP_HELD,
+    OLDER,
     RESYNC_FIRST_S,
     RESYNC_RETRY_S,
     RESYNC_TIMEOUT_S,
+    SESSION_CHECK,
     UPDATE,
     Arrival,
     Found,
     MapTaken,
     MergerSettings,
+    PendingMap,
     ProvisionalMap,
     SolveInputs,
     SolveStart,
 )
+from csam_ros.core.merging.sessions import SessionPins, not_taken
 from csam_ros.core.merging.status import MergerStatus, RobotStatus, outside_trajectory
 from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.smoothing.robot_map import RobotMap
@@ -106,7 +119,7 @@ class MergerPolicy:
         self.local_map_stamps: dict[str, int] = {}
         self.rendezvous: dict[str, RendezvousLog] = {}
         self.robots: list[str] = []  # subscribed to, in the order found
-        self.ignored: set[str] = set()  # robots found outside the allow-list
+        self.discovery = RobotDiscovery()  # robots left out, turned away, forgotten
         self.heard: list[str] = []  # robots in the order their first local map arrived
         self.reference = ""  # made at the first solve, then kept
         self.map_arrival: dict[str, float] = {}  # clock s of each robot's last map
@@ -125,8 +138,11 @@ class MergerPolicy:
         self._joined: SolveInputs | None = None  # the inputs of the last joined map
         self._first_heard_at = 0.0  # clock s of the first local map
         self._late_reference_noted = False
-        self._behind: set[str] = set()  # an update of did not apply: resync until one does
+        # why a robot's whole map is wanted (an update did not apply, or an older one came):
+        # asked for until a map is taken
+        self._behind: dict[str, str] = {}
         self._resync_next: dict[str, float] = {}  # clock s from which to ask again
+        self.sessions = SessionPins()  # whole maps set aside until their smoother's answer
         # robots whose next local map gives up a running solve (after ~/flush)
         self._after_flush: frozenset[str] = frozenset()
         # the local map stamps the last joined map and the last provisional map used
@@ -137,31 +153,59 @@ class MergerPolicy:
 
     # robots and resyncs
 
+    @property
+    def ignored(self) -> set[str]:
+        """The robots found that the allow-list or ``robot_pattern`` leaves out."""
+        return self.discovery.ignored
+
     def found(self, robot: str) -> Found | None:
-        """What to do with ``robot``, seen publishing local map updates (None: nothing, it is
-        subscribed to or was left out already)."""
-        if robot in self.robots or robot in self.ignored:
-            return None
-        if self.settings.admits(robot):
-            return Found.JOIN
-        self.ignored.add(robot)
-        return Found.LEAVE_OUT
+        """What to do with ``robot``, seen publishing local map updates
+        (:meth:`RobotDiscovery.found`); one turned away is counted."""
+        found = self.discovery.found(robot, self.robots, self.settings, self.clock())
+        if found is Found.TOO_MANY:
+            self.drops.add(TOO_MANY_ROBOTS)
+        return found
 
     def subscribed(self, robot: str) -> None:
         """``robot``'s topics are subscribed to: its map is asked for if none comes soon."""
-        self._resync_next[robot] = self.clock() + RESYNC_FIRST_S
+        now = self.clock()
+        self._resync_next[robot] = now + RESYNC_FIRST_S
+        self.discovery.subscribed(robot, now)
         self.robots = [*self.robots, robot]
 
+    def forget_silent(self) -> list[str]:
+        """The robots found (not listed) that sent no local map for ``forget_after`` s
+        (:meth:`RobotDiscovery.silent`): no longer subscribed to nor in the status (their maps
+        stay joined). The node unsubscribes them."""
+        silent = self.discovery.silent(self.robots, self.map_arrival, self.settings, self.clock())
+        for robot in silent:
+            for wanted in (self._behind, self._resync_next):
+                wanted.pop(robot, None)
+            self.sessions.forget(robot)
+        self.robots = [r for r in self.robots if r not in silent]
+        return silent
+
+    def known_robots(self) -> tuple[str, ...]:
+        """The robots a rendezvous measurement may name: the allow-list, else every robot
+        subscribed to or heard from."""
+        return self.settings.robots or (
+            *self.robots,
+            *(r for r in self.heard if r not in self.robots),
+        )
+
     def resyncs_wanted(self) -> Iterator[tuple[str, str]]:
-        """The robots whose whole map is wanted (none is held, or an update did not apply),
-        with why, none while paused; :meth:`resync_due` says whether to ask now."""
+        """The robots whose whole map is wanted (none is held, an update did not apply or was
+        older than the one held, or a whole map is set aside), with why, none while paused;
+        :meth:`resync_due` says whether to ask now."""
         if self.paused:
             return
         for robot in self.robots:
             if robot not in self.held:
                 yield robot, NO_MAP_HELD
             elif robot in self._behind:
-                yield robot, BEHIND
+                yield robot, self._behind[robot]
+            elif self.sessions.check_wanted(robot, self.clock()):
+                yield robot, SESSION_CHECK
 
     def resync_due(self, robot: str) -> bool:
         """Whether a request for ``robot``'s whole map may be made now (none stands)."""
@@ -171,6 +215,7 @@ class MergerPolicy:
         """A request for ``robot``'s whole map was made: it stands ``RESYNC_TIMEOUT_S``."""
         self._resync_next[robot] = self.clock() + RESYNC_TIMEOUT_S
         self.resync_requests[robot] = self.resync_requests.get(robot, 0) + 1
+        self.sessions.asked(robot, self.clock())
 
     def resync_refused(self, robot: str) -> None:
         """``robot``'s smoother had nothing to send: ask again after ``RESYNC_RETRY_S``."""
@@ -178,23 +223,84 @@ class MergerPolicy:
 
     # inputs
 
-    def map_arrived(self, robot: str, arrived: Arrival, stamp_ns: int) -> MapTaken:
-        """Take what an update on ``robot``'s topic (stamped ``stamp_ns``) built: the map held
-        of it, and its new local map when that is usable (a refused one is dropped, and the
-        last valid map stays in use); a smoother restart is counted."""
+    def map_arrived(
+        self, robot: str, arrived: Arrival, stamp_ns: int, answers: bool = True
+    ) -> MapTaken:
+        """Take what an update on ``robot``'s topic (stamped ``stamp_ns``) built, when it is
+        usable and the sessions allow (module docstring; ``answers``: whether the robot's
+        smoother's resync service is there to ask): the map held of it and its new local
+        map. A refused one is dropped and the last valid map (and the sequence it expects
+        next) stays in use; a smoother restart is counted."""
         if arrived.behind:
-            self._behind.add(robot)
+            self._behind[robot] = BEHIND
             return MapTaken(behind=arrived.behind)
-        if arrived.held is not None:
-            self.held = {**self.held, robot: arrived.held}
-            self._behind.discard(robot)
-            if arrived.whole:
-                self._resync_next.pop(robot, None)
         if arrived.refused is not None:
             return MapTaken(notices=(self.refused(robot, UPDATE, arrived.refused),))
         if arrived.held is None or arrived.checked is None:
+            if not arrived.older:
+                return MapTaken()  # delivered again
+            self._behind[robot] = OLDER
+            detail = f"{robot}: an update older than update {self.held[robot].sequence} held"
+            notice = self.refused(robot, UPDATE, RefusedMessageError(detail, REPLAYED_UPDATE))
+            return MapTaken((notice,), behind=OLDER)
+        aside = self._set_aside(robot, arrived.held, arrived.checked, stamp_ns, answers)
+        if aside is not None:
+            return aside
+        return self._take(robot, arrived.held, arrived.checked, stamp_ns, arrived.whole)
+
+    def _set_aside(
+        self, robot: str, new: HeldMap, checked: RobotMap, stamp_ns: int, answers: bool
+    ) -> MapTaken | None:
+        """What became of ``new``, a map built by an update, if it is not to be taken now:
+        dropped, or set aside for its smoother's answer (:meth:`SessionPins.arrived`); None:
+        take it."""
+        gone = not answers and self.stale(robot)
+        held = self.held.get(robot)
+        aside = self.sessions.arrived(robot, held, new, checked, stamp_ns, gone, self.clock())
+        if aside is None:
+            return None
+        notices = () if aside.dropped is None else (self._dropped(robot, aside.dropped),)
+        return MapTaken(notices, behind=SESSION_CHECK if aside.ask else "")
+
+    def _dropped(self, robot: str, pending: PendingMap) -> Refused:
+        """A whole map not taken, counted under its reason."""
+        self.drops.add(pending.reason)
+        return not_taken(robot, self.held[robot], pending.held, pending.reason)
+
+    def _take(
+        self, robot: str, new: HeldMap, checked: RobotMap, stamp_ns: int, whole: bool
+    ) -> MapTaken:
+        """Hold ``new`` (checked: ``checked``) as ``robot``'s map; a replay of its session set
+        aside is counted."""
+        self.held = {**self.held, robot: new}
+        self._behind.pop(robot, None)
+        if whole:
+            self._resync_next.pop(robot, None)
+        replay = self.sessions.taken(robot, new)
+        dropped = () if replay is None else (self._dropped(robot, replay),)
+        taken = self._map_taken(robot, new, checked, stamp_ns)
+        return replace(taken, notices=(*dropped, *taken.notices))
+
+    def resync_answered(self, robot: str, sent: bool, session: int, sequence: int) -> MapTaken:
+        """``robot``'s smoother answered a resync request: its session is ``session``, and it
+        ``sent`` its whole map as update ``sequence`` (else it has sent nothing yet). A map
+        set aside is taken if it is the smoother's (:meth:`SessionPins.answered`), else
+        dropped and counted; the update named is taken when it comes, whatever the map held."""
+        answer = self.sessions.answered(robot, sent, session, sequence, self.clock())
+        if answer is None:
             return MapTaken()
-        return self._map_taken(robot, arrived.held, arrived.checked, stamp_ns)
+        pending, own = answer
+        if own:
+            return self._take(robot, pending.held, pending.checked, pending.stamp_ns, True)
+        return MapTaken(notices=(self._dropped(robot, pending),))
+
+    def smoother_absent(self, robot: str) -> MapTaken:
+        """``robot``'s smoother's resync service is not there: a map of another session set
+        aside is taken once the session held is stale (its smoother is gone)."""
+        pending = self.sessions.released(robot, self.stale(robot))
+        if pending is None:
+            return MapTaken()
+        return self._take(robot, pending.held, pending.checked, pending.stamp_ns, whole=True)
 
     def _map_taken(self, robot: str, held: HeldMap, new: RobotMap, stamp_ns: int) -> MapTaken:
         now = self.clock()
@@ -280,7 +386,7 @@ class MergerPolicy:
         robots, ignored, paused = self.robots, self.ignored, self.paused
         self.drops.counts.clear()  # the node's counter, shared: cleared, never replaced
         vars(self).update(vars(MergerPolicy(self.settings, self.clock, self.config, self.drops)))
-        self.ignored, self.paused = ignored, paused
+        self.discovery.ignored, self.paused = ignored, paused
         for robot in robots:
             self.subscribed(robot)
 
@@ -553,18 +659,23 @@ class MergerPolicy:
     # going back
 
     def copy(self) -> MergerPolicy:
-        """This policy as it is now, to go back to with :meth:`restore`: its own dicts, lists
-        and sets; the maps, results, settings, clock and drop counter shared (never changed in
-        place, or meant to be shared)."""
+        """This policy as it is now, to go back to with :meth:`restore`: its own dicts, lists,
+        sets, discovery and session pins; the maps, results, settings, clock and drop counter
+        shared (never changed in place, or meant to be shared)."""
         twin = object.__new__(MergerPolicy)
-        vars(twin).update(
-            {
-                name: type(value)(value) if isinstance(value, dict | list | set) else value
-                for name, value in vars(self).items()
-            }
-        )
+        vars(twin).update({name: _own(value) for name, value in vars(self).items()})
         return twin
 
     def restore(self, saved: MergerPolicy) -> None:
         """Go back to the state ``saved`` (a :meth:`copy`) holds; ``saved`` stays as it is."""
         vars(self).update(vars(saved.copy()))
+
+
+def _own(value: object) -> object:
+    """``value`` as a policy's copy holds it: containers and state objects copied, the rest
+    shared."""
+    if isinstance(value, dict | list | set):
+        return type(value)(value)
+    if isinstance(value, RobotDiscovery | SessionPins):
+        return value.copy()
+    return value

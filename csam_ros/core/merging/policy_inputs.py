@@ -4,6 +4,7 @@ merger's saved state read back."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum
@@ -38,6 +39,8 @@ RESYNC_RETRY_S = 2.0
 NO_MAP_HELD = "no local map held yet"
 UPDATE = "local map update"  # what a refused map update is called
 BEHIND = "an update did not apply to the map held"
+OLDER = "an update older than the map held came"
+SESSION_CHECK = "a whole map of another session, or an older one, came: is it the smoother's?"
 
 
 @dataclass(frozen=True)
@@ -51,6 +54,9 @@ class MergerSettings:
     solve_period: float = 0.5
     provisional_period: float = 1.0  # 0: no provisional maps
     provisional_quiet: float = 0.5
+    max_robots: int = 64  # robots found and joined at once (the allow-list's always are)
+    robot_pattern: str = ".*"  # a regular expression every robot's whole name must match
+    forget_after: float = 300.0  # s a robot found (not listed) may be silent in the status
 
     @property
     def configured_reference(self) -> str:
@@ -58,8 +64,14 @@ class MergerSettings:
         return self.reference or (self.robots[0] if self.robots else "")
 
     def admits(self, robot: str) -> bool:
-        """Whether ``robot`` is joined (on the allow-list, or there is none)."""
-        return not self.robots or robot in self.robots
+        """Whether ``robot`` is joined: on the allow-list (or there is none), and its name
+        matches ``robot_pattern``."""
+        listed = not self.robots or robot in self.robots
+        return listed and re.fullmatch(self.robot_pattern, robot) is not None
+
+    def listed(self, robot: str) -> bool:
+        """Whether ``robot`` is on the allow-list."""
+        return robot in self.robots
 
     @property
     def solve_check_period(self) -> float:
@@ -94,7 +106,8 @@ class Found(Enum):
     """What to do with a robot newly seen publishing local map updates."""
 
     JOIN = "join"  # subscribe to it
-    LEAVE_OUT = "leave out"  # not on the allow-list (said once)
+    LEAVE_OUT = "leave out"  # not on the allow-list, or its name not of robot_pattern (said once)
+    TOO_MANY = "too many"  # max_robots are joined: not now (said and counted once)
 
 
 @dataclass(frozen=True)
@@ -125,13 +138,15 @@ class Arrival:
     behind: str = ""  # why it did not apply to the map held: the whole map is wanted
     refused: RefusedMessageError | None = None  # why it, or the map it built, is not usable
     whole: bool = False  # it was a complete update: a resync request no longer stands
+    older: bool = False  # an update older than the one held (it built nothing new)
 
 
 def arrival(robot: str, held: HeldMap | None, update: MapUpdate) -> Arrival:
-    """``update`` on ``robot``'s topic applied to ``held``, the map held of it, and the map
-    it builds checked (not refined: the solve process refines it). Pure: the node calls it
+    """``update`` on ``robot``'s topic applied to ``held``, the map held of it (never changed),
+    and the map it builds checked (not refined: the solve process refines it); a map that
+    fails the checks is not returned, so that it is never held. Pure: the node calls it
     outside its lock (only the executor changes what is held), then
-    :meth:`MergerPolicy.map_arrived`."""
+    :meth:`MergerPolicy.map_arrived`, which decides whether a whole map is taken."""
     try:
         new = apply_update(held, update)
     except MissingBaseError as error:
@@ -140,12 +155,24 @@ def arrival(robot: str, held: HeldMap | None, update: MapUpdate) -> Arrival:
         return Arrival(refused=error)
     except ValueError as error:  # it does not fit the map held
         return Arrival(refused=LocalMapError(f"{robot}: {error}"))
-    if new is held:
-        return Arrival()  # delivered again: nothing to solve
+    if new is held:  # delivered again (nothing to solve), or older than the one held
+        return Arrival(older=held is not None and update.sequence < held.sequence)
     try:
         return Arrival(new, held_robot_map(robot, new, refine=False), whole=update.complete)
     except RefusedMessageError as error:
-        return Arrival(new, refused=error, whole=update.complete)
+        return Arrival(refused=error)
+
+
+@dataclass(frozen=True)
+class PendingMap:
+    """A whole map, checked, held aside until its robot's smoother says whether it is its own
+    (:meth:`MergerPolicy.resync_answered`): one of another session than the map held, or of
+    the same session but older."""
+
+    held: HeldMap
+    checked: RobotMap
+    stamp_ns: int
+    reason: str  # what it is counted as when it is not taken
 
 
 @dataclass(frozen=True)

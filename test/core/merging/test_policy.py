@@ -12,8 +12,15 @@ from log_slices import robot_log_between
 
 from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
-from csam_ros.core.exchange.map_updates import UpdateSender
-from csam_ros.core.exchange.validation import FAILED_SOLVE, MALFORMED_LOCAL_MAP, DropCounter
+from csam_ros.core.exchange.map_updates import MapUpdate, UpdateSender
+from csam_ros.core.exchange.validation import (
+    FAILED_SOLVE,
+    FOREIGN_SESSION,
+    MALFORMED_LOCAL_MAP,
+    REPLAYED_UPDATE,
+    TOO_MANY_ROBOTS,
+    DropCounter,
+)
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
@@ -33,9 +40,11 @@ from csam_ros.core.merging.policy import MergerPolicy
 from csam_ros.core.merging.policy_inputs import (
     BEHIND,
     NO_MAP_HELD,
+    OLDER,
     RESYNC_FIRST_S,
     RESYNC_RETRY_S,
     RESYNC_TIMEOUT_S,
+    SESSION_CHECK,
     Flushed,
     Found,
     MapTaken,
@@ -118,6 +127,15 @@ class Merger:
         update = sender.update(robot_map_arrays(m))
         arrived = arrival(m.name, self.policy.held.get(m.name), update)
         return self.policy.map_arrived(m.name, arrived, int(stamp_s * S))
+
+    def restart(self, m: RobotMap, stamp_s: float = 1.0, session: int = 2) -> MapTaken:
+        """``m`` sent as the first update of its robot's restarted smoother (a new
+        ``session``): set aside until the smoother's answer to the resync request it makes
+        names that session."""
+        aside = self.send(m, stamp_s, session)
+        assert aside.behind == SESSION_CHECK and not aside.taken
+        self.policy.resync_asked(m.name)
+        return self.policy.resync_answered(m.name, True, session, 1)
 
     def rendezvous(self, robot: str, log: RendezvousLog) -> None:
         assert self.policy.rendezvous_arrived(robot, log, {}) == []
@@ -257,7 +275,7 @@ def test_after_a_flush_each_robots_next_map_gives_up_a_running_solve_once(run: R
     assert merger.send(run.late["robot1"], 2.0).give_up_solve
     assert not merger.send(run.late["robot1"], 3.0).give_up_solve  # once only
     assert merger.send(run.late["robot2"], 2.0).give_up_solve
-    assert not merger.send(run.early["robot2"], 3.0, session=2).give_up_solve
+    assert not merger.restart(run.early["robot2"], 3.0).give_up_solve
 
 
 def test_without_a_flush_a_map_gives_up_no_solve(run: Run) -> None:
@@ -422,7 +440,7 @@ def test_a_map_that_starts_later_is_a_restart_counted_with_the_poses_lost(run: R
     old, new = run.early["robot2"], run.restarted
     assert len(new.stamps) > len(old.stamps)  # more poses, from a later start
     merger.send(old)
-    taken = merger.send(new, 2.0, session=2)
+    taken = merger.restart(new, 2.0)
     lost = int(np.sum(old.stamps < new.stamps[0] - CONFIG.stamp_tolerance))
     assert lost > 0
     (restart,) = taken.notices
@@ -438,7 +456,7 @@ def test_a_map_that_starts_later_is_a_restart_counted_with_the_poses_lost(run: R
 def test_a_map_with_fewer_poses_is_a_restart(run: Run) -> None:
     merger = Merger()
     merger.send(run.late["robot2"])
-    (restart,) = merger.send(run.early["robot2"], 2.0, session=2).notices
+    (restart,) = merger.restart(run.early["robot2"], 2.0).notices
     assert isinstance(restart, SmootherRestart) and restart.lost > 0
     assert merger.policy.restarts == {"robot2": 1}
 
@@ -535,6 +553,7 @@ def test_an_update_that_does_not_apply_asks_for_the_whole_map(run: Run) -> None:
     )
     assert taken.behind and not taken.taken and not merger.policy.dirty
     assert list(merger.policy.resyncs_wanted()) == [("robot1", NO_MAP_HELD), ("robot2", BEHIND)]
+    merger.policy.resync_answered("robot2", True, 9, 1)  # the smoother's session, its answer
     merger.send(run.late["robot2"], 3.0, session=9)  # the whole map, sent again
     assert list(merger.policy.resyncs_wanted()) == [("robot1", NO_MAP_HELD)]
 
@@ -554,7 +573,7 @@ def test_an_unusable_map_is_dropped_once_and_the_last_one_kept(run: Run) -> None
     merger.send(run.early["robot2"])
     merger.policy.start_solve()
     merger.policy.solve_ended()
-    kept = merger.policy.local_maps["robot2"]
+    kept, held = merger.policy.local_maps["robot2"], merger.policy.held["robot2"]
     arrays = robot_map_arrays(run.late["robot2"])
     poses = arrays.poses.copy()
     poses[3, 0] = np.nan
@@ -566,7 +585,7 @@ def test_an_unusable_map_is_dropped_once_and_the_last_one_kept(run: Run) -> None
     assert merger.drops.as_dict() == {MALFORMED_LOCAL_MAP: 1}
     assert not taken.taken and not merger.policy.dirty
     assert merger.policy.local_maps["robot2"] is kept
-    assert merger.policy.held["robot2"] is arrived.held  # what the next update builds on
+    assert arrived.held is None and merger.policy.held["robot2"] is held  # never stored
 
 
 def test_a_refused_message_and_dropped_rows_are_counted(run: Run) -> None:
@@ -615,7 +634,7 @@ def test_a_copy_is_a_state_to_go_back_to(run: Run) -> None:
     _all_in(merger, run)
     merger.solve(run.joined)
     saved = merger.policy.copy()
-    merger.send(run.restarted, 2.0, session=2)
+    merger.restart(run.restarted, 2.0)
     merger.policy.resync_asked("robot1")
     assert merger.policy.restarts and saved.restarts == {}
     merger.policy.restore(saved)
@@ -624,6 +643,194 @@ def test_a_copy_is_a_state_to_go_back_to(run: Run) -> None:
     assert len(merger.policy.local_maps["robot2"].stamps) == len(run.early["robot2"].stamps)
     assert merger.policy.last_result is run.joined and not merger.policy.dirty
     assert merger.policy.resync_requests == {} and merger.policy.drops is merger.drops
-    assert merger.send(run.restarted, 2.0, session=3).taken
+    assert merger.restart(run.restarted, 2.0, session=3).taken
     assert merger.policy.restarts == {"robot2": 1}  # counted again from the state gone back to
     assert saved.restarts == {}  # the copy stays as it was
+
+
+# sessions: a robot's held map changes only by an update that applies to it and passes the checks
+
+
+def _whole(m: RobotMap, session: int, sequence: int = 1) -> MapUpdate:
+    """``m`` as whole map ``sequence`` of ``session``."""
+    keyed = UpdateSender(session).update(robot_map_arrays(m)).changes
+    return MapUpdate(session, sequence, 0, 0, keyed)
+
+
+def _arrive(merger: Merger, robot: str, update: MapUpdate, answers: bool = True) -> MapTaken:
+    arrived = arrival(robot, merger.policy.held.get(robot), update)
+    return merger.policy.map_arrived(robot, arrived, 5 * S, answers)
+
+
+def test_a_whole_map_of_another_session_waits_for_its_smoother_to_name_it(run: Run) -> None:
+    """Another publisher's whole map (3 poses, a new session) is set aside, asked about once,
+    and dropped when the smoother names the session held; the held map never changed."""
+    merger = Merger()
+    merger.send(run.late["robot1"])
+    held, kept = merger.policy.held["robot1"], merger.policy.local_maps["robot1"]
+    foreign = _whole(run.early["robot1"], session=77)
+    aside = _arrive(merger, "robot1", foreign)
+    assert aside.behind == SESSION_CHECK and not aside.taken and not aside.notices
+    assert merger.policy.held["robot1"] is held and merger.policy.local_maps["robot1"] is kept
+    assert ("robot1", SESSION_CHECK) in list(merger.policy.resyncs_wanted())
+    merger.policy.resync_asked("robot1")
+    assert ("robot1", SESSION_CHECK) not in list(merger.policy.resyncs_wanted())
+    (dropped,) = merger.policy.resync_answered("robot1", True, 1, 2).notices
+    assert isinstance(dropped, Refused) and dropped.reason == FOREIGN_SESSION
+    assert merger.drops.as_dict() == {FOREIGN_SESSION: 1}
+    assert merger.policy.held["robot1"] is held and merger.policy.local_maps["robot1"] is kept
+    # the same session again, soon after: dropped at once, nothing asked
+    again = _arrive(merger, "robot1", replace(foreign, sequence=2))
+    assert again.behind == "" and [n.reason for n in again.notices] == [FOREIGN_SESSION]
+    assert merger.drops.as_dict() == {FOREIGN_SESSION: 2}
+    assert merger.policy.local_maps["robot1"] is kept and merger.policy.restarts == {}
+
+
+def test_a_restarted_smoothers_map_is_taken_in_either_order_of_map_and_answer(run: Run) -> None:
+    for answer_first in (False, True):
+        merger = Merger()
+        merger.send(run.early["robot2"])
+        if answer_first:  # asked because its next update did not apply
+            merger.policy.resync_answered("robot2", True, 5, 1)
+        taken = _arrive(merger, "robot2", _whole(run.restarted, session=5))
+        if not answer_first:
+            assert not taken.taken
+            taken = merger.policy.resync_answered("robot2", True, 5, 1)
+        assert taken.taken and merger.policy.held["robot2"].session == 5
+        assert merger.policy.restarts == {"robot2": 1} and merger.drops.as_dict() == {}
+
+
+def test_a_newer_map_of_the_same_restarted_session_replaces_the_one_set_aside(run: Run) -> None:
+    """The smoother's resync answer (whole map 2 of its new session) may come before its
+    reply: the first whole map set aside is replaced, uncounted, and the answer takes it."""
+    merger = Merger()
+    merger.send(run.early["robot2"])
+    _arrive(merger, "robot2", _whole(run.restarted, session=5))
+    _arrive(merger, "robot2", _whole(run.restarted, session=5, sequence=2))
+    assert merger.policy.resync_answered("robot2", True, 5, 2).taken
+    assert merger.policy.held["robot2"].sequence == 2 and merger.drops.as_dict() == {}
+    # a third session's map set aside is replaced by a fourth's: the third is counted
+    _arrive(merger, "robot2", _whole(run.early["robot2"], session=6))
+    (replaced,) = _arrive(merger, "robot2", _whole(run.early["robot2"], session=8)).notices
+    assert replaced.reason == FOREIGN_SESSION and merger.drops.as_dict() == {FOREIGN_SESSION: 1}
+
+
+def test_a_foreign_map_is_taken_when_the_held_session_is_stale_and_no_smoother_answers(
+    run: Run,
+) -> None:
+    merger = Merger(stale_after=10.0)
+    merger.send(run.early["robot2"])
+    foreign = _whole(run.restarted, session=5)
+    assert not _arrive(merger, "robot2", foreign, answers=False).taken  # not stale yet
+    assert not merger.policy.smoother_absent("robot2").taken
+    merger.clock.advance(11.0)
+    assert merger.policy.smoother_absent("robot2").taken  # the old session is gone
+    assert merger.policy.held["robot2"].session == 5
+    stale = Merger(stale_after=10.0)
+    stale.send(run.early["robot2"])
+    stale.clock.advance(11.0)
+    assert not _arrive(stale, "robot2", foreign).taken  # its smoother is there to ask
+    assert _arrive(stale, "robot2", replace(foreign, sequence=2), answers=False).taken
+
+
+def test_an_old_whole_map_of_the_session_held_rolls_nothing_back(run: Run) -> None:
+    merger = Merger()
+    merger.send(run.early["robot2"])
+    old = _whole(run.early["robot2"], session=1, sequence=1)
+    merger.send(run.late["robot2"], 2.0)  # update 2
+    held = merger.policy.held["robot2"]
+    assert not _arrive(merger, "robot2", old).taken
+    assert merger.policy.held["robot2"] is held
+    (dropped,) = merger.policy.resync_answered("robot2", True, 1, 3).notices
+    assert dropped.reason == REPLAYED_UPDATE and merger.drops.as_dict() == {REPLAYED_UPDATE: 1}
+    assert merger.policy.held["robot2"] is held
+    # the smoother's whole map may come before its answer: the replay is counted then
+    assert not _arrive(merger, "robot2", old).taken
+    taken = _arrive(merger, "robot2", _whole(run.late["robot2"], session=1, sequence=3))
+    assert taken.taken and [n.reason for n in taken.notices] == [REPLAYED_UPDATE]
+    assert merger.drops.as_dict() == {REPLAYED_UPDATE: 2}
+    assert merger.policy.resync_answered("robot2", True, 1, 3) == MapTaken()
+
+
+def test_an_update_older_than_the_held_one_asks_and_the_answer_is_taken(run: Run) -> None:
+    """A whole map of the session held with sequence 2^32-1 is newer, and taken; the real
+    updates after it are then older: each is counted and asks the smoother, whose answer
+    names the update it sent, which is taken although older."""
+    merger = Merger()
+    merger.send(run.early["robot2"])
+    sender = merger.senders["robot2"]
+    assert _arrive(merger, "robot2", _whole(run.early["robot2"], 1, 2**32 - 1)).taken
+    real = sender.update(robot_map_arrays(run.late["robot2"]))
+    older = _arrive(merger, "robot2", real)
+    assert older.behind == OLDER and [n.reason for n in older.notices] == [REPLAYED_UPDATE]
+    assert ("robot2", OLDER) in list(merger.policy.resyncs_wanted())
+    answer = sender.resend()
+    assert answer is not None
+    merger.policy.resync_answered("robot2", True, 1, answer.sequence)
+    assert _arrive(merger, "robot2", answer).taken
+    assert merger.policy.held["robot2"].sequence == answer.sequence
+    assert ("robot2", OLDER) not in list(merger.policy.resyncs_wanted())
+    assert not _arrive(merger, "robot2", answer).taken  # the answered update, delivered again
+
+
+@pytest.mark.parametrize("bad", ["unknown kernel", "nan information"])
+def test_a_delta_refused_leaves_the_held_map_and_the_next_sequence(run: Run, bad: str) -> None:
+    merger = Merger()
+    merger.send(run.early["robot2"])
+    held = merger.policy.held["robot2"]
+    update = UpdateSender(1)
+    update.update(robot_map_arrays(run.early["robot2"]))
+    good = update.update(robot_map_arrays(run.late["robot2"]))
+    c = good.changes
+    changes = (
+        replace(c, robust_kernel="tukey")
+        if bad == "unknown kernel"
+        else replace(c, odometry_sqrt_information=np.full_like(c.odometry_sqrt_information, np.nan))
+    )
+    assert good.base_sequence == held.sequence
+    refused = _arrive(merger, "robot2", replace(good, changes=changes))
+    assert [n.reason for n in refused.notices] == [MALFORMED_LOCAL_MAP] and not refused.taken
+    assert merger.policy.held["robot2"] is held
+    assert _arrive(merger, "robot2", good).taken  # the real next update applies
+    assert merger.policy.held["robot2"].sequence == good.sequence
+
+
+# robots found: bounded
+
+
+def test_at_most_max_robots_are_joined_and_the_others_counted_once() -> None:
+    policy = MergerPolicy(MergerSettings(max_robots=2), FakeClock(), CONFIG)
+    for robot in ("a1", "a2"):
+        assert policy.found(robot) is Found.JOIN
+        policy.subscribed(robot)
+    assert policy.found("a3") is Found.TOO_MANY and policy.found("a3") is None
+    assert policy.drops.as_dict() == {TOO_MANY_ROBOTS: 1}
+    listed = MergerPolicy(MergerSettings(robots=("r1", "r2"), max_robots=1), FakeClock(), CONFIG)
+    listed.subscribed("r1")
+    assert listed.found("r2") is Found.JOIN  # the allow-list's always are
+    pattern = MergerPolicy(MergerSettings(robot_pattern="robot[0-9]+"), FakeClock(), CONFIG)
+    assert pattern.found("robot12") is Found.JOIN
+    assert pattern.found("robot12x") is Found.LEAVE_OUT and pattern.ignored == {"robot12x"}
+
+
+def test_a_robot_found_that_stays_silent_is_forgotten_and_may_come_back(run: Run) -> None:
+    clock = FakeClock()
+    policy = MergerPolicy(MergerSettings(max_robots=2, forget_after=60.0), clock, CONFIG)
+    for robot in ROBOTS:
+        policy.subscribed(robot)
+    sender = UpdateSender(1)
+    update = sender.update(robot_map_arrays(run.early["robot1"]))
+    policy.map_arrived("robot1", arrival("robot1", None, update), S)
+    assert policy.found("robot3") is Found.TOO_MANY
+    clock.advance(60.5)
+    assert policy.forget_silent() == ["robot1", "robot2"]
+    assert policy.robots == [] and [r.robot for r in policy.status().robots] == []
+    assert "robot1" in policy.local_maps and policy.known_robots() == ("robot1",)
+    assert policy.found("robot3") is Found.JOIN  # room was made
+    assert policy.found("robot2") is None  # forgotten a moment ago
+    clock.advance(60.0)
+    assert policy.found("robot2") is Found.JOIN
+    listed = MergerPolicy(MergerSettings(robots=ROBOTS, forget_after=1.0), clock, CONFIG)
+    listed.subscribed("robot1")
+    clock.advance(10.0)
+    assert listed.forget_silent() == []  # listed robots are expected: stale, not forgotten
