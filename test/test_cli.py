@@ -679,7 +679,8 @@ def _state_with_scalar(tmp: Path) -> Path:
     """An offline replay's state whose odometry stamps are a scalar, not an array."""
     from straight_logs import straight_robot
 
-    from csam_ros.core.exchange.checkpoint import FilterState, OfflineState, read_npz, write_npz
+    from csam_ros.core.exchange.checkpoint import FilterState, OfflineState
+    from csam_ros.core.exchange.state_files import read_npz, write_npz
 
     path = tmp / "state.npz"
     OfflineState({"robot1": straight_robot("robot1", 4)}, FilterState({}, {})).write(path)

@@ -72,7 +72,6 @@ from std_srvs.srv import Trigger
 from csam_ros.core.exchange.checkpoint import (
     LOST_WHILE_DOWN,
     UNUSABLE_STATE,
-    CheckpointError,
     FilterState,
     SmootherCheckpoint,
     ThinningState,
@@ -82,6 +81,7 @@ from csam_ros.core.exchange.checkpoint import (
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.map_updates import UpdateSender, UpdateTolerance, resync_answer
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
+from csam_ros.core.exchange.state_files import CheckpointError
 from csam_ros.core.exchange.validation import (
     ODOMETRY_DEFAULT_SIGMAS,
     InputBounds,

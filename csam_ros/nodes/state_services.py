@@ -37,7 +37,8 @@ from rclpy.node import Node
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from csam_ros.core.exchange.checkpoint import UNUSABLE_STATE, CheckpointError, MergerState
+from csam_ros.core.exchange.checkpoint import UNUSABLE_STATE, MergerState
+from csam_ros.core.exchange.state_files import CheckpointError
 from csam_ros.core.exchange.validation import CALLBACK_ERROR, DropCounter, LocalMapError
 from csam_ros.core.merging.notices import StateMissing, StateResumed, StateUnusable
 from csam_ros.core.merging.policy_inputs import joined_maps, read_state

@@ -334,7 +334,8 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 def smoother_drops(robots: list[str], folder: Path) -> dict[str, dict[str, int]]:
     """What each smoother dropped of its robot's input, by reason (data lost while it was
     down among them), from its last checkpoint in ``folder`` (robots without one left out)."""
-    from csam_ros.core.exchange.checkpoint import CheckpointError, SmootherCheckpoint
+    from csam_ros.core.exchange.checkpoint import SmootherCheckpoint
+    from csam_ros.core.exchange.state_files import CheckpointError
 
     drops = {}
     for robot in robots:

@@ -41,7 +41,8 @@ def read_offline_log(
     ``resume``: the data after the state an earlier replay saved, joined to its accepted logs
     and through its measurement filter."""
     from csam_ros.bag import read_bag_messages
-    from csam_ros.core.exchange.checkpoint import CheckpointError, OfflineState, joined_logs
+    from csam_ros.core.exchange.checkpoint import OfflineState, joined_logs
+    from csam_ros.core.exchange.state_files import CheckpointError
     from csam_ros.core.exchange.validation import InputBounds
     from csam_ros.core.model.log import MultiRobotLog
     from csam_ros.ros.conversions import LogBuilder

@@ -16,18 +16,10 @@ the file and the fault.
 
 from __future__ import annotations
 
-import errno
-import io
-import json
-import math
-import os
-import tokenize
-import zipfile
-import zlib
 from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any, TypeVar, get_type_hints
+from typing import Any, get_type_hints
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,15 +44,20 @@ from csam_ros.core.exchange.state_checks import (
     check_stamps,
     check_values,
 )
+from csam_ros.core.exchange.state_files import (
+    STAMP_RANGE,
+    StateReader,
+    read_npz,
+    stamp_from_json,
+    stamp_to_json,
+    write_npz,
+)
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.joining.result import CsamResult
 from csam_ros.core.model.log import RendezvousLog, RobotLog
-from csam_ros.core.model.regular_files import check_replaceable, read_regular
 from csam_ros.core.smoothing.local_map_state import LocalMapState
 from csam_ros.core.smoothing.robot_map import RobotMap
 
-FORMAT = "csam_ros state"
-VERSION = 1
 SMOOTHER = "smoother"
 MERGER = "merger"
 OFFLINE = "offline"
@@ -71,208 +68,7 @@ LOST_WHILE_DOWN = "lost_while_down"
 # that cannot be used; the node keeps the state it had
 UNUSABLE_STATE = "unusable_state"
 
-# The most bytes a state file may hold, and its arrays uncompressed (their sizes in its zip
-# directory are checked before any is read): a checkpoint of an MR.CLAM robot is 8.6 MB.
-MAX_STATE_BYTES = 512 * 2**20
-
 Array = NDArray[np.float64]
-R = TypeVar("R")
-_STAMPS = (-MAX_STAMP_S, MAX_STAMP_S)  # the range of a stamp in seconds
-
-
-class CheckpointError(ValueError):
-    """A checkpoint or state file that cannot be used; the message names file and fault."""
-
-
-# --------------------------------------------------------------------------- the file
-
-
-def write_npz(path: Path, kind: str, header: Mapping[str, Any], arrays: Mapping[str, Any]) -> int:
-    """Write ``header`` (JSON) and ``arrays`` to ``path`` atomically; the bytes written.
-
-    OSError, with nothing written, when ``path`` is a FIFO, a device or a socket (a rename
-    would replace it) or the file would hold more than :data:`MAX_STATE_BYTES`; the
-    temporary file is removed whenever the write fails."""
-    path = Path(path)
-    document = {"format": FORMAT, "version": VERSION, "kind": kind, **header}
-    buffer = io.BytesIO()
-    np.savez(
-        buffer,
-        header=np.array(json.dumps(document)),
-        **{k: np.asarray(v) for k, v in arrays.items()},
-    )
-    data = buffer.getvalue()
-    if len(data) > MAX_STATE_BYTES:
-        raise OSError(errno.EFBIG, f"{len(data)} bytes, more than a state file holds", str(path))
-    check_replaceable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    check_replaceable(tmp)  # the leftover of a writer killed before its rename is replaced
-    tmp.unlink(missing_ok=True)
-    out = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
-    try:
-        with os.fdopen(out, "wb") as stream:
-            stream.write(data)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    folder = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(folder)
-    finally:
-        os.close(folder)
-    return len(data)
-
-
-def _npy_array(raw: bytes) -> np.ndarray:
-    """The array of one ``.npy`` entry, its header checked against its size before any array
-    is made (numpy's reader would allocate the shape its header names first)."""
-    stream = io.BytesIO(raw)
-    version = np.lib.format.read_magic(stream)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
-    elif version == (2, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
-    else:
-        raise ValueError(f"unsupported .npy version {version}")
-    if dtype.hasobject or dtype.itemsize == 0:
-        raise ValueError(f"an array of {dtype}")
-    count = math.prod(shape)
-    if count * dtype.itemsize != len(raw) - stream.tell():
-        raise ValueError(
-            f"shape {shape} of {dtype} in {len(raw) - stream.tell()} bytes of array data"
-        )
-    array = np.frombuffer(raw, dtype=dtype, count=count, offset=stream.tell())
-    return array.reshape(shape, order="F" if fortran else "C").copy()
-
-
-def _npz_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file's bytes; the sizes its zip directory declares are checked
-    first (no entry is decompressed beyond its declared size), then every entry whole (its
-    CRC)."""
-    arrays = {}
-    with zipfile.ZipFile(io.BytesIO(data)) as archive:
-        entries = archive.infolist()
-        declared = sum(entry.file_size for entry in entries)
-        if declared > MAX_STATE_BYTES:
-            raise CheckpointError(
-                f"{path}: its entries declare {declared} bytes, more than the "
-                f"{MAX_STATE_BYTES} a state file may hold"
-            )
-        for entry in entries:
-            name = entry.filename.removesuffix(".npy")
-            if name == entry.filename or name in arrays:
-                raise CheckpointError(f"{path}: entry {entry.filename!r:.80} is not one array")
-            arrays[name] = _npy_array(archive.read(entry))
-    return arrays
-
-
-def read_npz(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The header and arrays of a file of ``kind`` written by :func:`write_npz`; at most
-    :data:`MAX_STATE_BYTES` of file and of arrays, a regular file only."""
-    path = Path(path)
-    try:
-        arrays = _npz_arrays(path, read_regular(path, MAX_STATE_BYTES))
-    except FileNotFoundError:
-        raise CheckpointError(f"{path}: no such file") from None
-    # zipfile raises NotImplementedError and RuntimeError for damaged flags and methods,
-    # numpy's .npy header parser TokenError; an OSError may be a FIFO or a file too large
-    except (
-        OSError,
-        ValueError,
-        zipfile.BadZipFile,
-        EOFError,
-        NotImplementedError,
-        RuntimeError,
-        tokenize.TokenError,
-        zlib.error,
-    ) as err:
-        if isinstance(err, CheckpointError):
-            raise
-        cause = err.strerror if isinstance(err, OSError) and err.strerror else err
-        raise CheckpointError(f"{path}: not a readable .npz file ({cause})") from None
-    raw = arrays.pop("header", None)
-    if raw is None or raw.shape != () or raw.dtype.kind != "U":
-        raise CheckpointError(f"{path}: not a {FORMAT} file (no header)")
-    try:
-        header = json.loads(str(raw))
-    except (ValueError, RecursionError) as err:  # JSONDecodeError, or an int of 5000 digits
-        raise CheckpointError(f"{path}: damaged header ({err})") from None
-    if not isinstance(header, dict) or header.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a {FORMAT} file")
-    if header.get("version") != VERSION:
-        raise CheckpointError(
-            f"{path}: version {header.get('version')!r:.40}, this csam_ros reads version {VERSION}"
-        )
-    if header.get("kind") != kind:
-        raise CheckpointError(f"{path}: a {header.get('kind')!r:.40} file, not a {kind!r} one")
-    return header, arrays
-
-
-class _Reader:
-    """Typed access to a file's header and arrays; a missing or bad entry is a
-    :class:`CheckpointError` naming it."""
-
-    def __init__(self, path: Path, header: Mapping[str, Any], arrays: Mapping[str, np.ndarray]):
-        self.path, self.header, self.arrays = path, header, arrays
-
-    def fail(self, what: str) -> CheckpointError:
-        return CheckpointError(f"{self.path}: {what}")
-
-    def value(self, key: str, kind: type | tuple[type, ...]) -> Any:
-        if key not in self.header:
-            raise self.fail(f"no {key!r} in the header")
-        value = self.header[key]
-        if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
-            raise self.fail(f"header {key!r}: unexpected value {value!r:.80}")
-        return value
-
-    def integer(self, key: str, low: int, high: int) -> int:
-        """A header integer within ``[low, high]``."""
-        return self.checked(check_integer, key, self.value(key, int), low, high)
-
-    def checked(self, check: Callable[..., R], *args: Any) -> R:
-        """``check(*args)`` (a check of :mod:`state_checks`), its fault a CheckpointError."""
-        try:
-            return check(*args)
-        except StateFieldError as err:
-            raise self.fail(str(err)) from None
-
-    def array(
-        self, key: str, dtype: Any = float, tail: tuple[int, ...] | None = None
-    ) -> np.ndarray:
-        """An array of numbers (never a scalar), as ``dtype``; of shape ``(n, *tail)`` when
-        ``tail`` is given. Floats must be finite."""
-        if key not in self.arrays:
-            raise self.fail(f"no array {key!r}")
-        value = self.arrays[key]
-        if value.dtype.kind not in ("f", "i", "u", "b") or (
-            np.dtype(dtype).kind in "iu" and value.dtype.kind == "f"
-        ):
-            raise self.fail(f"array {key!r} holds {value.dtype}, not numbers")
-        if value.ndim == 0:
-            raise self.fail(f"array {key!r} is a scalar, not an array")
-        if value.dtype.kind in "iu" and value.size and np.dtype(dtype).kind == "i":
-            info = np.iinfo(dtype)
-            if value.min() < info.min or value.max() > info.max:
-                raise self.fail(f"array {key!r} holds integers beyond {np.dtype(dtype)}")
-        value = value.astype(dtype)
-        if tail is not None and (value.ndim != len(tail) + 1 or value.shape[1:] != tail):
-            raise self.fail(f"array {key!r} has shape {value.shape}, expected (n, {tail})")
-        if value.dtype.kind == "f" and not np.isfinite(value).all():
-            raise self.fail(f"array {key!r} holds a number that is not finite")
-        return value
-
-
-def _stamp(value: float) -> float | None:
-    return None if not np.isfinite(value) else float(value)
-
-
-def _unstamp(value: Any) -> float:
-    return -np.inf if value is None else float(value)
 
 
 # --------------------------------------------------------------------------- pieces
@@ -302,7 +98,7 @@ class FilterState:
     def to_header(self) -> dict[str, Any]:
         return {
             "streams": [
-                [robot, stream, _stamp(last)]
+                [robot, stream, stamp_to_json(last)]
                 + ([] if held is None else [held[0], *(a.tolist() for a in held[1:])])
                 for (robot, stream), (last, held) in self.streams.items()
             ],
@@ -310,7 +106,7 @@ class FilterState:
         }
 
     @classmethod
-    def from_header(cls, node: Any, r: _Reader, where: str = "filter") -> FilterState:
+    def from_header(cls, node: Any, r: StateReader, where: str = "filter") -> FilterState:
         """The state of a header's ``node``, every stamp, sample and count checked."""
         try:
             streams = {}
@@ -321,14 +117,14 @@ class FilterState:
                 if not isinstance(robot, str) or not isinstance(stream, str):
                     raise StateFieldError(f"{where}: a stream entry without robot and stream names")
                 name = f"{where}/{robot}/{stream}"
-                last = -np.inf if row[2] is None else check_number(name, row[2], *_STAMPS)
+                last = -np.inf if row[2] is None else check_number(name, row[2], *STAMP_RANGE)
                 held = None
                 if len(row) == 7:  # stamp, input, sigmas, correlations
                     pose = stream.endswith(("/pose", "/held_pose"))  # a pose, no sigmas
                     held = (
                         -np.inf
                         if pose and row[3] == -np.inf
-                        else check_number(f"{name}/held", row[3], *_STAMPS),
+                        else check_number(f"{name}/held", row[3], *STAMP_RANGE),
                         *(np.array(v, float) for v in row[4:]),
                     )
                     if any(a.shape != (3,) for a in held[1:]):
@@ -371,7 +167,7 @@ class ThinningState:
         }
 
     @classmethod
-    def from_header(cls, node: Any, r: _Reader) -> ThinningState:
+    def from_header(cls, node: Any, r: StateReader) -> ThinningState:
         """The state of a header's ``node``: each pair's kept stamps sorted, its interval a
         non-negative number."""
         try:
@@ -399,7 +195,7 @@ def _rendezvous_arrays(prefix: str, log: RendezvousLog) -> dict[str, np.ndarray]
     }
 
 
-def _rendezvous_log(prefix: str, observed: Any, r: _Reader) -> RendezvousLog:
+def _rendezvous_log(prefix: str, observed: Any, r: StateReader) -> RendezvousLog:
     stamps = r.array(f"{prefix}/stamps")
     if not isinstance(observed, list) or len(observed) != len(stamps):
         raise r.fail(f"{prefix}: {len(stamps)} stamps without as many observed robot names")
@@ -451,14 +247,14 @@ class SmootherCheckpoint:
             "restarts": self.restarts,
             "lost_seconds": self.lost_seconds,
         }
-        header["map"]["last_solved_odometry"] = _stamp(self.local_map.last_solved_odometry)
+        header["map"]["last_solved_odometry"] = stamp_to_json(self.local_map.last_solved_odometry)
         return write_npz(path, SMOOTHER, header, arrays)
 
     @classmethod
     def read(cls, path: Path, robot: str | None = None) -> SmootherCheckpoint:
         """Read a smoother checkpoint (of ``robot`` when given: another robot's is an error),
         every field checked (:mod:`~csam_ros.core.exchange.state_checks`)."""
-        r = _Reader(path, *read_npz(path, SMOOTHER))
+        r = StateReader(path, *read_npz(path, SMOOTHER))
         name = r.value("robot", str)
         if robot is not None and name != robot:
             raise r.fail(f"the checkpoint of {name!r:.80}, not of {robot!r}")
@@ -477,7 +273,7 @@ class SmootherCheckpoint:
                 dropped_features=check_integer(
                     "map/dropped_features", scalars["dropped_features"], 0, MAX_COUNT
                 ),
-                last_solved_odometry=_unstamp(scalars["last_solved_odometry"]),
+                last_solved_odometry=stamp_from_json(scalars["last_solved_odometry"]),
                 solved=scalars["solved"],
             )
             if not isinstance(local_map.solved, bool):
@@ -606,7 +402,7 @@ class MergerState:
 
     @classmethod
     def read(cls, path: Path) -> MergerState:
-        r = _Reader(path, *read_npz(path, MERGER))
+        r = StateReader(path, *read_npz(path, MERGER))
         maps = {}
         for robot, (kernel, parameter) in _pairs(r.value("maps", dict), r, "maps"):
             values = {
@@ -662,14 +458,14 @@ class MergerState:
         )
 
 
-def _result(node: dict[str, Any], r: _Reader) -> CsamResult:
+def _result(node: dict[str, Any], r: StateReader) -> CsamResult:
     try:
         return CsamResult.from_dict(node)
     except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
         raise r.fail(f"result: {err}") from None
 
 
-def _pairs(node: Mapping[str, Any], r: _Reader, where: str) -> list[tuple[str, Any]]:
+def _pairs(node: Mapping[str, Any], r: StateReader, where: str) -> list[tuple[str, Any]]:
     out = []
     for k, v in node.items():
         if not isinstance(v, list) or len(v) != 2:
@@ -721,7 +517,7 @@ class OfflineState:
     @classmethod
     def read(cls, path: Path) -> OfflineState:
         """Read an offline replay's state, every field of every log checked."""
-        r = _Reader(path, *read_npz(path, OFFLINE))
+        r = StateReader(path, *read_npz(path, OFFLINE))
         lists = r.value("lists", dict)
         logs = {}
         for name in r.value("robots", list):

@@ -10,9 +10,10 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
-from csam_ros.core.exchange.checkpoint import CheckpointError, MergerState
+from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.map_arrays import held_robot_map
 from csam_ros.core.exchange.map_updates import HeldMap, MapUpdate, MissingBaseError, apply_update
+from csam_ros.core.exchange.state_files import CheckpointError
 from csam_ros.core.exchange.validation import (
     LocalMapError,
     RefusedMessageError,

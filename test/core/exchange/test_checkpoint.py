@@ -18,7 +18,6 @@ import pytest
 from log_slices import robot_log_between
 
 from csam_ros.core.exchange.checkpoint import (
-    CheckpointError,
     FilterState,
     MergerState,
     OfflineState,
@@ -27,10 +26,9 @@ from csam_ros.core.exchange.checkpoint import (
     joined_logs,
     missed_samples,
     odometry_period,
-    read_npz,
-    write_npz,
 )
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
+from csam_ros.core.exchange.state_files import CheckpointError, read_npz, write_npz
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import robot_map_from_local_map, run_csam
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning

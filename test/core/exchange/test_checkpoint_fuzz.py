@@ -35,18 +35,16 @@ from hypothesis import strategies as st
 from log_slices import robot_log_between
 
 from csam_ros.core.exchange.checkpoint import (
-    CheckpointError,
     FilterState,
     MergerState,
     OfflineState,
     SmootherCheckpoint,
     ThinningState,
-    read_npz,
-    write_npz,
 )
 from csam_ros.core.exchange.local_map_checks import local_map_fault
 from csam_ros.core.exchange.map_arrays import robot_map_arrays
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
+from csam_ros.core.exchange.state_files import CheckpointError, read_npz, write_npz
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
 from csam_ros.core.model.log import MultiRobotLog
