@@ -636,6 +636,7 @@ class Smoother(Node):
             "resyncs": self.resyncs,
             "deferred_updates": self.deferred_updates,
             "lost_seconds": round(self.lost_seconds, 3),
+            "fold_recoveries": self.map.fold_recoveries,
             ODOMETRY_DEFAULT_SIGMAS: self.filter.defaulted.counts[self.robot],
             **{f"dropped/{k}": v for k, v in drops.as_dict().items()},
         }
