@@ -11,7 +11,7 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from csam_ros.run.errors import RunError
+from csam_ros.run.command_errors import input_errors, one_line
 from csam_ros.run.live import LiveRunError
 
 if TYPE_CHECKING:
@@ -304,35 +304,12 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _input_errors() -> tuple[type[BaseException], ...]:
-    """The errors that bad input raises (each reader names the file and line or key): input
-    a run cannot use, a malformed config, scenario (a ConfigFileError), data set, 2D SLAM
-    file, summary.json or bag, a missing or unreadable file, a file that is not text."""
-    from csam_ros.bag import BagError
-    from csam_ros.core.joining.result import SummaryError
-    from csam_ros.core.model.config_file import ConfigFileError
-    from csam_ros.datasets.mrclam import MrclamFormatError
-    from csam_ros.datasets.slam2d import Slam2dFormatError
-
-    readers = (ConfigFileError, MrclamFormatError, Slam2dFormatError, SummaryError, BagError)
-    return (RunError, *readers, OSError, UnicodeDecodeError)
-
-
-def _one_line(err: BaseException) -> str:
-    """An error as one line; an OSError names its file."""
-    if isinstance(err, OSError) and err.filename is not None and err.strerror:
-        text = f"{err.filename}: {err.strerror}"
-    else:
-        text = str(err) or type(err).__name__
-    return " ".join(text.split())
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return args.func(args)
-    except _input_errors() as err:  # the last resort: readers raise their own named errors
-        print(f"csam {args.command}: {_one_line(err)}", file=sys.stderr)
+    except input_errors() as err:  # the last resort: readers raise their own named errors
+        print(f"csam {args.command}: {one_line(err)}", file=sys.stderr)
         return 2
     except LiveRunError as err:
         print(f"csam {args.command}: the run failed: {err}", file=sys.stderr)
