@@ -66,6 +66,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Write a scenario's sensor topics straight to a bag: no DDS, no nodes."""
+    from csam_ros.run.simulate import simulate_to_bag
+
+    _print_lines(simulate_to_bag(args.scenario, args.out, args.seed))
+    return 0
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from csam_ros.run.live import run_live
     from csam_ros.run.offline import offline_summary, reading_ahead
@@ -148,6 +156,8 @@ ISOLATED_HELP = (
     "caller's ROS_DOMAIN_ID and discovery range, where RViz, Foxglove or ros2 topic echo see "
     "the run)"
 )
+SCENARIO_HELP = "map_joining, sensor_extension, chain, or a scenario YAML file"
+SEED_HELP = "noise seed (default: the scenario's)"
 OUT_HELP = "output directory, new or empty (default: runs/<name>-<time>)"
 VIEW_HELP = "serve the run to Foxglove at ws://127.0.0.1:PORT (default 8765; 0: any free port)"
 
@@ -158,13 +168,9 @@ def parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of:")
 
     demo = sub.add_parser("demo", help="simulate, smooth, merge and record a scenario")
-    demo.add_argument(
-        "--scenario",
-        default="map_joining",
-        help="map_joining, sensor_extension, chain, or a scenario YAML file",
-    )
+    demo.add_argument("--scenario", default="map_joining", help=SCENARIO_HELP)
     demo.add_argument("--out", type=Path, help=OUT_HELP)
-    demo.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
+    demo.add_argument("--seed", type=int, help=SEED_HELP)
     demo.add_argument(
         "--rate",
         type=float,
@@ -207,6 +213,14 @@ def parser() -> argparse.ArgumentParser:
         "its data starts (the robot goes on alone and comes back)",
     )
     demo.set_defaults(func=cmd_demo)
+
+    sim = sub.add_parser(
+        "simulate", help="write a scenario's sensor topics straight to a bag (no DDS, no nodes)"
+    )
+    sim.add_argument("--scenario", default="map_joining", help=SCENARIO_HELP)
+    sim.add_argument("--out", type=Path, required=True, help="bag directory to write (new)")
+    sim.add_argument("--seed", type=int, help=SEED_HELP)
+    sim.set_defaults(func=cmd_simulate)
 
     replay = sub.add_parser("replay", help="run a recorded bag's sensor topics through C-SAM")
     replay.add_argument("bag", type=Path, help="bag directory or .mcap file to replay")
