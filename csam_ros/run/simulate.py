@@ -8,9 +8,9 @@ of the scenario and seed, every robot's ``odom`` with its integrated pose, ``fea
 as a recorder under sim time logs what the node paces out. At each stamp the bag first holds
 ``/clock`` at that stamp, then the messages of that stamp in the node's order, then one ``/tf``
 with the ``<robot>/odom -> <robot>/base_link`` of that stamp's odometry. The same scenario and
-seed give the same bytes: each message is written with its alignment padding zeroed (rclpy's
-serializer leaves whatever was in memory there), and chunks end by size only, never by the time
-writing took.
+seed give the same bytes (under the same bag name, which the .mcap file carries): each message
+is written with its alignment padding zeroed (rclpy's serializer leaves whatever was in memory
+there), and chunks end by size only, never by the time writing took.
 """
 
 from __future__ import annotations
