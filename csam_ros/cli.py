@@ -11,7 +11,7 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from csam_ros.run.errors import RunError
+from csam_ros.run.command_errors import input_errors, one_line
 from csam_ros.run.live import LiveRunError
 
 if TYPE_CHECKING:
@@ -63,6 +63,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
         summary = run_demo(run, links, args.foxglove)
         _finish(out, replace(summary, scenario=scenario.name), worker)
     _print_lines(latency_lines(out / "bag", summary), "  ")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Write a scenario's sensor topics straight to a bag: no DDS, no nodes."""
+    from csam_ros.run.simulate import simulate_to_bag
+
+    _print_lines(simulate_to_bag(args.scenario, args.out, args.seed))
     return 0
 
 
@@ -148,6 +156,8 @@ ISOLATED_HELP = (
     "caller's ROS_DOMAIN_ID and discovery range, where RViz, Foxglove or ros2 topic echo see "
     "the run)"
 )
+SCENARIO_HELP = "map_joining, sensor_extension, chain, or a scenario YAML file"
+SEED_HELP = "noise seed (default: the scenario's)"
 OUT_HELP = "output directory, new or empty (default: runs/<name>-<time>)"
 VIEW_HELP = "serve the run to Foxglove at ws://127.0.0.1:PORT (default 8765; 0: any free port)"
 
@@ -158,13 +168,9 @@ def parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of:")
 
     demo = sub.add_parser("demo", help="simulate, smooth, merge and record a scenario")
-    demo.add_argument(
-        "--scenario",
-        default="map_joining",
-        help="map_joining, sensor_extension, chain, or a scenario YAML file",
-    )
+    demo.add_argument("--scenario", default="map_joining", help=SCENARIO_HELP)
     demo.add_argument("--out", type=Path, help=OUT_HELP)
-    demo.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
+    demo.add_argument("--seed", type=int, help=SEED_HELP)
     demo.add_argument(
         "--rate",
         type=float,
@@ -207,6 +213,14 @@ def parser() -> argparse.ArgumentParser:
         "its data starts (the robot goes on alone and comes back)",
     )
     demo.set_defaults(func=cmd_demo)
+
+    sim = sub.add_parser(
+        "simulate", help="write a scenario's sensor topics straight to a bag (no DDS, no nodes)"
+    )
+    sim.add_argument("--scenario", default="map_joining", help=SCENARIO_HELP)
+    sim.add_argument("--out", type=Path, required=True, help="bag directory to write (new)")
+    sim.add_argument("--seed", type=int, help=SEED_HELP)
+    sim.set_defaults(func=cmd_simulate)
 
     replay = sub.add_parser("replay", help="run a recorded bag's sensor topics through C-SAM")
     replay.add_argument("bag", type=Path, help="bag directory or .mcap file to replay")
@@ -304,35 +318,12 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _input_errors() -> tuple[type[BaseException], ...]:
-    """The errors that bad input raises (each reader names the file and line or key): input
-    a run cannot use, a malformed config, scenario (a ConfigFileError), data set, 2D SLAM
-    file, summary.json or bag, a missing or unreadable file, a file that is not text."""
-    from csam_ros.bag import BagError
-    from csam_ros.core.joining.result import SummaryError
-    from csam_ros.core.model.config_file import ConfigFileError
-    from csam_ros.datasets.mrclam import MrclamFormatError
-    from csam_ros.datasets.slam2d import Slam2dFormatError
-
-    readers = (ConfigFileError, MrclamFormatError, Slam2dFormatError, SummaryError, BagError)
-    return (RunError, *readers, OSError, UnicodeDecodeError)
-
-
-def _one_line(err: BaseException) -> str:
-    """An error as one line; an OSError names its file."""
-    if isinstance(err, OSError) and err.filename is not None and err.strerror:
-        text = f"{err.filename}: {err.strerror}"
-    else:
-        text = str(err) or type(err).__name__
-    return " ".join(text.split())
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return args.func(args)
-    except _input_errors() as err:  # the last resort: readers raise their own named errors
-        print(f"csam {args.command}: {_one_line(err)}", file=sys.stderr)
+    except input_errors() as err:  # the last resort: readers raise their own named errors
+        print(f"csam {args.command}: {one_line(err)}", file=sys.stderr)
         return 2
     except LiveRunError as err:
         print(f"csam {args.command}: the run failed: {err}", file=sys.stderr)

@@ -125,6 +125,41 @@ def test_recorded_bags_replay_to_their_recorded_joined_map(scenario: str, tmp_pa
     assert len(summary.result.associations) == len(recorded.associations)
 
 
+def test_a_simulated_bag_replays_offline_to_the_cores_join_of_the_simulated_log(
+    tmp_path: Path,
+) -> None:
+    """``csam simulate`` then ``csam replay --offline``: the joined map of the core on the
+    scenario's simulated log (run_csam), to 1e-9."""
+    from csam_ros.bench.many_robots import joined_difference
+    from csam_ros.core.joining.config import CsamConfig
+    from csam_ros.core.joining.pipeline import run_csam
+    from csam_ros.datasets.scenario import load_document, load_scenario
+    from csam_ros.datasets.simulation import simulate
+
+    bag, out, scenario = tmp_path / "bag", tmp_path / "out", REPO / "config" / "chain.yaml"
+    simulated = csam("simulate", "--scenario", scenario, "--out", bag, "--seed", "4")
+    assert simulated.returncode == 0, simulated.stderr
+    assert f"messages of 4 robot(s) to {bag}" in simulated.stdout
+    replayed = csam("replay", bag, "--offline", "--config", scenario, "--out", out)
+    assert replayed.returncode == 0, replayed.stderr
+    summary = RunSummary.read(out / "summary.json")
+    assert {"total", "local_maps"} <= set(summary.result.timing_s)
+    config = CsamConfig.from_dict(load_document(scenario)["csam"], "csam")
+    core = run_csam(simulate(load_scenario(scenario), 4), config)
+    assert summary.result.joined_robots() == core.joined_robots() == set(core.robots)
+    same = joined_difference(summary.result, core)
+    assert same.position_m < 1e-9 and same.heading_deg < 1e-9 and same.features_apart == 0
+    assert same.poses == sum(len(r.stamps) for r in core.robots.values())
+    assert same.features == len(core.features) > 0
+    replayed_pairs = [(x.a, x.b) for x in summary.result.associations]
+    assert replayed_pairs == [(x.a, x.b) for x in core.associations]
+    np.testing.assert_allclose(
+        [x.mahalanobis for x in summary.result.associations],
+        [x.mahalanobis for x in core.associations],
+        atol=1e-9,
+    )
+
+
 REST_MARKUP = re.compile(r"``|:[a-z]+:`|`[^`]+`_")  # ``literal``, :func:`x`, `link`_
 
 
@@ -507,6 +542,14 @@ BAD_INPUT = {
     "evaluate_no_features": (
         lambda t: ["evaluate", str(_summary_without(t, "features"))],
         "summary.json: summary: no 'features' entry",
+    ),
+    "simulate_missing_scenario": (
+        lambda t: ["simulate", "--scenario", str(t / "nowhere.yaml")],
+        "nowhere.yaml: no such file",
+    ),
+    "simulate_negative_seed": (
+        lambda t: ["simulate", "--seed", "-2"],
+        "--seed: expected 0..2147483647, got -2",
     ),
     "demo_missing_scenario": (
         lambda t: ["demo", "--scenario", str(t / "nowhere.yaml")],

@@ -1,4 +1,4 @@
-"""Benchmark of many robots live: ``python -m csam_ros.bench.many_robots``.
+"""Benchmark of many robots, live or offline: ``python -m csam_ros.bench.many_robots``.
 
 N robots each drive one loop (radius 2.4 m, 0.5 m/s, about 30 s at a sample time of 0.5 s)
 around a centre of their own; neighbouring centres are 3.5 m apart, so neighbours' loops and
@@ -6,8 +6,8 @@ feature areas overlap and they pass within the 4 m sensor range of each other. `
 centres on a circle, robot i meets robots i-1 and i+1 and robot N meets robot 1 (the whole
 formation turns together, every pair alike); ``chain``: the centres on a line, neighbours
 turning in opposite directions (mirror images of each other), no wrap. A robot observes only
-its neighbours (``observes``), at every 4th sample: the rendezvous poses are the state of
-Algorithm 2's conditioning, whose cost grows with the square of their number.
+its neighbours (``observes``), at every 4th sample (``--every``): the rendezvous poses are the
+state of Algorithm 2's conditioning, whose cost grows with the square of their number.
 
 For each N the generated scenario is written as a scenario file (the layout of
 ``config/chain.yaml``), run live through the nodes as ``csam demo --scenario FILE`` runs it,
@@ -15,6 +15,13 @@ and the recorded bag is run offline as ``csam replay BAG --offline`` runs it. Pe
 aligned, features and associations of the live joined map, the merger's solve times and the
 lag of the local maps (``/csam/status`` and the bag, ``csam_ros.run.lag``), the wall time of
 the live run, and the largest difference between the live and the offline joined maps.
+
+``--offline``: the join alone, to 64 robots, each observing its neighbours at every sample
+(``--every 1``). Each N's scenario is written to a bag as ``csam simulate`` writes it (no DDS,
+no nodes) and the bag joined as ``csam replay BAG --offline`` joins it; per N the time of each
+stage of the join (summary.json ``timing_s``), the join alone (``total - local_maps``), and the
+growth exponent of each in N: the log-log slope between successive N and, fitted to them all,
+overall. ``--scenarios-only`` writes the scenario files and stops.
 """
 
 from __future__ import annotations
@@ -70,11 +77,20 @@ def neighbours(n: int, layout: str) -> list[list[int]]:
     ]
 
 
-def many_robot_scenario(n: int, layout: str, duration: float = 30.0, seed: int = 1) -> Scenario:
+def many_robot_scenario(
+    n: int,
+    layout: str,
+    duration: float = 30.0,
+    seed: int = 1,
+    rendezvous_every: int = RENDEZVOUS_EVERY,
+) -> Scenario:
     """``n`` robots looping around centres on a ring or a chain (module docs); ``duration``
-    seconds each, a multiple of the sample time."""
+    seconds each, a multiple of the sample time; each observes its neighbours at every
+    ``rendezvous_every``-th sample."""
     if n < 2:
         raise ValueError(f"need at least 2 robots, got {n}")
+    if rendezvous_every < 1:
+        raise ValueError(f"rendezvous_every must be >= 1, got {rendezvous_every}")
     index = np.arange(n)
     omega = SPEED / LOOP_RADIUS
     if layout == "ring":
@@ -103,11 +119,14 @@ def many_robot_scenario(n: int, layout: str, duration: float = 30.0, seed: int =
             feature_sensor=SENSOR,
             rendezvous_sensor=SENSOR,
             observes=tuple(robot_name(j, n) for j in met[i]),
-            rendezvous_every=RENDEZVOUS_EVERY,
+            rendezvous_every=rendezvous_every,
         )
         for i in range(n)
     )
     description = f"{n} robots looping on a {layout}, each meeting its neighbours"
+    if rendezvous_every != RENDEZVOUS_EVERY:
+        every = "sample" if rendezvous_every == 1 else f"{rendezvous_every} samples"
+        description += f", observing them every {every}"
     return Scenario(f"{layout}{n}", SAMPLE_TIME, features, robots, seed, description)
 
 
@@ -120,6 +139,17 @@ def meetings(scenario: Scenario) -> dict[tuple[str, str], int]:
         )
         counts.update({(name, str(o)): int(c) for o, c in zip(observed, k, strict=True)})
     return counts
+
+
+def neighbour_pairs_meeting(scenario: Scenario, layout: str) -> tuple[int, int, int]:
+    """Neighbour pairs observing each other both ways, neighbour pairs, and rendezvous
+    measurements, in a simulation of ``scenario`` (one of :func:`many_robot_scenario`)."""
+    n = len(scenario.robots)
+    met = meetings(scenario)
+    pairs = {(i, j) for i, js in enumerate(neighbours(n, layout)) for j in js if i < j}
+    names = [r.name for r in scenario.robots]
+    meeting = sum((names[i], names[j]) in met and (names[j], names[i]) in met for i, j in pairs)
+    return meeting, len(pairs), sum(met.values())
 
 
 def _sensor_dict(sensor: RangeBearingSensor | None) -> dict[str, float] | None:
@@ -258,7 +288,15 @@ class Row:
     difference: Difference
 
 
-def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int) -> Row:
+def run(
+    n: int,
+    layout: str,
+    out: Path,
+    duration: float,
+    rate: float,
+    seed: int,
+    rendezvous_every: int = RENDEZVOUS_EVERY,
+) -> Row:
     """Generate, run live, run offline and compare, for ``n`` robots under ``out``."""
     from csam_ros.core.model.config_file import load_document
     from csam_ros.run.demo import demo_live_run
@@ -266,11 +304,8 @@ def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int)
     from csam_ros.run.live import run_live
     from csam_ros.run.offline import offline_summary
 
-    scenario = many_robot_scenario(n, layout, duration, seed)
-    met = meetings(scenario)
-    pairs = {(i, j) for i, js in enumerate(neighbours(n, layout)) for j in js if i < j}
-    names = [r.name for r in scenario.robots]
-    meeting = sum((names[i], names[j]) in met and (names[j], names[i]) in met for i, j in pairs)
+    scenario = many_robot_scenario(n, layout, duration, seed, rendezvous_every)
+    meeting, pairs, _ = neighbour_pairs_meeting(scenario, layout)
     path = write_scenario(scenario, out / "scenario.yaml", CSAM_SECTION)
     start = time.perf_counter()
     run = demo_live_run(path, out / "live", seed, rate, isolated=True)
@@ -286,7 +321,7 @@ def run(n: int, layout: str, out: Path, duration: float, rate: float, seed: int)
     return Row(
         robots=n,
         pairs_meeting=meeting,
-        pairs=len(pairs),
+        pairs=pairs,
         aligned=len(a.joined_robots()),
         features=len(a.features),
         associations=len(a.associations),
@@ -321,43 +356,251 @@ def format_row(row: Row) -> str:
     )
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclass(frozen=True)
+class OfflineRow:
+    """One N of the offline benchmark: a simulated bag joined offline."""
+
+    robots: int
+    pairs_meeting: int  # neighbour pairs with rendezvous (both ways) in the simulation
+    pairs: int  # neighbour pairs
+    rendezvous: int  # rendezvous measurements of every robot
+    messages: int  # in the bag
+    aligned: int  # robots in the joined map (the reference included)
+    features: int
+    associations: int
+    timing_s: dict[str, float]  # summary.json's: each stage of the join, local_maps and total
+    simulate_s: float  # the scenario to a bag, as csam simulate writes it
+    replay_s: float  # the bag read and joined, as csam replay --offline (without figures)
+
+    @property
+    def join_s(self) -> float:
+        """The join alone: every stage but the local maps."""
+        return self.timing_s["total"] - self.timing_s["local_maps"]
+
+
+def run_offline(
+    n: int, layout: str, out: Path, duration: float, seed: int, rendezvous_every: int
+) -> OfflineRow:
+    """``n`` robots' scenario written under ``out`` (``scenario.yaml``), simulated to a bag
+    (``bag``) and joined offline (``summary.json``)."""
+    from csam_ros.core.model.config_file import load_document
+    from csam_ros.datasets.scenario import load_scenario
+    from csam_ros.run.offline import offline_summary
+    from csam_ros.run.simulate import simulated_bag_messages, write_simulated_bag
+
+    scenario = many_robot_scenario(n, layout, duration, seed, rendezvous_every)
+    meeting, pairs, rendezvous = neighbour_pairs_meeting(scenario, layout)
+    path = write_scenario(scenario, out / "scenario.yaml", CSAM_SECTION)
+    start = time.perf_counter()
+    messages = write_simulated_bag(simulated_bag_messages(load_scenario(path)), out / "bag")
+    simulate_s = time.perf_counter() - start
+    start = time.perf_counter()
+    summary, _ = offline_summary(out / "bag", load_document(path), progress=lambda _: None)
+    replay_s = time.perf_counter() - start
+    summary.write(out / "summary.json")
+    result = summary.result
+    return OfflineRow(
+        robots=n,
+        pairs_meeting=meeting,
+        pairs=pairs,
+        rendezvous=rendezvous,
+        messages=messages,
+        aligned=len(result.joined_robots()),
+        features=len(result.features),
+        associations=len(result.associations),
+        timing_s=dict(result.timing_s),
+        simulate_s=simulate_s,
+        replay_s=replay_s,
+    )
+
+
+def format_offline_row(row: OfflineRow) -> str:
+    """What one N gave, on one line."""
+    return (
+        f"  {row.robots} robots: {row.aligned}/{row.robots} aligned, pairs met "
+        f"{row.pairs_meeting}/{row.pairs}, {row.rendezvous} rendezvous, {row.features} "
+        f"features, {row.associations} associations; bag of {row.messages} messages in "
+        f"{row.simulate_s:.1f} s, replay {row.replay_s:.1f} s, join {row.join_s:.2f} s"
+    )
+
+
+def growth_exponents(robots: list[int], seconds: list[float]) -> tuple[list[float], float]:
+    """How ``seconds`` grow with the number of ``robots``: the log-log slope between each
+    two successive counts, and the slope of the least-squares line through them all (NaN
+    where a time is not positive)."""
+    n, t = np.asarray(robots, dtype=float), np.asarray(seconds, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_t = np.where(t > 0, np.log(np.where(t > 0, t, 1.0)), np.nan)
+        successive = (np.diff(log_t) / np.diff(np.log(n))).tolist()
+    usable = np.isfinite(log_t)
+    overall = float("nan")
+    if usable.sum() >= 2:
+        overall = float(np.polyfit(np.log(n[usable]), log_t[usable], 1)[0])
+    return successive, overall
+
+
+JOIN_STAGE = "join (total - local_maps)"
+
+
+def stage_table(rows: list[OfflineRow]) -> list[str]:
+    """Seconds of each stage by N (``timing_s``: the local maps, each step of the join, the
+    join alone, the total) with their growth exponents in N."""
+    keys = list(dict.fromkeys(k for row in rows for k in row.timing_s))
+    steps = [k for k in keys if k not in ("local_maps", "total")]
+    stages = ["local_maps", *steps, JOIN_STAGE, "total"]
+    robots = [row.robots for row in rows]
+    slopes = [f"{a}->{b}" for a, b in zip(robots, robots[1:], strict=False)]
+    header = (
+        f"{'stage [s]':<26}"
+        + "".join(f"{f'N={n}':>9}" for n in robots)
+        + "".join(f"{s:>8}" for s in slopes)
+        + f"{'overall':>8}"
+    )
+    lines = [header, "-" * len(header)]
+    for stage in stages:
+        if stage == JOIN_STAGE:
+            seconds = [row.join_s for row in rows]
+        else:
+            seconds = [row.timing_s.get(stage, float("nan")) for row in rows]
+        successive, overall = growth_exponents(robots, seconds)
+        lines.append(
+            f"{stage:<26}"
+            + "".join(f"{t:9.3f}" for t in seconds)
+            + "".join(f"{e:8.2f}" for e in successive)
+            + f"{overall:8.2f}"
+        )
+    return lines
+
+
+def robot_counts(robots: list[int], max_robots: int | None) -> list[int]:
+    """The counts to run: ``robots`` up to ``max_robots`` (None: all)."""
+    return [n for n in robots if max_robots is None or n <= max_robots]
+
+
+LIVE_NOTES = (
+    "pairs met: neighbour pairs observing each other in the simulation; solve: the "
+    "merger's solve times in /csam/status; lag: from a local map's arrival to the first "
+    "joined map using it or a newer one, over 'maps' local maps (+ never included); prov "
+    "p95: the same to the first joined or provisional map ('-': none published); wall: "
+    "the live run; offline: csam replay --offline of its bag; live - offline: largest "
+    "position and heading difference of joined poses and features"
+)
+OFFLINE_NOTES = (
+    "stage: summary.json timing_s (local_maps: every robot's local map; the steps of the "
+    "join; the join alone; total); a->b: the growth exponent in N between those robot "
+    "counts (log-log slope); overall: the slope of the least-squares line through every N"
+)
+
+
+def arguments(argv: list[str] | None) -> argparse.Namespace:
+    """The benchmark's options, checked."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8, 16])
-    parser.add_argument("--layout", choices=LAYOUTS, default="ring")
+    parser.add_argument(
+        "--offline",
+        action="store_true",
+        help="the join alone, of bags written as csam simulate writes them (no nodes)",
+    )
+    parser.add_argument(
+        "--robots",
+        type=int,
+        nargs="+",
+        help="robot counts (default: 2 4 8 16 live, 4 8 16 32 64 offline)",
+    )
+    parser.add_argument("--max-robots", type=int, help="leave out the robot counts above this")
+    parser.add_argument(
+        "--layout", choices=LAYOUTS, nargs="+", default=["ring"], help="ring, chain or both"
+    )
+    parser.add_argument(
+        "--every",
+        type=int,
+        help="samples between a robot's observations of its neighbours (default: "
+        f"{RENDEZVOUS_EVERY} live, 1 offline)",
+    )
     parser.add_argument("--seconds", type=float, default=30.0, help="each robot's program [s]")
-    parser.add_argument("--rate", type=float, default=4.0, help="simulation speed (0: max)")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--rate", type=float, default=4.0, help="live: simulation speed (0: max)")
+    parser.add_argument("--seed", type=int, default=1, help="the scenarios' noise seed")
     parser.add_argument("--out", type=Path, help="output directory (default: a new temp dir)")
+    parser.add_argument(
+        "--scenarios-only",
+        action="store_true",
+        help="write each scenario file (OUT/<layout><N>/scenario.yaml) and stop",
+    )
     args = parser.parse_args(argv)
+    if args.robots is None:
+        args.robots = [4, 8, 16, 32, 64] if args.offline else [2, 4, 8, 16]
+    if args.every is None:
+        args.every = 1 if args.offline else RENDEZVOUS_EVERY
+    args.robots = robot_counts(args.robots, args.max_robots)
+    if not args.robots:
+        parser.error(f"--max-robots: no robot count left of {args.max_robots} or fewer")
     if min(args.robots) < 2:
         parser.error("--robots: at least 2 robots per run")
+    if args.every < 1:
+        parser.error("--every: at least 1 (every sample)")
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         parser.error(f"--out: {args.out} is not empty")
+    return args
+
+
+def write_scenarios(args: argparse.Namespace, out: Path) -> None:
+    """``--scenarios-only``: each layout's and robot count's scenario file under ``out``."""
+    for layout in args.layout:
+        for n in args.robots:
+            scenario = many_robot_scenario(n, layout, args.seconds, args.seed, args.every)
+            path = out / f"{layout}{n}" / "scenario.yaml"
+            write_scenario(scenario, path, CSAM_SECTION)
+            print(f"  {path} ({path.stat().st_size / 1e3:.0f} kB)")
+
+
+def main_offline(args: argparse.Namespace, out: Path) -> None:
+    """``--offline``: each layout's joins by robot count, then its stage table."""
+    for layout in args.layout:
+        print(f"{layout}:", flush=True)
+        rows = []
+        for n in args.robots:
+            folder = out / f"{layout}{n}"
+            rows.append(run_offline(n, layout, folder, args.seconds, args.seed, args.every))
+            print(format_offline_row(rows[-1]), flush=True)
+        print("\n".join(stage_table(rows)), flush=True)
+    print(OFFLINE_NOTES)
+
+
+def main_live(args: argparse.Namespace, out: Path) -> None:
+    """Live: each layout's runs by robot count, then its table."""
+    for layout in args.layout:
+        rows = []
+        for n in args.robots:
+            print(f"  {layout}, {n} robots ...", flush=True)
+            folder = out / f"{layout}{n}"
+            rows.append(run(n, layout, folder, args.seconds, args.rate, args.seed, args.every))
+        print(HEADER)
+        print("-" * len(HEADER))
+        for row in rows:
+            print(format_row(row))
+    print(LIVE_NOTES)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = arguments(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="csam-many-robots-"))
-    print(
-        f"many robots, {args.layout}: {args.seconds:g} s per robot at rate {args.rate:g}, "
-        f"output {out}/",
-        flush=True,
-    )
-    rows = []
-    for n in args.robots:
-        print(f"  {n} robots ...", flush=True)
-        rows.append(
-            run(n, args.layout, out / f"{args.layout}{n}", args.seconds, args.rate, args.seed)
+    layouts = ", ".join(args.layout)
+    every = f"rendezvous every {args.every} sample(s)"
+    if args.scenarios_only:
+        print(f"many robots, {layouts}: scenario files ({every}) in {out}/")
+        write_scenarios(args, out)
+    elif args.offline:
+        print(
+            f"many robots offline, {layouts}: {args.seconds:g} s per robot, {every}, output {out}/",
+            flush=True,
         )
-    print(HEADER)
-    print("-" * len(HEADER))
-    for row in rows:
-        print(format_row(row))
-    print(
-        "pairs met: neighbour pairs observing each other in the simulation; solve: the "
-        "merger's solve times in /csam/status; lag: from a local map's arrival to the first "
-        "joined map using it or a newer one, over 'maps' local maps (+ never included); prov "
-        "p95: the same to the first joined or provisional map ('-': none published); wall: "
-        "the live run; offline: csam replay --offline of its bag; live - offline: largest "
-        "position and heading difference of joined poses and features"
-    )
+        main_offline(args, out)
+    else:
+        print(
+            f"many robots, {layouts}: {args.seconds:g} s per robot at rate {args.rate:g}, "
+            f"{every}, output {out}/",
+            flush=True,
+        )
+        main_live(args, out)
     return 0
 
 
