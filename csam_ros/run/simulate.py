@@ -69,17 +69,6 @@ def simulated_bag_messages(scenario: Scenario, seed: int | None = None) -> list[
     return out
 
 
-class MetadataOnCloseWriter(BagWriter):
-    """A BagWriter that writes metadata.yaml once, on closing. BagWriter rewrites it after
-    every added topic and flush, so that a killed recording still reads; a team of 64 robots
-    has 260 topics, and those rewrites took two minutes. A simulation cut short is simply run
-    again (and its .mcap file reads without metadata.yaml)."""
-
-    def _write_metadata(self, final: bool) -> None:
-        if final:
-            super()._write_metadata(final)
-
-
 def write_simulated_bag(messages: list[StampedMessage], path: Path) -> int:
     """Write ``messages`` as a new bag at ``path``, each at its stamp in CDR with zeroed
     padding, each topic with the QoS its publisher offers in a live run; the message count."""
@@ -89,7 +78,7 @@ def write_simulated_bag(messages: list[StampedMessage], path: Path) -> int:
 
     types = MessageTypes()
     store = types.register_custom_types()
-    with MetadataOnCloseWriter(path, flush_period_s=FLUSH_BY_SIZE_ONLY_S, types=types) as bag:
+    with BagWriter(path, flush_period_s=FLUSH_BY_SIZE_ONLY_S, types=types) as bag:
         for m in messages:
             msgtype = msgtype_of(m.message)
             if m.topic not in bag.topics:
