@@ -56,11 +56,6 @@ CUTS = (20.0, 30.0, None)  # s: robot2's map at these moments of the run (None: 
 
 
 @pytest.fixture(scope="module")
-def good() -> RunMessages:
-    return run_messages()
-
-
-@pytest.fixture(scope="module")
 def growing() -> list[RunMessages]:
     """The smoothers' messages at three moments of the run: robot2's map grows."""
     return [run_messages(end=t) for t in CUTS]

@@ -23,11 +23,6 @@ from csam_ros.ros.topics import RENDEZVOUS_POSES
 
 
 @pytest.fixture(scope="module")
-def good() -> RunMessages:
-    return run_messages()
-
-
-@pytest.fixture(scope="module")
 def renamed() -> RunMessages:
     """The same run with robots no test lists: robotA and robotB."""
     return run_messages(names={"robot1": "robotA", "robot2": "robotB"})

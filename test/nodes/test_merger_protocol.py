@@ -64,11 +64,6 @@ RESTORED_WITHIN_S = 10.0
 
 
 @pytest.fixture(scope="module")
-def good() -> RunMessages:
-    return run_messages()
-
-
-@pytest.fixture(scope="module")
 def growing() -> list[RunMessages]:
     return [run_messages(end=t) for t in CUTS]
 
