@@ -23,19 +23,22 @@ Each local map enters only through its :class:`RendezvousPart`, the marginal squ
 information ``R_r`` of its rendezvous poses at its own estimate (a dense linear prior
 ``||R_r (rho_r - rho_r^0)||^2`` that is never relinearised); only the connector rows (eq.
 22-24, :class:`~csam_ros.core.joining.connector.Connector`) are relinearised. The problem is
-the sparse graph it is (one dense block per robot, linked where robots met). Solver
+solved as the sparse graph it is, one dense block per robot, linked where robots met
 (:func:`~csam_ros.core.joining.sparse_newton.sparse_newton`): Newton's method with the
 connectors' second derivatives, Gauss-Newton where that matrix is not positive definite,
-Levenberg-Marquardt safeguard, sparse ``L D L^T`` (qdldl). Gauss-Newton alone converges
-linearly here (the priors are weak along each map's rigid rotation and the connector residuals
-stay large): on MR.CLAM Dataset 1 (five robots, 1,941 unknowns) it took about 100 iterations,
-Newton 24 to a lower cost (``method="gauss-newton"`` runs it). ``method="dense-newton"`` is the
-same Newton iteration on the dense matrix (:mod:`~csam_ros.core.joining.dense_newton`), the
-tests' oracle. Stopping rule: after a step whose largest component is below ``step_tolerance``
-(m, rad) or whose relative cost decrease is below ``relative_tolerance``, at most
-``max_iterations`` steps. The state's covariance is read from the sparse factor at the estimate
-(:class:`~csam_ros.core.joining.state_covariance.SparseStateCovariance`: blocks by the selected
-inverse; the whole matrix only when :attr:`Alignment.covariance` is read).
+Levenberg-Marquardt safeguard, the sparse normal equations factored by blocks
+(:mod:`~csam_ros.core.joining.block_cholesky`). Gauss-Newton alone converges linearly here (the
+priors are weak along each map's rigid rotation and the connector residuals stay large): on
+MR.CLAM Dataset 1 (five robots, 1,941 unknowns) it took about 100 iterations, Newton 24 to a
+lower cost (``method="gauss-newton"`` runs it, the generic sparse solver).
+``method="dense-newton"`` is the same Newton iteration on the dense matrix
+(:mod:`~csam_ros.core.joining.dense_newton`), the tests' oracle. Stopping rule: after a step
+whose largest component is below ``step_tolerance`` (m, rad) or whose relative cost decrease is
+below ``relative_tolerance``, at most ``max_iterations`` steps. The state's covariance comes
+from the block factor at the estimate
+(:class:`~csam_ros.core.joining.state_covariance.FactoredStateCovariance`: the base nodes' from
+the factor's last block, other blocks by solves, the whole matrix only when
+:attr:`Alignment.covariance` is read).
 
 The observability check is on what the rendezvous rows determine (local poses fixed), not on
 the base node's marginal after Algorithm 1, which also carries each map's own drift between

@@ -165,25 +165,28 @@ class BlockFactor:
 
     def dense_inverse(self) -> Array:
         """The whole inverse (n, n), problem order: ``L^-1`` (LAPACK ``trtri``) then
-        ``L^-T L^-1`` (``lauum``) on the dense ``L``."""
+        ``L^-T L^-1`` (``lauum``) on the dense ``L``, in place."""
         pattern = self.pattern
         n = pattern.n
         offsets = np.concatenate([[0], np.cumsum(pattern.sizes)])
-        lower = np.zeros((n, n))
+        lower = np.zeros((n, n), order="F")
         for k, lkk in enumerate(self.diagonal):
             lower[offsets[k] : offsets[k + 1], offsets[k] : offsets[k + 1]] = np.tril(lkk)
             for i, rows, lik in self.below[k]:
                 lower[offsets[i] + rows, offsets[k] : offsets[k + 1]] = lik
         inverse, info = dtrtri(lower, lower=1, overwrite_c=1)
         if info == 0:
-            product, info = dlauum(inverse, lower=1, overwrite_c=1)
+            inverse, info = dlauum(inverse, lower=1, overwrite_c=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"the inverse of the factor failed (LAPACK info {info})")
-        inner = np.tril(product) + np.tril(product, -1).T
-        order = np.concatenate(pattern.scalars)
-        out = np.empty((n, n))
-        out[np.ix_(order, order)] = inner
-        return out
+        for start in range(0, n, 256):  # the lower triangle mirrored, a band of rows at a time
+            stop = min(start + 256, n)
+            square = inverse[start:stop, start:stop]
+            square[:] = np.tril(square) + np.tril(square, -1).T
+            inverse[start:stop, stop:] = inverse[stop:, start:stop].T
+        back = np.empty(n, dtype=np.int64)
+        back[np.concatenate(pattern.scalars)] = np.arange(n)
+        return inverse[np.ix_(back, back)]
 
 
 def block_cholesky(pattern: BlockPattern, data: Array) -> BlockFactor | None:

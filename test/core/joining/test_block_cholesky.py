@@ -61,8 +61,11 @@ def ring() -> tuple[np.ndarray, BlockPattern, np.ndarray]:
     return matrix, pattern, data
 
 
-def test_solves_and_inverses_equal_dense_algebra(ring) -> None:
-    matrix, pattern, data = ring
+@pytest.mark.parametrize("sizes", [SIZES, [120, 90, 150, 60, 9]])
+def test_solves_and_inverses_equal_dense_algebra(sizes: list[int]) -> None:
+    last = len(sizes) - 1
+    matrix = _ring_matrix(np.random.default_rng(4), sizes, last=last)
+    pattern, data = _pattern(matrix, sizes, last=last)
     factor = block_cholesky(pattern, data)
     assert factor is not None
     rhs = np.random.default_rng(1).normal(size=(len(matrix), 3))
