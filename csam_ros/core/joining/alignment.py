@@ -566,7 +566,8 @@ def _refine(
             blocks.append(problem.scalar_indices(list(base_ids.values())))
             if options.method == "gauss-newton":
                 report = problem.solve(solver_options)
-                factor = factor_at_estimate(problem, block_pattern(problem, blocks))
+                pattern = block_pattern(problem.normal_equations(), blocks)
+                factor = factor_at_estimate(problem, pattern)
             else:
                 report, factor = sparse_newton(problem, solver_options, blocks)
             covariance = FactoredStateCovariance(factor)

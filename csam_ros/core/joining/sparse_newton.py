@@ -148,10 +148,9 @@ def factor_at_estimate(problem: Problem, pattern: BlockPattern) -> BlockFactor:
     return factor
 
 
-def block_pattern(problem: Problem, blocks: Sequence[IntArray]) -> BlockPattern:
-    """The block pattern of the problem's normal equations, the last of ``blocks`` (scalar
-    indices) eliminated last."""
-    system = problem.normal_equations()
+def block_pattern(system: NormalEquations, blocks: Sequence[IntArray]) -> BlockPattern:
+    """The block pattern of normal equations, the last of ``blocks`` (scalar indices)
+    eliminated last."""
     return BlockPattern(system.indptr, system.indices, blocks, len(blocks) - 1)
 
 
@@ -169,7 +168,7 @@ def sparse_newton(
     Gauss-Newton then converges linearly (about a hundred iterations on MR.CLAM Dataset 1,
     five robots), Newton quadratically (24).
     """
-    system = problem.normal_equations()
-    pattern = block_pattern(problem, blocks)
+    system = problem.normal_equations(options.backend)  # the one minimise assembles
+    pattern = block_pattern(system, blocks)
     report = minimise(problem, options, SparseNewtonStep(problem, system, pattern))
     return report, factor_at_estimate(problem, pattern)

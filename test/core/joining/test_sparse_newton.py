@@ -62,7 +62,7 @@ def test_newton_matrix_on_the_pattern_is_the_hessian_of_the_cost() -> None:
     system = problem.normal_equations()
     x = problem.values.copy()
     system.linearize(x)
-    step = SparseNewtonStep(problem, system, block_pattern(problem, blocks))
+    step = SparseNewtonStep(problem, system, block_pattern(system, blocks))
     step.relinearised()
     newton = _symmetric(step.information + step.curvature, system)
     numeric = np.empty_like(newton)
