@@ -18,20 +18,27 @@ Initial value, from what is observable (docs/METHOD.md section 5). For a pair of
 
 ``B_c = B_a (+) b_ac``, in breadth-first order from the reference through the robots' order.
 
-Refinement (Algorithm 1): Gauss-Newton on the rendezvous poses of all placed robots and all
-their base nodes. Each local map enters only through its :class:`RendezvousPart`, the marginal
-square-root information ``R_r`` of its rendezvous poses at its own estimate (a dense linear
-prior ``||R_r (rho_r - rho_r^0)||^2`` that is never relinearised); only the connector rows
-(eq. 22-24, :class:`~csam_ros.core.joining.connector.Connector`) are relinearised. Solver
-(:func:`~csam_ros.core.joining.dense_newton.dense_newton`, up to ``DENSE_NEWTON_LIMIT``
-unknowns): Newton's method with the connectors' second derivatives, Gauss-Newton where that
-matrix is not positive definite, Levenberg-Marquardt safeguard, dense LAPACK Cholesky.
-Gauss-Newton alone converges linearly here (the priors are weak along each map's rigid rotation
-and the connector residuals stay large): on MR.CLAM Dataset 1 (five robots, 1,941 unknowns) it
-took about 100 iterations, Newton 24 to a lower cost. Larger systems (or
-``method="gauss-newton"``) use the generic sparse solver. Stopping rule (both): after a step
+Refinement (Algorithm 1): the rendezvous poses of all placed robots and all their base nodes.
+Each local map enters only through its :class:`RendezvousPart`, the marginal square-root
+information ``R_r`` of its rendezvous poses at its own estimate (a dense linear prior
+``||R_r (rho_r - rho_r^0)||^2`` that is never relinearised); only the connector rows (eq.
+22-24, :class:`~csam_ros.core.joining.connector.Connector`) are relinearised. The problem is
+solved as the sparse graph it is, one dense block per robot, linked where robots met
+(:func:`~csam_ros.core.joining.sparse_newton.sparse_newton`): Newton's method with the
+connectors' second derivatives, Gauss-Newton where that matrix is not positive definite,
+Levenberg-Marquardt safeguard, the sparse normal equations factored by blocks
+(:mod:`~csam_ros.core.joining.block_cholesky`). Gauss-Newton alone converges linearly here (the
+priors are weak along each map's rigid rotation and the connector residuals stay large): on
+MR.CLAM Dataset 1 (five robots, 1,941 unknowns) it took about 100 iterations, Newton 24 to a
+lower cost (``method="gauss-newton"`` runs it, the generic sparse solver).
+``method="dense-newton"`` is the same Newton iteration on the dense matrix
+(:mod:`~csam_ros.core.joining.dense_newton`), the tests' oracle. Stopping rule: after a step
 whose largest component is below ``step_tolerance`` (m, rad) or whose relative cost decrease is
-below ``relative_tolerance``, at most ``max_iterations`` steps.
+below ``relative_tolerance``, at most ``max_iterations`` steps. The state's covariance comes
+from the block factor at the estimate
+(:class:`~csam_ros.core.joining.state_covariance.FactoredStateCovariance`: the base nodes' from
+the factor's last block, other blocks by solves, the whole matrix only when
+:attr:`Alignment.covariance` is read).
 
 The observability check is on what the rendezvous rows determine (local poses fixed), not on
 the base node's marginal after Algorithm 1, which also carries each map's own drift between
@@ -42,15 +49,21 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.joining.connector import BASE_NODE, Connector
 from csam_ros.core.joining.dense_newton import dense_newton
+from csam_ros.core.joining.sparse_newton import block_pattern, factor_at_estimate, sparse_newton
+from csam_ros.core.joining.state_covariance import (
+    DenseStateCovariance,
+    FactoredStateCovariance,
+    StateCovariance,
+)
 from csam_ros.core.model import rendezvous, se2
 from csam_ros.core.model.rendezvous import RendezvousSet
-from csam_ros.core.sam.covariance import marginal_covariance
 from csam_ros.core.sam.factors import POSE, LinearPrior, sqrt_information_from_covariance
 from csam_ros.core.sam.normal_equations import SingularProblemError
 from csam_ros.core.sam.solver import Problem, SolverOptions
@@ -58,9 +71,9 @@ from csam_ros.core.sam.solver import Problem, SolverOptions
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-# Algorithm 1 systems up to this many unknowns are solved densely by Newton's method (a dense
-# Cholesky of this size takes about a second); larger ones by the generic sparse solver.
-DENSE_NEWTON_LIMIT = 4000
+# AlignmentOptions.method: the sparse Newton solver ("auto" is "newton"), the sparse
+# Gauss-Newton solver, and the dense Newton solver (the tests' oracle)
+METHODS = ("auto", "newton", "gauss-newton", "dense-newton")
 
 # a robot's alignment status: the reference, aligned, or "pending: <reason>"
 REFERENCE = "reference"
@@ -117,9 +130,13 @@ class AlignmentOptions:
     max_iterations: int = 50
     step_tolerance: float = 1e-9
     relative_tolerance: float = 1e-12
-    # "auto": dense Newton up to DENSE_NEWTON_LIMIT unknowns, else "gauss-newton" (the sparse
-    # generic solver); "newton" forces the dense Newton path
+    # METHODS: "auto" and "newton" are sparse Newton, "gauss-newton" the generic sparse
+    # solver, "dense-newton" the dense oracle of the tests
     method: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"AlignmentOptions.method must be one of {METHODS}: {self.method!r}")
 
 
 @dataclass
@@ -138,8 +155,10 @@ class Alignment:
     """Result of Algorithm 1 over all robots (index ``r`` follows :attr:`robots`).
 
     ``state_keys`` lists the variables of the Algorithm 1 system in the order of the rows
-    and columns of ``covariance``: ``("rho", r, k)`` for the ``k``-th rendezvous pose of
+    and columns of its covariance: ``("rho", r, k)`` for the ``k``-th rendezvous pose of
     robot ``r`` and ``("base", r)`` for its base node (the reference has none).
+    ``state_covariance`` answers for blocks (:meth:`covariance_block`) without the whole
+    matrix; :attr:`covariance` forms the whole matrix on first use.
     """
 
     robots: list[str]
@@ -150,7 +169,7 @@ class Alignment:
     rendezvous_poses: dict[int, Array]  # robot -> (n, 3) refined rendezvous poses
     rendezvous_shift: dict[int, Array]  # robot -> (n, 3) refined minus local (angle wrapped)
     state_keys: list[tuple]
-    covariance: Array  # joint covariance of the state
+    state_covariance: StateCovariance  # joint covariance of the state
     iterations: int = 0
     final_cost: float = 0.0
     converged: bool = True  # False: Algorithm 1 stopped at its iteration limit or failed
@@ -162,6 +181,20 @@ class Alignment:
     def aligned(self, r: int) -> bool:
         """Whether robot ``r`` is in the joined map (:func:`joined`)."""
         return joined(self.status[r])
+
+    @cached_property
+    def covariance(self) -> Array:
+        """The whole joint covariance of the state (dim, dim), formed on first use."""
+        return self.state_covariance.dense()
+
+    @property
+    def state_dim(self) -> int:
+        """Scalars of the state (rows of its covariance)."""
+        return 3 * len(self.state_keys)
+
+    def covariance_block(self, rows: IntArray, cols: IntArray) -> Array:
+        """Entries (len(rows), len(cols)) of the state's covariance, without the whole."""
+        return self.state_covariance.block(rows, cols)
 
     def state_columns(self, key: tuple) -> IntArray:
         """Rows/columns of ``covariance`` of one state variable."""
@@ -180,7 +213,7 @@ class Alignment:
     def base_covariance(self, r: int) -> Array:
         """Covariance (3, 3) of robot ``r``'s base node after Algorithm 1 (zero: reference)."""
         cols = self.base_columns(r)
-        return np.zeros((3, 3)) if cols is None else self.covariance[np.ix_(cols, cols)]
+        return np.zeros((3, 3)) if cols is None else self.covariance_block(cols, cols)
 
     def __post_init__(self) -> None:
         self._key_index = {k: i for i, k in enumerate(self.state_keys)}
@@ -389,8 +422,8 @@ def align(
         result = _refine(
             parts, measurements, placed, initial, status, options, start, rendezvous_start
         )
-        result.parents, result.methods = parents, methods
-        if np.all(np.isfinite(result.covariance)):
+        if result is not None:
+            result.parents, result.methods = parents, methods
             return result
         # a singular Algorithm 1 system (the pairwise checks should prevent it): do not join
         excluded.update({r: "the Algorithm 1 system is singular" for r in placed[1:]})
@@ -451,9 +484,10 @@ def _refine(
     options: AlignmentOptions,
     start: Array | None = None,
     rendezvous_start: Sequence[Array | None] | None = None,
-) -> Alignment:
+) -> Alignment | None:
     """Algorithm 1 on the rendezvous poses and base nodes of the placed robots, from the
-    cold start or the warm one given, whichever costs less (:func:`align`)."""
+    cold start or the warm one given, whichever costs less (:func:`align`); ``None`` when
+    its system is singular. The problem's variables are in the order of the state's keys."""
     robots = measurements.robots
     inside = np.isin(measurements.observer, placed) & np.isin(measurements.observed, placed)
     rows = measurements.subset(inside)
@@ -473,9 +507,8 @@ def _refine(
             base_ids[r] = problem.add_variable(BASE_NODE, ("base", r), initial[r])
             keys.append(("base", r))
     if not base_ids:
-        return Alignment(
-            robots, 0, status, initial.copy(), initial.copy(), {}, {}, [], np.zeros((0, 0))
-        )
+        nothing = DenseStateCovariance(np.zeros((0, 0)))
+        return Alignment(robots, 0, status, initial.copy(), initial.copy(), {}, {}, [], nothing)
     for r, ids in rho_ids.items():
         part = parts[r]
         assert part is not None
@@ -521,23 +554,28 @@ def _refine(
         relative_tolerance=options.relative_tolerance,
         step_tolerance=options.step_tolerance,
     )
-    method = options.method
-    if method not in ("auto", "newton", "gauss-newton"):
-        raise ValueError(
-            f"AlignmentOptions.method must be auto, newton or gauss-newton: {method!r}"
-        )
-    if method == "auto":
-        method = "newton" if problem.dim <= DENSE_NEWTON_LIMIT else "gauss-newton"
+    covariance: StateCovariance
     try:
-        if method == "newton":
-            report, cov = dense_newton(problem, solver_options, keys)
+        if options.method == "dense-newton":
+            report, dense = dense_newton(problem, solver_options, keys)
+            covariance = DenseStateCovariance(dense)
+            singular = not np.all(np.isfinite(dense))
         else:
-            report = problem.solve(solver_options)
-            cov = marginal_covariance(problem, keys)
+            # the blocks of the factorisation: each robot's rendezvous poses, the base nodes
+            blocks = [problem.scalar_indices(ids) for ids in rho_ids.values() if len(ids)]
+            blocks.append(problem.scalar_indices(list(base_ids.values())))
+            if options.method == "gauss-newton":
+                report = problem.solve(solver_options)
+                pattern = block_pattern(problem.normal_equations(), blocks)
+                factor = factor_at_estimate(problem, pattern)
+            else:
+                report, factor = sparse_newton(problem, solver_options, blocks)
+            covariance = FactoredStateCovariance(factor)
+            singular = False
     except SingularProblemError:
-        # cannot happen when every placed pair passed its heading check; report, do not join
-        cov = np.full((3 * len(keys), 3 * len(keys)), np.inf)
-        report = None
+        singular = True
+    if singular:
+        return None  # cannot happen when every placed pair passed its heading check
     bases = np.full((len(robots), 3), np.nan)
     bases[0] = 0.0
     refined = {r: problem.values_of(ids) for r, ids in rho_ids.items()}
@@ -557,11 +595,11 @@ def _refine(
         rendezvous_poses=refined,
         rendezvous_shift=shift,
         state_keys=keys,
-        covariance=cov,
-        iterations=report.iterations if report else 0,
-        final_cost=report.final_cost if report else float("inf"),
-        converged=report.converged if report else False,
-        stop_reason=report.reason if report else "singular system",
+        state_covariance=covariance,
+        iterations=report.iterations,
+        final_cost=report.final_cost,
+        converged=report.converged,
+        stop_reason=report.reason,
         warm_start=warm_start,
     )
 

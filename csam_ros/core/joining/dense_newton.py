@@ -1,10 +1,13 @@
-"""Algorithm 1's dense Newton solver (:func:`dense_newton`): the Newton step with the
-connectors' second derivatives, Gauss-Newton where that matrix is not positive definite, dense
-LAPACK Cholesky, in the one iteration of :func:`csam_ros.core.sam.solver.minimise`."""
+"""Algorithm 1's dense Newton solver (:func:`dense_newton`), kept as the test oracle of the
+sparse one (:mod:`csam_ros.core.joining.sparse_newton`, ``AlignmentOptions.method =
+"dense-newton"``): the same Newton step with the connectors' second derivatives, Gauss-Newton
+where that matrix is not positive definite, in the one iteration of
+:func:`csam_ros.core.sam.solver.minimise`, but on the dense matrix (LAPACK Cholesky) and with
+the covariance of the whole state by the dense inverse (LAPACK ``potri``). Its cost grows with
+the cube of the unknowns; nothing but the tests selects it."""
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 
 import numpy as np
@@ -18,9 +21,6 @@ from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions, minimi
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-# central-difference step (m, rad) of the connectors' Jacobians for their second derivatives
-CURVATURE_STEP = 1e-6
 
 
 def _factor_columns(problem: Problem, factor: Factor) -> tuple[IntArray, list[int]]:
@@ -38,32 +38,14 @@ def _factor_columns(problem: Problem, factor: Factor) -> tuple[IntArray, list[in
 
 def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
     """``sum_i r_i d^2 r_i / dx^2`` over all connector rows (dense (n, n)): the part of the
-    Hessian of the cost that Gauss-Newton leaves out (the priors are linear).
-
-    Second derivatives by central differences of the analytic whitened Jacobians, one
-    vectorised evaluation per connector at all its rows moved by ``+-h`` along each of its
-    columns (at most 12) at once.
-    """
+    Hessian of the cost that Gauss-Newton leaves out (the priors are linear;
+    :meth:`~csam_ros.core.joining.connector.Connector.curvature`)."""
     out = np.zeros((n, n))
     for factor in problem.factors:
         if not isinstance(factor, Connector):
             continue
         cols, splits = _factor_columns(problem, factor)
-        x = values[cols]
-        k, width = x.shape
-        r, _, _ = factor.whitened(np.split(x, splits, axis=1), jacobians=False)
-        step = CURVATURE_STEP * np.eye(width)
-        moved = np.concatenate(
-            [x + step[j] for j in range(width)] + [x - step[j] for j in range(width)]
-        )
-        tiled = copy.copy(factor)  # the same rows, 2 width times
-        tiled.measured = np.tile(factor.measured, (2 * width, 1))
-        tiled.sqrt_information = np.tile(factor.sqrt_information, (2 * width, 1, 1))
-        a = tiled.whitened(np.split(moved, splits, axis=1))[1]
-        a = a.reshape(2, width, k, *a.shape[1:])
-        curvature = np.einsum("ki,jkid->kdj", r, a[0] - a[1])
-        curvature /= 2.0 * CURVATURE_STEP
-        curvature = 0.5 * (curvature + curvature.transpose(0, 2, 1))
+        curvature = factor.curvature(np.split(values[cols], splits, axis=1))
         rows = np.broadcast_to(cols[:, :, None], curvature.shape)
         np.add.at(out, (rows, np.broadcast_to(cols[:, None, :], curvature.shape)), curvature)
     return out

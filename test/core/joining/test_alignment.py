@@ -1,13 +1,18 @@
 """Base-node initialisation and Algorithm 1: closed-form cases without noise, observability
-checks (pending), chains through non-reference robots, the dense Newton path against the
-generic Gauss-Newton path, and agreement of Algorithm 1 (rendezvous parts only) with the full
-joint solve."""
+checks (pending), chains through non-reference robots, the sparse Newton path against the
+generic Gauss-Newton path and the dense Newton oracle (Algorithm 1 alone and whole joins of
+simulated runs), and agreement of Algorithm 1 (rendezvous parts only) with the full joint
+solve."""
 
 from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from csam_ros.bench.many_robots import CSAM_SECTION, many_robot_scenario
 from csam_ros.core.joining.alignment import (
     AlignmentOptions,
     RendezvousPart,
@@ -16,11 +21,14 @@ from csam_ros.core.joining.alignment import (
     joined,
 )
 from csam_ros.core.joining.config import CsamConfig
-from csam_ros.core.joining.pipeline import run_csam
+from csam_ros.core.joining.join import join_maps
+from csam_ros.core.joining.pipeline import build_robot_maps, run_csam
 from csam_ros.core.model import se2, sensor
 from csam_ros.core.model.rendezvous import RendezvousSet
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
+
+CONFIG = Path(__file__).resolve().parents[3] / "config"
 
 
 def _straight(start, heading, step, n):
@@ -227,21 +235,43 @@ def three_drifting_robots():
     return _drifting_parts(world, rng), meas
 
 
-def test_dense_newton_matches_gauss_newton(three_drifting_robots) -> None:
-    """Both paths reach the same minimum (Gauss-Newton run to convergence); Newton's is at
-    least as low and needs no more iterations."""
+def test_newton_matches_gauss_newton_and_the_dense_oracle(three_drifting_robots) -> None:
+    """The sparse Newton path reaches Gauss-Newton's minimum (run to convergence), at least as
+    low and in no more iterations, and is the dense Newton oracle to rounding, covariance
+    included."""
     parts, meas = three_drifting_robots
     newton = align(parts, meas, AlignmentOptions(method="newton", max_iterations=500))
     generic = align(parts, meas, AlignmentOptions(method="gauss-newton", max_iterations=500))
+    oracle = align(parts, meas, AlignmentOptions(method="dense-newton", max_iterations=500))
     assert newton.status == generic.status == ["reference", "aligned", "aligned"]
     np.testing.assert_allclose(newton.base_nodes, generic.base_nodes, atol=1e-6)
     for r, poses in generic.rendezvous_poses.items():
         np.testing.assert_allclose(newton.rendezvous_poses[r], poses, atol=1e-6)
-    assert newton.state_keys == generic.state_keys
+    assert newton.state_keys == generic.state_keys == oracle.state_keys
     scale = np.sqrt(np.outer(np.diag(generic.covariance), np.diag(generic.covariance)))
     np.testing.assert_allclose(newton.covariance / scale, generic.covariance / scale, atol=1e-5)
     assert newton.final_cost <= generic.final_cost + 1e-9
     assert 1 <= newton.iterations <= generic.iterations
+    # the same steps: they part only at the numerical minimum (a step within rounding may be
+    # taken by one and rejected by the other)
+    assert abs(newton.final_cost - oracle.final_cost) <= 1e-12 * oracle.final_cost
+    np.testing.assert_allclose(newton.base_nodes, oracle.base_nodes, atol=1e-10)
+    np.testing.assert_allclose(newton.covariance / scale, oracle.covariance / scale, atol=1e-9)
+    for r in range(3):
+        cols = newton.base_columns(r)
+        if cols is not None:
+            np.testing.assert_allclose(
+                newton.base_covariance(r) / scale[np.ix_(cols, cols)],
+                oracle.base_covariance(r) / scale[np.ix_(cols, cols)],
+                atol=1e-9,
+            )
+    np.testing.assert_array_equal(newton.base_covariance(0), np.zeros((3, 3)))
+    rho, base = newton.rho_columns(1), newton.base_columns(2)
+    np.testing.assert_allclose(
+        newton.covariance_block(rho, base) / scale[np.ix_(rho, base)],
+        oracle.covariance[np.ix_(rho, base)] / scale[np.ix_(rho, base)],
+        atol=1e-9,
+    )
     auto = align(parts, meas, AlignmentOptions(max_iterations=500))
     np.testing.assert_array_equal(auto.base_nodes, newton.base_nodes)
 
@@ -251,3 +281,45 @@ def test_unknown_alignment_method_is_an_error(two_robots) -> None:
     parts, _ = _parts(two_robots)
     with pytest.raises(ValueError, match="method"):
         align(parts, meas, AlignmentOptions(method="bfgs"))
+
+
+@pytest.mark.parametrize(
+    "scenario", ["map_joining", "sensor_extension", "chain", "five_robots", "ring16"]
+)
+def test_joined_result_equals_the_dense_oracles(scenario: str, monkeypatch) -> None:
+    """The whole join (base nodes, poses, features, covariances, associations) is the one the
+    dense Newton oracle gives, to 1e-6."""
+    if scenario.startswith("ring"):
+        log = simulate(many_robot_scenario(int(scenario[4:]), "ring"))
+        config = CsamConfig.from_dict(CSAM_SECTION, "ring")
+    else:
+        log = simulate(load_scenario(scenario))
+        config = CsamConfig.from_file(CONFIG / f"{scenario}.yaml")
+    built = build_robot_maps(log, config)
+    sparse = join_maps(built.maps, built.rendezvous_logs, config).to_dict()
+    options = CsamConfig.alignment_options
+    monkeypatch.setattr(
+        CsamConfig,
+        "alignment_options",
+        lambda self: replace(options(self), method="dense-newton"),
+    )
+    oracle = join_maps(built.maps, built.rendezvous_logs, config).to_dict()
+    assert sparse["statistics"]["algorithm1_iterations"] >= 1
+    _assert_same(sparse, oracle, "")
+
+
+def _assert_same(a: object, b: object, where: str) -> None:
+    """Equal structure, numbers within 1e-6 (timings aside)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), where
+        for key in a:
+            if key != "timing_s":
+                _assert_same(a[key], b[key], f"{where}.{key}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, float):
+        assert abs(a - b) <= 1e-6, (where, a, b)
+    else:
+        assert a == b, (where, a, b)
