@@ -13,20 +13,18 @@ import numpy as np
 import pytest
 
 from csam_ros.bench.many_robots import (
-    CSAM_SECTION,
     HEADER,
     JOIN_STAGE,
     OfflineRow,
     growth_exponents,
     joined_difference,
-    many_robot_scenario,
     meetings,
-    neighbours,
     robot_counts,
     stage_table,
     write_scenario,
 )
 from csam_ros.core.joining.result import RunSummary
+from csam_ros.datasets.formations import CSAM_SECTION, many_robot_scenario, neighbours
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 

@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from csam_ros.bench.many_robots import CSAM_SECTION, many_robot_scenario
 from csam_ros.core.joining.alignment import (
     AlignmentOptions,
     RendezvousPart,
@@ -25,6 +24,7 @@ from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import build_robot_maps, run_csam
 from csam_ros.core.model import se2, sensor
 from csam_ros.core.model.rendezvous import RendezvousSet
+from csam_ros.datasets.formations import CSAM_SECTION, many_robot_scenario
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 
