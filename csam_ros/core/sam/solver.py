@@ -38,8 +38,9 @@ multiplied by 10 after a rejected step, and dropped (pure Gauss-Newton again) be
 ``1e-9``. A step is accepted when it does not raise the cost. (On Victoria Park from dead
 reckoning this simple rule reached lower local minima than Nielsen's rule.) This loop
 (:func:`minimise`, with :class:`StepControl`) is the only one: a :class:`StepRule` supplies the
-step, the sparse Gauss-Newton step here (:class:`GaussNewtonStep`) or Algorithm 1's dense
-Newton step (:class:`csam_ros.core.joining.dense_newton.DenseNewtonStep`).
+step, the sparse Gauss-Newton step here (:class:`GaussNewtonStep`) or Algorithm 1's Newton
+step (:class:`csam_ros.core.joining.sparse_newton.SparseNewtonStep`; the dense one of
+:mod:`csam_ros.core.joining.dense_newton` is the tests' oracle).
 
 Extrapolation (``max_step_scale`` > 1, off by default). With a robust kernel each step is
 iteratively reweighted least squares: the model's curvature ``rho'(s) A^T A`` exceeds the
@@ -397,8 +398,8 @@ class StepControl:
 
 class StepRule(Protocol):
     """How :func:`minimise` computes a step at the current linearisation: the sparse
-    Gauss-Newton / Levenberg-Marquardt step (:class:`GaussNewtonStep`) or Algorithm 1's dense
-    Newton step (:class:`csam_ros.core.joining.dense_newton.DenseNewtonStep`)."""
+    Gauss-Newton / Levenberg-Marquardt step (:class:`GaussNewtonStep`) or Algorithm 1's
+    Newton step (:class:`csam_ros.core.joining.sparse_newton.SparseNewtonStep`)."""
 
     def propose(self, damping: float) -> tuple[Array, float] | None:
         """The step at ``damping`` and the decrease its model predicts, or ``None`` when the
