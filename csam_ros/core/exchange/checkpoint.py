@@ -34,13 +34,12 @@ from csam_ros.core.exchange.state_checks import (
     StateFieldError,
     check_correlations,
     check_counts,
-    check_feature_log,
     check_integer,
     check_local_map_state,
     check_number,
     check_odometry_log,
     check_point_log,
-    check_rendezvous_log,
+    check_range_bearing_log,
     check_stamps,
     check_values,
 )
@@ -205,7 +204,7 @@ def _rendezvous_log(prefix: str, observed: Any, r: StateReader) -> RendezvousLog
     if stamps.ndim != 1 or any(p.shape != stamps.shape for p in parts):
         raise r.fail(f"{prefix}: arrays of different lengths")
     log = RendezvousLog(stamps, [str(o) for o in observed], *parts)
-    r.checked(check_rendezvous_log, prefix, log)
+    r.checked(check_range_bearing_log, prefix, log)
     return log
 
 
@@ -553,8 +552,8 @@ _LOG_TAILS = {"inputs": (3,), "sigmas": (3,), "correlations": (3,), "points": (2
 _LOG_TAILS["covariances"] = (2, 2)
 _LOG_CHECKS: dict[str, Callable[[str, Any], None]] = {
     "odometry": check_odometry_log,
-    "features": check_feature_log,
-    "rendezvous": check_rendezvous_log,
+    "features": check_range_bearing_log,
+    "rendezvous": check_range_bearing_log,
     "points": check_point_log,
 }
 

@@ -163,7 +163,9 @@ def check_odometry_log(name: str, log: OdometryLog) -> None:
         check_correlations(f"{name}/correlations", log.correlations)
 
 
-def check_feature_log(name: str, log: FeatureLog) -> None:
+def check_range_bearing_log(name: str, log: FeatureLog | RendezvousLog) -> None:
+    """Range-bearing measurements (of features or of robots): sorted stamps, positive ranges
+    and sigmas, finite bearings."""
     check_stamps(f"{name}/stamps", log.stamps, "sorted")
     check_values(f"{name}/ranges", log.ranges, MAX_COORDINATE, positive=True)
     check_values(f"{name}/bearings", log.bearings, MAX_COORDINATE)
@@ -182,11 +184,3 @@ def check_point_log(name: str, log: FeaturePointLog) -> None:
     row = _first(symmetric & definite)
     if row is not None:
         raise StateFieldError(f"{name}/covariances: row {row} is not symmetric positive definite")
-
-
-def check_rendezvous_log(name: str, log: RendezvousLog) -> None:
-    check_stamps(f"{name}/stamps", log.stamps, "sorted")
-    check_values(f"{name}/ranges", log.ranges, MAX_COORDINATE, positive=True)
-    check_values(f"{name}/bearings", log.bearings, MAX_COORDINATE)
-    check_values(f"{name}/sigma_range", log.sigma_range, positive=True)
-    check_values(f"{name}/sigma_bearing", log.sigma_bearing, positive=True)
