@@ -18,12 +18,13 @@ from csam_ros.datasets.odometry_stress import OdometryStress
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
 
+REPO = Path(__file__).resolve().parents[2]
 SEED = 3
 STRESS = {"turn_driving": 1.5, "distance": 0.9}
 
 
 def _stressed_scenario(tmp_path: Path) -> Path:
-    document = yaml.safe_load(Path("config/map_joining.yaml").read_text())
+    document = yaml.safe_load((REPO / "config" / "map_joining.yaml").read_text())
     for robot in document["scenario"]["robots"]:
         robot["odometry_stress"] = dict(STRESS)
     path = tmp_path / "stressed.yaml"

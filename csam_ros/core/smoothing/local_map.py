@@ -412,7 +412,9 @@ class LocalMap:
         calibration moved enough to compose the odometry anew."""
         n = len(self._keys)
         self._key_values = problem.values[: 3 * n].reshape(n, 3).copy()
-        if self._landmark_labels:  # a calibration variable may sit between
+        if self._calibrator is None:
+            self._landmark_values = problem.values[3 * n :].reshape(-1, 2).copy()
+        elif self._landmark_labels:  # the calibration variable sits between
             ids = problem.indices([("l", lab) for lab in self._landmark_labels])
             self._landmark_values = problem.values_of(ids).reshape(-1, 2).copy()
         return self._calibrator is not None and n > 1 and self._calibrator.take(problem)
@@ -422,8 +424,9 @@ class LocalMap:
         (:mod:`~csam_ros.core.smoothing.fold_recovery`); the odometry factors whose samples were
         scaled. Tried again only once the map has grown by half since the last try."""
         limits = ConsistencyOptions()
-        folded = factor_outliers(self.problem, limits.gate_probability).reasons(limits)
-        if not folded or len(self._keys) < self._next_recovery_keys:
+        if len(self._keys) < self._next_recovery_keys:
+            return 0  # (not even checked: the map has not grown enough since the last try)
+        if not factor_outliers(self.problem, limits.gate_probability).reasons(limits):
             return 0
         self._next_recovery_keys = (3 * len(self._keys)) // 2
         problem = self._build_problem(calibrated=self._calibrator is not None)
