@@ -59,7 +59,6 @@ from csam_ros.core.joining.dense_newton import dense_newton
 from csam_ros.core.joining.sparse_newton import block_pattern, factor_at_estimate, sparse_newton
 from csam_ros.core.joining.state_covariance import (
     DenseStateCovariance,
-    FactoredStateCovariance,
     StateCovariance,
 )
 from csam_ros.core.model import rendezvous, se2
@@ -567,10 +566,9 @@ def _refine(
             if options.method == "gauss-newton":
                 report = problem.solve(solver_options)
                 pattern = block_pattern(problem.normal_equations(), blocks)
-                factor = factor_at_estimate(problem, pattern)
+                covariance = factor_at_estimate(problem, pattern)
             else:
-                report, factor = sparse_newton(problem, solver_options, blocks)
-            covariance = FactoredStateCovariance(factor)
+                report, covariance = sparse_newton(problem, solver_options, blocks)
             singular = False
     except SingularProblemError:
         singular = True

@@ -45,14 +45,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.csgraph import connected_components
 
 from csam_ros.core.joining.alignment import Alignment
+from csam_ros.core.joining.match_conditioning import (
+    ConditionedState,
+    MatchIndex,
+    StateInformation,
+    condition_dense,
+    condition_sparse,
+)
+from csam_ros.core.joining.state_covariance import FactoredStateCovariance
 from csam_ros.core.model import se2
 from csam_ros.core.model.chi_square import CHI2_2DOF_99
 
@@ -111,24 +119,19 @@ class Associations:
 class _GlobalFeatures:
     """Global positions of one robot's features, linearised on the Algorithm 1 state ``s``.
 
-    ``g = position + gain @ (s - s_bar) + J_l eps`` with ``Cov(J_l eps) = noise``.
+    ``g = position + compact @ (s - s_bar)[columns] + J_l eps`` with ``Cov(J_l eps) = noise``.
     """
 
     robot: int
     labels: IntArray
     position: Array  # (F, 2) reference frame, at the Algorithm 1 estimate
-    gain: Array  # (F, 2, d) on the whole state
+    compact: Array  # (F, 2, m): the gain on the state columns ``columns``
     noise: Array  # (F, 2, 2)
-    columns: IntArray  # the state columns the gain is not zero on (the robot's rho and base)
+    columns: IntArray  # (m,) the robot's rendezvous poses' and base node's state columns
 
-    @property
-    def compact(self) -> Array:
-        """The gain on :attr:`columns` only, (F, 2, m)."""
-        return self.gain[:, :, self.columns]
-
-    def moments(self, state: _State, idx: IntArray) -> tuple[Array, Array]:
+    def moments(self, state: ConditionedState, idx: IntArray) -> tuple[Array, Array]:
         """Mean (K, 2) and covariance (K, 2, 2) of global positions ``idx`` given the state."""
-        g = self.gain[idx][:, :, self.columns]
+        g = self.compact[idx]
         sub = state.block(self.columns, self.columns)
         pos = self.position[idx] + g @ state.shift[self.columns]
         cov = g @ sub @ g.transpose(0, 2, 1) + self.noise[idx]
@@ -150,116 +153,19 @@ def _global_features(
     j_l = np.broadcast_to(rot, (f, 2, 2))
     cond = features.covariances - gain @ sigma_rho_prior @ gain.transpose(0, 2, 1)
     noise = j_l @ cond @ j_l.transpose(0, 2, 1)
-    full = np.zeros((f, 2, len(alignment.covariance)))
-    full[:, :, alignment.rho_columns(r)] = j_l @ gain
+    columns = alignment.rho_columns(r)
+    compact = j_l @ gain
     base_cols = alignment.base_columns(r)
     if base_cols is not None:
         j_b = np.zeros((f, 2, 3))
         j_b[:, 0, 0] = j_b[:, 1, 1] = 1.0
         j_b[:, 0, 2] = -s * local[:, 0] - c * local[:, 1]
         j_b[:, 1, 2] = c * local[:, 0] - s * local[:, 1]
-        full[:, :, base_cols] = j_b
-    columns = alignment.rho_columns(r)
-    if base_cols is not None:
+        compact = np.concatenate([compact, j_b], axis=2)
         columns = np.concatenate([columns, base_cols])
     return _GlobalFeatures(
-        r, features.labels, position, full, 0.5 * (noise + noise.swapaxes(1, 2)), columns
+        r, features.labels, position, compact, 0.5 * (noise + noise.swapaxes(1, 2)), columns
     )
-
-
-class _State:
-    """The Algorithm 1 state after conditioning on a set of matches (linear update).
-
-    ``Sigma_post = P - (H P)^T S^-1 H P`` is formed only on the blocks of state columns
-    asked for (:meth:`block`): the candidates need each robot's own columns and those of
-    each pair of robots, never the whole ``d x d`` matrix.
-    """
-
-    def __init__(self, shift: Array, prior: Array, hp: Array, gain_t: Array) -> None:
-        self.shift = shift  # (d,) posterior minus Algorithm 1 estimate
-        self.prior = prior  # (d, d) P
-        self.hp = hp  # (2K, d) H P
-        self.gain_t = gain_t  # (2K, d) S^-1 H P
-        self._blocks: dict[tuple[bytes, bytes], Array] = {}
-
-    @classmethod
-    def unconditioned(cls, prior: Array) -> _State:
-        """The state before any match (``Sigma_post = P``)."""
-        none = np.zeros((0, len(prior)))
-        return cls(np.zeros(len(prior)), prior, none, none)
-
-    def block(self, rows: IntArray, cols: IntArray) -> Array:
-        """``Sigma_post[rows, cols]`` (symmetrised as the whole matrix would be), kept."""
-        key = (rows.tobytes(), cols.tobytes())
-        out = self._blocks.get(key)
-        if out is None:
-            prior = self.prior[np.ix_(rows, cols)] + self.prior[np.ix_(cols, rows)].T
-            update = self.hp[:, rows].T @ self.gain_t[:, cols]
-            update += self.gain_t[:, rows].T @ self.hp[:, cols]
-            out = self._blocks[key] = 0.5 * (prior - update)
-        return out
-
-    @property
-    def covariance(self) -> Array:
-        """The whole ``Sigma_post`` (d, d)."""
-        every = np.arange(len(self.prior))
-        return self.block(every, every)
-
-
-def _condition(
-    prior_covariance: Array,
-    glob: dict[int, _GlobalFeatures],
-    pairs: list[tuple[int, int, int, int]],
-) -> tuple[_State, Array]:
-    """Condition the state on ``r_k = 0`` for matches ``(a, i, c, j)``; returns the state and
-    the leave-one-out distance of every match (module docs).
-
-    Kalman form of the linear update, ``S = N + H P H^T`` (2K x 2K for K matches) instead of
-    the information form: the state has thousands of columns, the matches a few dozen rows.
-    The leave-one-out covariances need only ``H Sigma_post H^T = A - A S^-1 A`` with
-    ``A = H P H^T``.
-    """
-    if not pairs:
-        return _State.unconditioned(prior_covariance), np.zeros(0)
-    nu, h, noise = _stack(glob, pairs)
-    k, _, d = h.shape
-    rows = h.reshape(2 * k, d)
-    hp = rows @ prior_covariance  # (2K, d)
-    a_mat = rows @ hp.T  # H P H^T
-    innovation = a_mat.copy()
-    for m in range(k):
-        innovation[2 * m : 2 * m + 2, 2 * m : 2 * m + 2] += noise[m]
-    factor = cho_factor(0.5 * (innovation + innovation.T))
-    gain_t = cho_solve(factor, hp)  # (2K, d) = S^-1 H P
-    shift = -gain_t.T @ nu.reshape(-1)
-    resid = nu + h @ shift
-    explained = a_mat @ cho_solve(factor, a_mat)  # A S^-1 A
-    posterior = a_mat - 0.5 * (explained + explained.T)  # H Sigma_post H^T
-    pick = np.arange(k)
-    v = noise - posterior.reshape(k, 2, k, 2)[pick, :, pick, :]
-    loo = np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])
-    return _State(shift, prior_covariance, hp, gain_t), loo
-
-
-def _stack(
-    glob: dict[int, _GlobalFeatures], pairs: list[tuple[int, int, int, int]]
-) -> tuple[Array, Array, Array]:
-    """Residuals (K, 2), state Jacobians (K, 2, d) and noise (K, 2, 2) of matches."""
-    arr = np.array(pairs, dtype=np.int64).reshape(-1, 4)
-    nu = np.empty((len(arr), 2))
-    h = np.empty((len(arr), 2, glob[arr[0, 0]].gain.shape[2]))
-    noise = np.empty((len(arr), 2, 2))
-    for a in np.unique(arr[:, 0]):
-        for c in np.unique(arr[:, 2]):
-            sel = (arr[:, 0] == a) & (arr[:, 2] == c)
-            if not sel.any():
-                continue
-            i, j = arr[sel, 1], arr[sel, 3]
-            ga, gc = glob[int(a)], glob[int(c)]
-            nu[sel] = ga.position[i] - gc.position[j]
-            h[sel] = ga.gain[i] - gc.gain[j]
-            noise[sel] = ga.noise[i] + gc.noise[j]
-    return nu, h, noise
 
 
 def _pair_distances(
@@ -267,7 +173,7 @@ def _pair_distances(
     gc: _GlobalFeatures,
     ia: IntArray,
     ic: IntArray,
-    state: _State,
+    state: ConditionedState,
     chunk: int = 20000,
 ) -> Array:
     """Mahalanobis distances of candidate pairs ``(ia, ic)`` given the state (eq. 26).
@@ -283,8 +189,8 @@ def _pair_distances(
     pa, va = ga.moments(state, ua)
     pc, vc = gc.moments(state, uc)
     sigma_ac = state.block(ga.columns, gc.columns)
-    left = ga.gain[ua][:, :, ga.columns] @ sigma_ac  # (A, 2, m_c)
-    right = gc.gain[uc][:, :, gc.columns]  # (C, 2, m_c)
+    left = ga.compact[ua] @ sigma_ac  # (A, 2, m_c)
+    right = gc.compact[uc]  # (C, 2, m_c)
     for lo in range(0, len(ia), chunk):
         a, c = inv_a[lo : lo + chunk], inv_c[lo : lo + chunk]
         cross = left[a] @ right[c].transpose(0, 2, 1)
@@ -296,32 +202,52 @@ def _pair_distances(
     return out
 
 
-def _candidates(
-    ga: _GlobalFeatures,
-    gc: _GlobalFeatures,
-    free_a: IntArray,
-    free_c: IntArray,
-    state: _State,
-    root_gate: float,
-) -> tuple[IntArray, IntArray]:
+@dataclass
+class _Free:
+    """One robot's still unmatched features in a pass: their global positions given the
+    state and the largest standard deviation of each."""
+
+    index: IntArray
+    position: Array  # (K, 2)
+    sigma: Array  # (K,)
+
+    @classmethod
+    def of(cls, g: _GlobalFeatures, index: IntArray, state: ConditionedState) -> _Free:
+        if len(index) == 0:
+            return cls(index, np.zeros((0, 2)), np.zeros(0))
+        pos, cov = g.moments(state, index)
+        return cls(index, pos, np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0)))
+
+    def reach(self, root_gate: float) -> tuple[Array, Array]:
+        """Corners of the box every gated partner of these features lies in, but for the
+        partner's own spread."""
+        grow = root_gate * self.sigma[:, None]
+        return (self.position - grow).min(axis=0), (self.position + grow).max(axis=0)
+
+
+def _may_meet(fa: _Free, fc: _Free, root_gate: float) -> bool:
+    """Whether any pair of ``fa`` and ``fc`` can be within the gate's radius: the boxes of
+    positions, each grown by ``sqrt(xi)`` times its own spread, overlap (exact)."""
+    if len(fa.index) == 0 or len(fc.index) == 0:
+        return False
+    lo_a, hi_a = fa.reach(root_gate)
+    lo_c, hi_c = fc.reach(root_gate)
+    return bool(np.all(lo_a <= hi_c) and np.all(lo_c <= hi_a))
+
+
+def _candidates(fa: _Free, fc: _Free, root_gate: float) -> tuple[IntArray, IntArray]:
     """Pairs of free features whose distance can pass the gate (k-d tree, exact bound)."""
     from scipy.spatial import cKDTree  # on use: scipy.spatial loads slowly
 
-    if len(free_a) == 0 or len(free_c) == 0:
+    if len(fa.index) == 0 or len(fc.index) == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty
-
-    def spread(g: _GlobalFeatures, idx: IntArray) -> tuple[Array, Array]:
-        pos, cov = g.moments(state, idx)
-        return pos, np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
-
-    pa, sa = spread(ga, free_a)
-    pc, sc = spread(gc, free_c)
+    pa, sa, pc, sc = fa.position, fa.sigma, fc.position, fc.sigma
     lists = cKDTree(pc).query_ball_point(pa, root_gate * (sa + sc.max()))
     ia = np.repeat(np.arange(len(lists)), [len(x) for x in lists])
     ic = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=len(ia))
     near = np.hypot(*(pa[ia] - pc[ic]).T) <= root_gate * (sa[ia] + sc[ic])
-    return free_a[ia[near]], free_c[ic[near]]
+    return fa.index[ia[near]], fc.index[ic[near]]
 
 
 def _assign(ia: IntArray, ic: IntArray, d: Array, gate: float) -> NDArray[np.bool_]:
@@ -366,7 +292,9 @@ def associate(
 
     ``parts_sqrt_information[r]`` is robot ``r``'s rendezvous square-root information (the
     ``R`` of its :class:`~csam_ros.core.joining.alignment.RendezvousPart`), which gives the local
-    covariance of its rendezvous poses ``P_rho,rho = R^-1 R^-T``.
+    covariance of its rendezvous poses ``P_rho,rho = R^-1 R^-T``. The state is conditioned on
+    the matches in the information form on Algorithm 1's sparse factor, or in the Kalman form
+    when Algorithm 1 was solved densely (:mod:`~csam_ros.core.joining.match_conditioning`).
     """
     options = options or AssociationOptions()
     gate = float(options.chi2_gate)
@@ -387,25 +315,39 @@ def associate(
     robot_pairs = [(a, c) for k, a in enumerate(robots) for c in robots[k + 1 :]]
     if not robot_pairs:
         return Associations([], [])
+    condition = _conditioning(alignment, glob)
     root_gate = float(np.sqrt(gate))
-    accepted: dict[tuple[int, int, int, int], float] = {}
-    rejected: set[tuple[int, int, int, int]] = set()
-    state, _ = _condition(alignment.covariance, glob, [])
+    accepted: dict[MatchIndex, float] = {}
+    rejected: set[MatchIndex] = set()
+    state, _ = condition([])
     candidates = gated = 0
     for _ in range(options.max_passes):
         used = {(a, i) for a, i, _, _ in accepted} | {(c, j) for _, _, c, j in accepted}
-        new: dict[tuple[int, int, int, int], float] = {}
+        free = {
+            r: _Free.of(
+                g, np.array([i for i in range(len(g.labels)) if (r, i) not in used], int), state
+            )
+            for r, g in glob.items()
+        }
+        found: dict[tuple[int, int], tuple[IntArray, IntArray]] = {}
         for a, c in robot_pairs:
-            ga, gc = glob[a], glob[c]
-            free_a = np.array([i for i in range(len(ga.labels)) if (a, i) not in used], int)
-            free_c = np.array([j for j in range(len(gc.labels)) if (c, j) not in used], int)
-            ia, ic = _candidates(ga, gc, free_a, free_c, state, root_gate)
+            if not _may_meet(free[a], free[c], root_gate):
+                continue
+            ia, ic = _candidates(free[a], free[c], root_gate)
             keep = np.array(
                 [(a, i, c, j) not in rejected for i, j in zip(ia, ic, strict=True)], dtype=bool
             )
-            ia, ic = ia[keep].astype(np.int64), ic[keep].astype(np.int64)
+            if keep.any():
+                found[a, c] = ia[keep].astype(np.int64), ic[keep].astype(np.int64)
+        missing = [(a, c) for a, c in found if not state.covers(glob[a].columns, glob[c].columns)]
+        if (
+            missing
+        ):  # robots never coupled before: their covariance block is made part of the factor's
+            state, _ = condition(list(accepted), missing)
+        new: dict[MatchIndex, float] = {}
+        for (a, c), (ia, ic) in found.items():
             candidates += len(ia)
-            d = _pair_distances(ga, gc, ia, ic, state)
+            d = _pair_distances(glob[a], glob[c], ia, ic, state)
             inside = d < gate
             ia, ic, d = ia[inside], ic[inside], d[inside]
             gated += len(d)
@@ -419,19 +361,46 @@ def associate(
         accepted.update(new)
         while True:  # joint compatibility: drop the match least compatible with the others
             pairs = list(accepted)
-            state, loo = _condition(alignment.covariance, glob, pairs)
+            state, loo = condition(pairs)
             worst = int(np.argmax(loo)) if len(loo) else -1
             if worst < 0 or loo[worst] < gate:
                 break
             rejected.add(pairs[worst])
             del accepted[pairs[worst]]
-    found = [
+    matched = [
         (d, a, int(glob[a].labels[i]), c, int(glob[c].labels[j]))
         for (a, i, c, j), d in accepted.items()
     ]
-    result = _cluster(found, gated, candidates)
+    result = _cluster(matched, gated, candidates)
     result.rejected_incompatible = len(rejected)
     return result
+
+
+class _Conditioning(Protocol):
+    def __call__(
+        self, pairs: list[MatchIndex], couple: list[tuple[int, int]] | None = None
+    ) -> tuple[ConditionedState, Array]: ...
+
+
+def _conditioning(alignment: Alignment, glob: dict[int, _GlobalFeatures]) -> _Conditioning:
+    """The state conditioned on a list of matches, and their leave-one-out distances, in the
+    form that suits Algorithm 1's covariance; ``couple`` (robot pairs) extends the sparse
+    form's structure for good, so the state covers their joint covariance."""
+    covariance = alignment.state_covariance
+    if not isinstance(covariance, FactoredStateCovariance) or covariance.information is None:
+        prior = alignment.covariance
+        return lambda pairs, couple=None: condition_dense(prior, glob, pairs)
+    information = StateInformation(covariance)
+    structure: set[tuple[int, int]] = set()
+
+    def sparse(
+        pairs: list[MatchIndex], couple: list[tuple[int, int]] | None = None
+    ) -> tuple[ConditionedState, Array]:
+        for a, c in couple or ():
+            structure.update(information.block_pairs(glob[a].columns, glob[c].columns))
+        return condition_sparse(information, glob, pairs, structure)
+
+    return sparse
 
 
 def _cluster(

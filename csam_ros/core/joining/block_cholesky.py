@@ -164,6 +164,39 @@ class BlockFactor:
             raise np.linalg.LinAlgError(f"the last block's inverse failed (LAPACK info {info})")
         return np.tril(inverse) + np.tril(inverse, -1).T
 
+    def selected_inverse(self) -> dict[tuple[int, int], Array]:
+        """The inverse's blocks on the factor's pattern (``(i, j)``, ``i >= j`` in elimination
+        order; diagonal blocks whole), by the block form of Takahashi's recurrence from the
+        last block back: with ``W_jk = L_jk L_kk^-1`` on the blocks ``j`` below ``k``,
+        ``Sigma_ik = -sum_j Sigma_ij W_jk`` and ``Sigma_kk = (L_kk L_kk^T)^-1 - sum_j W_jk^T
+        Sigma_jk``. The blocks ``Sigma_ij`` it needs are on the pattern (the fill makes the
+        blocks below one column a clique), so the cost follows the factor's, not ``n^3``."""
+        inverse: dict[tuple[int, int], Array] = {}
+
+        def entry(i: int, j: int) -> Array:
+            return inverse[i, j] if i >= j else inverse[j, i].T
+
+        for k in range(len(self.diagonal) - 1, -1, -1):
+            lkk = self.diagonal[k]
+            identity = np.eye(len(lkk))
+            inv_l = solve_triangular(lkk, identity, lower=True, check_finite=False)
+            diagonal = inv_l.T @ inv_l
+            below = [
+                (i, rows, solve_triangular(lkk, lik.T, lower=True, trans="T", check_finite=False).T)
+                for i, rows, lik in self.below[k]
+            ]
+            for i, _, _ in below:
+                column = np.zeros((self.pattern.sizes[i], len(lkk)))
+                for j, rows_j, wjk in below:
+                    if len(rows_j):
+                        column -= entry(i, j)[:, rows_j] @ wjk
+                inverse[i, k] = column
+            for j, rows_j, wjk in below:
+                if len(rows_j):
+                    diagonal -= wjk.T @ inverse[j, k][rows_j]
+            inverse[k, k] = 0.5 * (diagonal + diagonal.T)
+        return inverse
+
     def dense_inverse(self) -> Array:
         """The whole inverse (n, n), problem order: ``L^-1`` (LAPACK ``trtri``) then
         ``L^-T L^-1`` (``lauum``) on the dense ``L``, in place."""
@@ -194,7 +227,16 @@ def block_cholesky(pattern: BlockPattern, data: Array) -> BlockFactor | None:
     """The factor of the matrix of CSC values ``data`` (:class:`BlockPattern`), or ``None``
     when it is not positive definite (a pivot whose square is at most ``PIVOT_TOLERANCE`` of
     its diagonal entry, as the dense Cholesky check)."""
-    blocks = pattern.blocks(data)
+    return factor_blocks(pattern, pattern.blocks(data))
+
+
+def factor_blocks(
+    pattern: BlockPattern, blocks: dict[tuple[int, int], Array]
+) -> BlockFactor | None:
+    """:func:`block_cholesky` of the matrix given by its dense blocks (``(i, j)``, ``i >= j``
+    in the pattern's elimination order, diagonal blocks whole), consumed. A block present but
+    zero is kept in the structure (its rows empty), so the factor and its
+    :meth:`~BlockFactor.selected_inverse` cover it."""
     count = len(pattern.sizes)
     references = [
         np.maximum(blocks[k, k].flat[pattern.diagonal_entries[k]], 1e-300) for k in range(count)
@@ -215,9 +257,8 @@ def block_cholesky(pattern: BlockPattern, data: Array) -> BlockFactor | None:
         for i in sorted(columns[k]):
             hik = blocks.pop((i, k))
             rows = np.flatnonzero(np.any(hik != 0.0, axis=1))
-            if rows.size:
-                lik = solve_triangular(lkk, hik[rows].T, lower=True, check_finite=False).T
-                column.append((i, rows, lik))
+            lik = solve_triangular(lkk, hik[rows].T, lower=True, check_finite=False).T
+            column.append((i, rows, lik))
         for a, (i, rows_i, lik) in enumerate(column):
             for j, rows_j, ljk in column[: a + 1]:
                 update = lik @ ljk.T
@@ -227,7 +268,7 @@ def block_cholesky(pattern: BlockPattern, data: Array) -> BlockFactor | None:
                     columns[j].add(i)
                 if len(rows_i) == pattern.sizes[i] and len(rows_j) == pattern.sizes[j]:
                     target -= update
-                else:
+                elif len(rows_i) and len(rows_j):
                     target[np.ix_(rows_i, rows_j)] -= update
         below.append(column)
     return BlockFactor(pattern, diagonal, below)

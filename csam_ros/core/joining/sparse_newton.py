@@ -28,8 +28,9 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from csam_ros.core.joining.block_cholesky import BlockFactor, BlockPattern, block_cholesky
+from csam_ros.core.joining.block_cholesky import BlockPattern, block_cholesky
 from csam_ros.core.joining.connector import Connector
+from csam_ros.core.joining.state_covariance import FactoredStateCovariance
 from csam_ros.core.sam.factors import Factor
 from csam_ros.core.sam.normal_equations import NormalEquations, SingularProblemError
 from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions, minimise
@@ -136,16 +137,17 @@ class SparseNewtonStep:
         return step, -float(gradient @ step + 0.5 * step @ self._product(model, step))
 
 
-def factor_at_estimate(problem: Problem, pattern: BlockPattern) -> BlockFactor:
-    """The block factor of ``A^T A`` at the problem's values (no damping, no curvature: the
-    information whose inverse is the state's covariance); SingularProblemError when it is
-    not positive definite."""
+def factor_at_estimate(problem: Problem, pattern: BlockPattern) -> FactoredStateCovariance:
+    """The state's covariance from the block factor of ``A^T A`` at the problem's values (no
+    damping, no curvature: the information whose inverse is the state's covariance), the
+    information kept; SingularProblemError when it is not positive definite."""
     system = problem.normal_equations()
     system.linearize(problem.values)
-    factor = block_cholesky(pattern, system.hessian_data)
+    information = system.hessian_data.copy()
+    factor = block_cholesky(pattern, information)
     if factor is None:
         raise SingularProblemError("the Algorithm 1 information matrix is singular")
-    return factor
+    return FactoredStateCovariance(factor, information)
 
 
 def block_pattern(system: NormalEquations, blocks: Sequence[IntArray]) -> BlockPattern:
@@ -156,11 +158,11 @@ def block_pattern(system: NormalEquations, blocks: Sequence[IntArray]) -> BlockP
 
 def sparse_newton(
     problem: Problem, options: SolverOptions, blocks: Sequence[IntArray]
-) -> tuple[SolveReport, BlockFactor]:
+) -> tuple[SolveReport, FactoredStateCovariance]:
     """Minimise Algorithm 1's cost in place by Newton's method on the sparse matrix, factored
     by ``blocks`` (scalar indices of each robot's rendezvous poses, then of the base nodes:
-    :mod:`~csam_ros.core.joining.block_cholesky`); returns the report and the factor of
-    ``A^T A`` at the estimate (:func:`factor_at_estimate`).
+    :mod:`~csam_ros.core.joining.block_cholesky`); returns the report and the state's
+    covariance from the factor of ``A^T A`` at the estimate (:func:`factor_at_estimate`).
 
     Why Newton: the rendezvous priors are weak along each map's rigid rotation (a tenth of a
     radian on MR.CLAM) and the connectors' residuals stay large, so the term ``sum_i r_i

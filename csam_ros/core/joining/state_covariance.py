@@ -62,10 +62,18 @@ class FactoredStateCovariance:
     """The inverse of the matrix factored by a :class:`BlockFactor` whose last block holds the
     base nodes (module docstring)."""
 
-    def __init__(self, factor: BlockFactor) -> None:
+    def __init__(self, factor: BlockFactor, information: Array | None = None) -> None:
         self.factor = factor
+        self.information = information  # the factored matrix's CSC values, when kept
         self._last = factor.pattern.scalars[-1]
         self._last_inverse: Array | None = None
+        self._selected: dict[tuple[int, int], Array] | None = None
+
+    def selected_inverse(self) -> dict[tuple[int, int], Array]:
+        """:meth:`BlockFactor.selected_inverse`, computed once."""
+        if self._selected is None:
+            self._selected = self.factor.selected_inverse()
+        return self._selected
 
     @property
     def dim(self) -> int:

@@ -14,11 +14,16 @@ from csam_ros.core.joining.association import (
     _assign,
     _candidates,
     _cluster,
-    _condition,
+    _Free,
     _global_features,
     _pair_distances,
-    _stack,
     associate,
+)
+from csam_ros.core.joining.match_conditioning import (
+    StateInformation,
+    condition_dense,
+    condition_sparse,
+    stack_dense,
 )
 from csam_ros.core.joining.local_views import local_view, map_features
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
@@ -64,9 +69,10 @@ def test_spatial_gate_loses_nothing_and_true_pairs_are_chi_square() -> None:
         log, maps, alignment, feats, roots = _stage("map_joining", seed)
         inv = [np.linalg.inv(r) for r in roots]
         g = {r: _global_features(r, feats[r], alignment, inv[r] @ inv[r].T) for r in (0, 1)}
-        state, _ = _condition(alignment.covariance, g, [])
+        state, _ = condition_dense(alignment.covariance, g, [])
         everything = [np.arange(len(g[r].labels)) for r in (0, 1)]
-        ia, ic = _candidates(g[0], g[1], *everything, state, np.sqrt(gate))
+        free = [_Free.of(g[r], everything[r], state) for r in (0, 1)]
+        ia, ic = _candidates(*free, np.sqrt(gate))
         ja, jc = (x.ravel() for x in np.meshgrid(*everything, indexing="ij"))
         d_all = _pair_distances(g[0], g[1], ja, jc, state)
         brute = set(zip(ja[d_all < gate].tolist(), jc[d_all < gate].tolist(), strict=True))
@@ -94,9 +100,9 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
     result = associate(feats, alignment, roots)
     index = [{int(lab): k for k, lab in enumerate(g[r].labels)} for r in (0, 1)]
     pairs = [(0, index[0][m.label_a], 1, index[1][m.label_c]) for m in result.matches][:12]
-    state, loo = _condition(prior, g, pairs)
+    state, loo = condition_dense(prior, g, pairs)
     # the Kalman-form update equals the information form: (P^-1 + H^T N^-1 H)^-1
-    nu, h, noise = _stack(g, pairs)
+    nu, h, noise = stack_dense(g, pairs, len(prior))
     rows = h.reshape(-1, h.shape[2])
     weight = block_diag(*np.linalg.inv(noise))
     information = np.linalg.inv(prior) + rows.T @ weight @ rows
@@ -110,10 +116,18 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
     shift = -covariance @ rows.T @ weight @ nu.reshape(-1)
     np.testing.assert_allclose(state.shift, shift, atol=1e-8 * np.abs(shift).max())
     for k in (0, 5, 11):
-        others, _ = _condition(prior, g, pairs[:k] + pairs[k + 1 :])
+        others, _ = condition_dense(prior, g, pairs[:k] + pairs[k + 1 :])
         _, i, _, j = pairs[k]
         direct = _pair_distances(g[0], g[1], np.array([i]), np.array([j]), others)[0]
         assert loo[k] == pytest.approx(direct, rel=1e-6)
+    # the information form on Algorithm 1's block factor: the same state and distances
+    sparse, sparse_loo = condition_sparse(StateInformation(alignment.state_covariance), g, pairs)
+    for rows, cols in ((a, c), (c, c), (a, a)):
+        np.testing.assert_allclose(
+            sparse.block(rows, cols), covariance[np.ix_(rows, cols)], atol=1e-9 * scale
+        )
+    np.testing.assert_allclose(sparse.shift, shift, atol=1e-8 * np.abs(shift).max())
+    np.testing.assert_allclose(sparse_loo, loo, rtol=1e-6)
 
 
 def test_global_assignment_prefers_the_best_set() -> None:

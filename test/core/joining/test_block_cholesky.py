@@ -12,6 +12,7 @@ from csam_ros.core.joining.block_cholesky import (
     BlockPattern,
     _elimination_order,
     block_cholesky,
+    factor_blocks,
 )
 
 
@@ -80,6 +81,41 @@ def test_solves_and_inverses_equal_dense_algebra(sizes: list[int]) -> None:
     np.testing.assert_allclose(
         factor.last_block_inverse(), inverse[np.ix_(last, last)], atol=tolerance
     )
+
+
+def _inverse_blocks(pattern: BlockPattern, inverse: np.ndarray, pairs) -> dict:
+    return {(i, j): inverse[np.ix_(pattern.scalars[i], pattern.scalars[j])] for i, j in pairs}
+
+
+def test_selected_inverse_equals_the_dense_inverse_on_the_pattern(ring) -> None:
+    matrix, pattern, data = ring
+    factor = block_cholesky(pattern, data)
+    assert factor is not None
+    selected = factor.selected_inverse()
+    pairs = {(i, i) for i in range(len(pattern.sizes))}
+    pairs |= {(i, k) for k, column in enumerate(factor.below) for i, _, _ in column}
+    assert set(selected) == pairs
+    expected = _inverse_blocks(pattern, np.linalg.inv(matrix), pairs)
+    scale = max(np.abs(b).max() for b in expected.values())
+    for key, block in expected.items():
+        np.testing.assert_allclose(selected[key], block, atol=1e-10 * scale, err_msg=str(key))
+
+
+def test_a_zero_block_given_stays_in_the_structure(ring) -> None:
+    # blocks 0 and 2 share no entry; given as a zero block, the inverse covers them
+    matrix, pattern, data = ring
+    blocks = pattern.blocks(data)
+    first, second = sorted(
+        int(np.flatnonzero([s[0] == x for s in pattern.scalars])[0]) for x in (0, 21)
+    )
+    assert (second, first) not in blocks
+    blocks[second, first] = np.zeros((pattern.sizes[second], pattern.sizes[first]))
+    factor = factor_blocks(pattern, blocks)
+    assert factor is not None
+    selected = factor.selected_inverse()
+    expected = _inverse_blocks(pattern, np.linalg.inv(matrix), [(second, first)])
+    np.testing.assert_allclose(selected[second, first], expected[second, first], atol=1e-12)
+    np.testing.assert_allclose(factor.solve(np.eye(len(matrix))), np.linalg.inv(matrix), atol=1e-10)
 
 
 def test_elimination_fills_blocks_that_shared_no_entry(ring) -> None:
