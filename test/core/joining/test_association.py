@@ -19,13 +19,13 @@ from csam_ros.core.joining.association import (
     _pair_distances,
     associate,
 )
+from csam_ros.core.joining.local_views import local_view, map_features
 from csam_ros.core.joining.match_conditioning import (
     StateInformation,
     condition_dense,
     condition_sparse,
     stack_dense,
 )
-from csam_ros.core.joining.local_views import local_view, map_features
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.rendezvous import collect, required_stamps
 from csam_ros.core.smoothing.local_map_build import build_local_map
