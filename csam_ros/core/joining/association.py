@@ -56,9 +56,9 @@ from csam_ros.core.joining.alignment import Alignment
 from csam_ros.core.joining.match_conditioning import (
     ConditionedState,
     MatchIndex,
+    SparseConditioning,
     StateInformation,
     condition_dense,
-    condition_sparse,
 )
 from csam_ros.core.joining.state_covariance import FactoredStateCovariance
 from csam_ros.core.model import se2
@@ -378,29 +378,20 @@ def associate(
 
 class _Conditioning(Protocol):
     def __call__(
-        self, pairs: list[MatchIndex], couple: list[tuple[int, int]] | None = None
+        self, pairs: list[MatchIndex], couple: Sequence[tuple[int, int]] = ()
     ) -> tuple[ConditionedState, Array]: ...
 
 
 def _conditioning(alignment: Alignment, glob: dict[int, _GlobalFeatures]) -> _Conditioning:
     """The state conditioned on a list of matches, and their leave-one-out distances, in the
-    form that suits Algorithm 1's covariance; ``couple`` (robot pairs) extends the sparse
-    form's structure for good, so the state covers their joint covariance."""
+    form that suits Algorithm 1's covariance (:mod:`~csam_ros.core.joining.
+    match_conditioning`); ``couple`` (robot pairs) asks that the state cover their joint
+    covariance."""
     covariance = alignment.state_covariance
-    if not isinstance(covariance, FactoredStateCovariance) or covariance.information is None:
-        prior = alignment.covariance
-        return lambda pairs, couple=None: condition_dense(prior, glob, pairs)
-    information = StateInformation(covariance)
-    structure: set[tuple[int, int]] = set()
-
-    def sparse(
-        pairs: list[MatchIndex], couple: list[tuple[int, int]] | None = None
-    ) -> tuple[ConditionedState, Array]:
-        for a, c in couple or ():
-            structure.update(information.block_pairs(glob[a].columns, glob[c].columns))
-        return condition_sparse(information, glob, pairs, structure)
-
-    return sparse
+    if isinstance(covariance, FactoredStateCovariance) and covariance.information is not None:
+        return SparseConditioning(StateInformation(covariance), glob)
+    prior = alignment.covariance
+    return lambda pairs, couple=(): condition_dense(prior, glob, pairs)
 
 
 def _cluster(

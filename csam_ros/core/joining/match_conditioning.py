@@ -7,7 +7,7 @@ linear measurement ``nu_k + H_k ds = 0`` of the state's step ``ds`` from Algorit
 estimate, with noise ``N_k``; ``H_k = [G_i | -G_j]`` is non-zero on the two robots' rendezvous
 poses and base nodes only (:mod:`~csam_ros.core.joining.association`). Two equal forms:
 
-- information form (:func:`condition_sparse`, what joins use): ``Lambda_post = Lambda +
+- information form (:class:`SparseConditioning`, what joins use): ``Lambda_post = Lambda +
   sum_k H_k^T N_k^-1 H_k`` on the blocks of Algorithm 1's information ``Lambda`` (one block
   per robot's rendezvous poses, one of the base nodes: :mod:`~csam_ros.core.joining.
   block_cholesky`), a match adding to the blocks of its two robots and of the base nodes;
@@ -26,13 +26,14 @@ every other match).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
 
-from csam_ros.core.joining.block_cholesky import BlockPattern, factor_blocks
+from csam_ros.core.joining.block_cholesky import BlockFactor, BlockPattern, factor_blocks
 from csam_ros.core.joining.state_covariance import FactoredStateCovariance
 from csam_ros.core.sam.normal_equations import SingularProblemError
 
@@ -67,35 +68,42 @@ class ConditionedState(Protocol):
         ...
 
 
-def _groups(pairs: Sequence[MatchIndex]) -> dict[tuple[int, int], IntArray]:
-    """Positions in ``pairs`` of the matches of each robot pair ``(a, c)``."""
+@dataclass
+class _PairRows:
+    """The matches of one robot pair ``(a, c)``: their positions in the list of matches,
+    residuals (K, 2), Jacobians (K, 2, m_a + m_c) on the two robots' state columns ``cols``
+    and noise (K, 2, 2)."""
+
+    index: IntArray
+    nu: Array
+    h: Array
+    noise: Array
+    cols: IntArray
+
+
+def _match_rows(glob: dict[int, RobotGains], pairs: Sequence[MatchIndex]) -> list[_PairRows]:
+    """The matches ``pairs`` grouped by robot pair (:class:`_PairRows`)."""
     arr = np.asarray(pairs, dtype=np.int64).reshape(-1, 4)
-    keys = arr[:, 0] * (arr[:, 2].max() + 1 if len(arr) else 1) + arr[:, 2]
-    out: dict[tuple[int, int], IntArray] = {}
-    for key in np.unique(keys):
-        idx = np.flatnonzero(keys == key)
-        out[int(arr[idx[0], 0]), int(arr[idx[0], 2])] = idx
+    if not len(arr):
+        return []
+    keys = arr[:, 0] * (arr[:, 2].max() + 1) + arr[:, 2]
+    order = np.argsort(keys, kind="stable")
+    cuts = np.flatnonzero(np.diff(keys[order])) + 1
+    out = []
+    for idx in np.split(order, cuts):
+        a, c = int(arr[idx[0], 0]), int(arr[idx[0], 2])
+        i, j = arr[idx, 1], arr[idx, 3]
+        ga, gc = glob[a], glob[c]
+        out.append(
+            _PairRows(
+                idx,
+                ga.position[i] - gc.position[j],
+                np.concatenate([ga.compact[i], -gc.compact[j]], axis=2),
+                ga.noise[i] + gc.noise[j],
+                np.concatenate([ga.columns, gc.columns]),
+            )
+        )
     return out
-
-
-def _pair_rows(
-    glob: dict[int, RobotGains], a: int, c: int, i: IntArray, j: IntArray
-) -> tuple[Array, Array, Array, IntArray]:
-    """Residuals (K, 2), Jacobians (K, 2, m_a + m_c) on the two robots' columns, noise
-    (K, 2, 2) and those columns, of matches ``(a, i[k], c, j[k])``."""
-    ga, gc = glob[a], glob[c]
-    nu = ga.position[i] - gc.position[j]
-    h = np.concatenate([ga.compact[i], -gc.compact[j]], axis=2)
-    return nu, h, ga.noise[i] + gc.noise[j], np.concatenate([ga.columns, gc.columns])
-
-
-def _leave_one_out(nu: Array, h: Array, noise: Array, shift: Array, posterior: Array) -> Array:
-    """Leave-one-out distances (K,) of matches with residuals ``nu``, Jacobians ``h`` on
-    columns whose posterior shift is ``shift`` and covariance ``posterior`` (module docs)."""
-    resid = nu + h @ shift
-    explained = np.einsum("kim,mn,kjn->kij", h, posterior, h, optimize=True)
-    v = noise - 0.5 * (explained + explained.swapaxes(1, 2))
-    return np.einsum("ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0])
 
 
 # --------------------------------------------------------------------------- information form
@@ -118,21 +126,56 @@ class StateInformation:
         for p, scalars in enumerate(self.pattern.scalars):
             self.position[scalars] = p
             self.local[scalars] = np.arange(len(scalars))
+        self._splits: dict[bytes, list[tuple[int, Index, Index]]] = {}
 
     def block_pairs(self, rows: IntArray, cols: IntArray) -> set[tuple[int, int]]:
         """The blocks ``(p, q)``, ``p >= q``, that hold ``Lambda[rows, cols]``."""
         ps, qs = np.unique(self.position[rows]), np.unique(self.position[cols])
         return {(int(max(p, q)), int(min(p, q))) for p in ps for q in qs}
 
+    def split(self, cols: IntArray) -> list[tuple[int, Index, Index]]:
+        """``cols`` by block: each block's position, where its columns are in ``cols`` and
+        where in the block (slices where contiguous), kept."""
+        key = cols.tobytes()
+        out = self._splits.get(key)
+        if out is None:
+            where = self.position[cols]
+            out = []
+            for p in np.unique(where):
+                sel = np.flatnonzero(where == p)
+                out.append((int(p), _as_slice(sel), _as_slice(self.local[cols[sel]])))
+            self._splits[key] = out
+        return out
+
+
+Index = slice | IntArray
+
+
+def _as_slice(index: IntArray) -> Index:
+    """A slice where ``index`` is a contiguous ascending range (a view, not a copy)."""
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
+
 
 class SparseState:
-    """The conditioned state from the selected inverse of its information's factor."""
+    """The conditioned state: the selected inverse ``Sigma_M`` of a factor of the information
+    with the matches ``M``, corrected by ``U C U^T`` for the matches added or removed since
+    (``Sigma = Sigma_M + U C U^T``, Woodbury)."""
 
-    def __init__(self, information: StateInformation, shift: Array, inverse: dict) -> None:
+    def __init__(
+        self,
+        information: StateInformation,
+        shift: Array,
+        inverse: dict[tuple[int, int], Array],
+        correction: tuple[Array, Array] | None = None,
+        blocks: dict[tuple[bytes, bytes], Array] | None = None,
+    ) -> None:
         self.information = information
         self.shift = shift
         self._inverse = inverse
-        self._blocks: dict[tuple[bytes, bytes], Array] = {}
+        self._correction = correction
+        self._blocks = {} if blocks is None else blocks  # shared by uncorrected states
 
     def covers(self, rows: IntArray, cols: IntArray) -> bool:
         return self.information.block_pairs(rows, cols) <= set(self._inverse)
@@ -141,61 +184,172 @@ class SparseState:
         key = (rows.tobytes(), cols.tobytes())
         out = self._blocks.get(key)
         if out is None:
-            info = self.information
             out = np.empty((len(rows), len(cols)))
-            pr, pc = info.position[rows], info.position[cols]
-            for p in np.unique(pr):
-                r_sel = np.flatnonzero(pr == p)
-                for q in np.unique(pc):
-                    c_sel = np.flatnonzero(pc == q)
-                    lr, lc = info.local[rows[r_sel]], info.local[cols[c_sel]]
+            split = self.information.split
+            for p, r_sel, lr in split(rows):
+                for q, c_sel, lc in split(cols):
                     if p >= q:
-                        part = self._inverse[int(p), int(q)][np.ix_(lr, lc)]
+                        part = self._inverse[p, q][lr][:, lc]
                     else:
-                        part = self._inverse[int(q), int(p)][np.ix_(lc, lr)].T
-                    out[np.ix_(r_sel, c_sel)] = part
+                        part = self._inverse[q, p][lc][:, lr].T
+                    if isinstance(r_sel, slice) or isinstance(c_sel, slice):
+                        out[r_sel, c_sel] = part
+                    else:
+                        out[np.ix_(r_sel, c_sel)] = part
+            if self._correction is not None:
+                u, c = self._correction
+                out += u[rows] @ c @ u[cols].T
             self._blocks[key] = out
         return out
 
 
-def condition_sparse(
-    information: StateInformation,
-    glob: dict[int, RobotGains],
-    pairs: Sequence[MatchIndex],
-    structure: set[tuple[int, int]] | None = None,
-) -> tuple[SparseState, Array]:
-    """The state conditioned on matches ``pairs`` in the information form (module docs) and
-    their leave-one-out distances. ``structure`` (block pairs ``p >= q``) are kept in the
-    factor's pattern even where zero, so that :meth:`SparseState.block` covers them."""
-    pattern = information.pattern
-    groups = _groups(pairs)
-    if not groups and not structure:
-        covariance = information.covariance
-        inverse = covariance.selected_inverse()
-        return SparseState(information, np.zeros(pattern.n), inverse), np.zeros(0)
-    blocks = pattern.blocks(information.data)
-    rhs = np.zeros(pattern.n)
-    rows_of: dict[tuple[int, int], tuple[Array, Array, Array, IntArray]] = {}
-    for (a, c), idx in groups.items():
-        arr = np.asarray(pairs, dtype=np.int64)[idx]
-        nu, h, noise, cols = rows_of[a, c] = _pair_rows(glob, a, c, arr[:, 1], arr[:, 3])
-        weighted = np.linalg.solve(noise, h)  # N^-1 H
-        flat = h.reshape(-1, h.shape[2])
-        added = flat.T @ weighted.reshape(-1, h.shape[2])
-        np.add.at(rhs, cols, -np.einsum("kim,ki->m", weighted, nu))
-        _scatter(information, blocks, cols, 0.5 * (added + added.T))
-    for p, q in structure or ():
-        if (p, q) not in blocks:
-            blocks[p, q] = np.zeros((pattern.sizes[p], pattern.sizes[q]))
-    factor = factor_blocks(pattern, blocks)
-    if factor is None:
-        raise SingularProblemError("Algorithm 1's information conditioned on the matches")
-    shift = factor.solve(rhs)
-    state = SparseState(information, shift, factor.selected_inverse())
-    loo = np.empty(len(pairs))
-    for (a, c), (nu, h, noise, cols) in rows_of.items():
-        loo[groups[a, c]] = _leave_one_out(nu, h, noise, shift[cols], state.block(cols, cols))
-    return state, loo
+# rows of matches added or removed since the last factorisation that are applied as a
+# low-rank correction; more, and the information is factored again
+LOW_RANK_ROWS = 48
+
+
+class SparseConditioning:
+    """The state conditioned on sets of matches in the information form (module docs),
+    factored again only when the set changed by more than :data:`LOW_RANK_ROWS` rows since
+    the last factorisation (else corrected by Woodbury's identity) or when the structure grew.
+    Each match's ``H_k Sigma_M H_k^T`` is kept between calls, so a correction costs the
+    matches' products with ``U``, not with the covariance blocks.
+
+    ``couple`` (robot pairs) extends the structure for good: block pairs kept in the factor's
+    pattern even where zero, so that :meth:`SparseState.block` covers the pairs' joint
+    covariance."""
+
+    def __init__(self, information: StateInformation, glob: dict[int, RobotGains]) -> None:
+        self.information = information
+        self.glob = glob
+        self.structure: set[tuple[int, int]] = set()
+        self.factorisations = 0
+        self._factored: list[MatchIndex] = []
+        self._factor: BlockFactor | None = None  # None: Algorithm 1's own
+        self._inverse: dict[tuple[int, int], Array] = {}
+        self._explained: dict[MatchIndex, Array] = {}  # H_k Sigma_M H_k^T
+        self._uncorrected: SparseState | None = None  # Sigma_M's blocks, kept
+
+    def __call__(
+        self, pairs: list[MatchIndex], couple: Sequence[tuple[int, int]] = ()
+    ) -> tuple[SparseState, Array]:
+        for a, c in couple:
+            self.structure |= self.information.block_pairs(
+                self.glob[a].columns, self.glob[c].columns
+            )
+        factored = set(self._factored)
+        added = [m for m in pairs if m not in factored]
+        kept = set(pairs)
+        removed = [m for m in self._factored if m not in kept]
+        rows = _match_rows(self.glob, pairs)
+        if (
+            self._uncorrected is None
+            or not self.structure <= set(self._inverse)
+            or 2 * (len(added) + len(removed)) > LOW_RANK_ROWS
+        ):
+            self._factorise(pairs, rows)
+            added, removed = [], []
+        n = self.information.pattern.n
+        rhs = _information_vector(n, rows)
+        if not (added or removed):
+            shift = self._solve(rhs)
+            assert self._uncorrected is not None
+            state = SparseState(
+                self.information, shift, self._inverse, blocks=self._uncorrected._blocks
+            )
+            return state, self._leave_one_out(pairs, rows, state, None)
+        _, h, noise = stack_dense(self.glob, added + removed, n)
+        flat = h.reshape(-1, n)  # H_X (2X, d)
+        solved = self._solve(np.column_stack([rhs, flat.T]))
+        u = solved[:, 1:]  # Sigma_M H_X^T
+        sign = np.repeat(np.r_[np.ones(len(added)), -np.ones(len(removed))], 2)
+        inner = flat @ u + _block_diagonal(noise) * sign[:, None]  # W^-1 + H_X U
+        c = -np.linalg.inv(0.5 * (inner + inner.T))
+        shift = solved[:, 0] + u @ (c @ (u.T @ rhs))
+        state = SparseState(self.information, shift, self._inverse, (u, c))
+        return state, self._leave_one_out(pairs, rows, state, (u, c))
+
+    def _leave_one_out(
+        self,
+        pairs: list[MatchIndex],
+        rows: list[_PairRows],
+        state: SparseState,
+        correction: tuple[Array, Array] | None,
+    ) -> Array:
+        """Each match's leave-one-out distance (module docs): ``H_k Sigma_M H_k^T`` from the
+        kept blocks of ``Sigma_M``, plus the correction's ``(H_k U) C (H_k U)^T``."""
+        assert self._uncorrected is not None
+        loo = np.empty(len(pairs))
+        for pair in rows:
+            keys = [pairs[k] for k in pair.index]
+            missing = [i for i, key in enumerate(keys) if key not in self._explained]
+            if missing:
+                h = pair.h[missing]
+                sigma = self._uncorrected.block(pair.cols, pair.cols)
+                product = (h.reshape(-1, h.shape[2]) @ sigma).reshape(h.shape)
+                explained = np.einsum("kim,kjm->kij", product, h)
+                self._explained.update(
+                    (keys[i], e) for i, e in zip(missing, explained, strict=True)
+                )
+            explained = np.stack([self._explained[key] for key in keys])
+            if correction is not None:
+                u, c = correction
+                t = pair.h @ u[pair.cols]  # (K, 2, 2X)
+                explained = explained + t @ c @ t.transpose(0, 2, 1)
+            resid = pair.nu + pair.h @ state.shift[pair.cols]
+            v = pair.noise - 0.5 * (explained + explained.swapaxes(1, 2))
+            loo[pair.index] = np.einsum(
+                "ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0]
+            )
+        return loo
+
+    def _solve(self, rhs: Array) -> Array:
+        factor = self._factor or self.information.covariance.factor
+        return factor.solve(rhs)
+
+    def _factorise(self, pairs: list[MatchIndex], rows: list[_PairRows]) -> None:
+        """Factor the information with ``pairs`` and the structure; its selected inverse."""
+        self._factored = list(pairs)
+        self._explained = {}
+        own = self.information.covariance
+        if not pairs and self.structure <= set(own.selected_inverse()):
+            self._factor = None
+            self._inverse = own.selected_inverse()
+        else:
+            pattern = self.information.pattern
+            blocks = pattern.blocks(self.information.data)
+            for pair in rows:
+                h = pair.h.reshape(-1, pair.h.shape[2])
+                added = h.T @ np.linalg.solve(pair.noise, pair.h).reshape(h.shape)  # H^T N^-1 H
+                _scatter(self.information, blocks, pair.cols, 0.5 * (added + added.T))
+            for p, q in self.structure:
+                if (p, q) not in blocks:
+                    blocks[p, q] = np.zeros((pattern.sizes[p], pattern.sizes[q]))
+            factor = factor_blocks(pattern, blocks)
+            if factor is None:
+                raise SingularProblemError("Algorithm 1's information conditioned on the matches")
+            self.factorisations += 1
+            self._factor = factor
+            self._inverse = factor.selected_inverse()
+        self._uncorrected = SparseState(self.information, np.zeros(0), self._inverse)
+
+
+def _information_vector(n: int, rows: list[_PairRows]) -> Array:
+    """``-sum_k H_k^T N_k^-1 nu_k`` (n,)."""
+    rhs = np.zeros(n)
+    for pair in rows:
+        weighted = np.linalg.solve(pair.noise, pair.nu[:, :, None])[:, :, 0]  # N^-1 nu
+        rhs[pair.cols] -= np.einsum("kim,ki->m", pair.h, weighted)
+    return rhs
+
+
+def _block_diagonal(blocks: Array) -> Array:
+    """(K, 2, 2) blocks as one (2K, 2K) block-diagonal matrix."""
+    k = len(blocks)
+    out = np.zeros((2 * k, 2 * k))
+    pick = np.arange(k)
+    out.reshape(k, 2, k, 2)[pick, :, pick, :] = blocks
+    return out
 
 
 def _scatter(
@@ -260,10 +414,9 @@ def stack_dense(
     nu = np.empty((len(pairs), 2))
     h = np.zeros((len(pairs), 2, dim))
     noise = np.empty((len(pairs), 2, 2))
-    for (a, c), idx in _groups(pairs).items():
-        arr = np.asarray(pairs, dtype=np.int64)[idx]
-        nu[idx], compact, noise[idx], cols = _pair_rows(glob, a, c, arr[:, 1], arr[:, 3])
-        h[np.ix_(idx, [0, 1], cols)] = compact
+    for pair in _match_rows(glob, pairs):
+        nu[pair.index], noise[pair.index] = pair.nu, pair.noise
+        h[np.ix_(pair.index, [0, 1], pair.cols)] = pair.h
     return nu, h, noise
 
 

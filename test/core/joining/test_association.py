@@ -21,9 +21,9 @@ from csam_ros.core.joining.association import (
 )
 from csam_ros.core.joining.local_views import local_view, map_features
 from csam_ros.core.joining.match_conditioning import (
+    SparseConditioning,
     StateInformation,
     condition_dense,
-    condition_sparse,
     stack_dense,
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
@@ -121,13 +121,26 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
         direct = _pair_distances(g[0], g[1], np.array([i]), np.array([j]), others)[0]
         assert loo[k] == pytest.approx(direct, rel=1e-6)
     # the information form on Algorithm 1's block factor: the same state and distances
-    sparse, sparse_loo = condition_sparse(StateInformation(alignment.state_covariance), g, pairs)
+    conditioning = SparseConditioning(StateInformation(alignment.state_covariance), g)
+    sparse, sparse_loo = conditioning(pairs)
     for rows, cols in ((a, c), (c, c), (a, a)):
         np.testing.assert_allclose(
             sparse.block(rows, cols), covariance[np.ix_(rows, cols)], atol=1e-9 * scale
         )
     np.testing.assert_allclose(sparse.shift, shift, atol=1e-8 * np.abs(shift).max())
     np.testing.assert_allclose(sparse_loo, loo, rtol=1e-6)
+    # matches removed and added since the factorisation: a low-rank correction, the same
+    # state as the Kalman form's
+    for changed in (pairs[:-3], pairs[2:-3] + pairs[-2:]):
+        corrected, corrected_loo = conditioning(changed)
+        oracle, oracle_loo = condition_dense(prior, g, changed)
+        assert conditioning.factorisations == 1
+        for rows, cols in ((a, c), (c, c), (a, a)):
+            np.testing.assert_allclose(
+                corrected.block(rows, cols), oracle.block(rows, cols), atol=1e-9 * scale
+            )
+        np.testing.assert_allclose(corrected.shift, oracle.shift, atol=1e-8 * np.abs(shift).max())
+        np.testing.assert_allclose(corrected_loo, oracle_loo, rtol=1e-6)
 
 
 def test_global_assignment_prefers_the_best_set() -> None:
