@@ -27,7 +27,7 @@ solved as the sparse graph it is, one dense block per robot, linked where robots
 (:func:`~csam_ros.core.joining.sparse_newton.sparse_newton`): Newton's method with the
 connectors' second derivatives, Gauss-Newton where that matrix is not positive definite,
 Levenberg-Marquardt safeguard, the sparse normal equations factored by blocks
-(:mod:`~csam_ros.core.joining.block_cholesky`). Gauss-Newton alone converges linearly here (the
+(:mod:`~csam_ros.core.sam.block_cholesky`). Gauss-Newton alone converges linearly here (the
 priors are weak along each map's rigid rotation and the connector residuals stay large): on
 MR.CLAM Dataset 1 (five robots, 1,941 unknowns) it took about 100 iterations, Newton 24 to a
 lower cost (``method="gauss-newton"`` runs it, the generic sparse solver).

@@ -19,22 +19,25 @@ order, ``g0 + G (s - s0) + J_l eps`` (``G = [J_l K | J_B]`` on robot ``a``'s col
 Only the rendezvous columns of each local covariance are ever needed (``P_l,rho``), never the
 full map covariance.
 
-Candidates. Pairs are found with a k-d tree on global positions (scipy ``cKDTree``): since
-``D >= |r|^2 / lambda_max(S)`` and ``sqrt(lambda_max(S)) <= s_i + s_j`` with ``s`` the largest
-standard deviation of each global position, a pair can pass the gate only if
-``|r| <= sqrt(xi) (s_i + s_j)``: the search radius, exact, not a heuristic.
+Candidates. Robot pairs whose features cannot meet are skipped (the boxes of their positions,
+each grown by ``sqrt(xi)`` times its spread, do not overlap). Pairs are found with a k-d tree
+on global positions (scipy ``cKDTree``): since ``D >= |r|^2 / lambda_max(S)`` and
+``sqrt(lambda_max(S)) <= s_i + s_j`` with ``s`` the largest standard deviation of each global
+position, a pair can pass the gate only if ``|r| <= sqrt(xi) (s_i + s_j)``: the search radius,
+exact, not a heuristic.
 
-Decision, in passes. (1) Pairs of still unmatched features with ``D < xi`` (chi-square,
-2 dof; default 9.21, the 99 % quantile) are made unique both ways by a global assignment that
+Decision, in passes. (1) Pairs of still unmatched features with ``D < xi`` (chi-square, 2 dof;
+default 9.21, the 99 % quantile) are made unique both ways by a global assignment that
 maximises ``sum(xi - D)`` over the gated pairs of each robot pair (``linear_sum_assignment`` on
 each connected component of the candidate graph): a conflict goes to the best-fitting set, not
-to the first pair found. (2) Joint compatibility: every accepted match is a measurement
-``r = 0`` of the state; the state is conditioned on all of them (a linear update in the small
-state space) and each match is tested against all the others by its leave-one-out distance
-``e_k^T (N_k - H_k Sigma_post H_k^T)^-1 e_k`` (``e_k`` its posterior residual); while the worst
-exceeds ``xi`` it is dropped for good and the update redone. (3) The next pass gates the
-remaining features against the conditioned state, which is now much tighter, so pairs that
-were ambiguous (or out of reach) before are decided; passes stop when nothing changes.
+to the first pair found. (2) Joint compatibility: every accepted match is a measurement ``r =
+0`` of the state; the state is conditioned on all of them (a linear update on Algorithm 1's
+sparse information: :mod:`~csam_ros.core.joining.match_conditioning`) and each match is tested
+against all the others by its leave-one-out distance ``e_k^T (N_k - H_k Sigma_post H_k^T)^-1
+e_k`` (``e_k`` its posterior residual); while the worst exceeds ``xi`` it is dropped for good
+and the update redone. (3) The next pass gates the remaining features against the conditioned
+state, which is now much tighter, so pairs that were ambiguous (or out of reach) before are
+decided; passes stop when nothing changes.
 With more than two robots, matches are merged into clusters (union-find) in increasing ``D``;
 a match that would put two features of one robot into one cluster is rejected and counted.
 Matches that share a feature (clusters over three or more robots) are treated as independent

@@ -33,8 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
 
-from csam_ros.core.joining.block_cholesky import BlockFactor, BlockPattern, factor_blocks
 from csam_ros.core.joining.state_covariance import FactoredStateCovariance
+from csam_ros.core.sam.block_cholesky import BlockFactor, BlockPattern, factor_blocks
 from csam_ros.core.sam.normal_equations import SingularProblemError
 
 Array = NDArray[np.float64]

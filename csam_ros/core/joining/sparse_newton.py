@@ -6,7 +6,7 @@ couples one pose of each of two robots and their base nodes. So the information 
 sparse by blocks: one dense block per robot, linked only where robots met. It is assembled by
 the project's sparse normal equations (:class:`~csam_ros.core.sam.normal_equations.
 NormalEquations`, the pattern built once) and factored by blocks
-(:mod:`~csam_ros.core.joining.block_cholesky`: LAPACK on each block, the work on the coupled
+(:mod:`~csam_ros.core.sam.block_cholesky`: LAPACK on each block, the work on the coupled
 rows only).
 
 The step is Newton's (:class:`SparseNewtonStep`): ``A^T A`` plus the connectors' second
@@ -28,9 +28,9 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from csam_ros.core.joining.block_cholesky import BlockPattern, block_cholesky
 from csam_ros.core.joining.connector import Connector
 from csam_ros.core.joining.state_covariance import FactoredStateCovariance
+from csam_ros.core.sam.block_cholesky import BlockPattern, block_cholesky
 from csam_ros.core.sam.factors import Factor
 from csam_ros.core.sam.normal_equations import NormalEquations, SingularProblemError
 from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions, minimise
@@ -161,7 +161,7 @@ def sparse_newton(
 ) -> tuple[SolveReport, FactoredStateCovariance]:
     """Minimise Algorithm 1's cost in place by Newton's method on the sparse matrix, factored
     by ``blocks`` (scalar indices of each robot's rendezvous poses, then of the base nodes:
-    :mod:`~csam_ros.core.joining.block_cholesky`); returns the report and the state's
+    :mod:`~csam_ros.core.sam.block_cholesky`); returns the report and the state's
     covariance from the factor of ``A^T A`` at the estimate (:func:`factor_at_estimate`).
 
     Why Newton: the rendezvous priors are weak along each map's rigid rotation (a tenth of a

@@ -3,15 +3,12 @@ factor of its information matrix at the estimate (docs/METHOD.md sections 4.5 an
 
 :class:`FactoredStateCovariance` never forms the whole inverse to answer for blocks: the base
 nodes' joint covariance is the inverse of the factor's last block alone (the base nodes are
-eliminated last: :mod:`~csam_ros.core.joining.block_cholesky`); other entries come from solves
-with the factor, one per wanted column. The whole matrix (:meth:`FactoredStateCovariance.dense`,
-which Algorithm 2 reads) is formed only on request, from the factor. Not by a selected inverse
-(:class:`~csam_ros.core.sam.selected_inverse.SelectedInverse`): every robot's rendezvous poses
-are a clique (its dense prior), so the factor's pattern is heavy and its selected inverse costs
-more than the whole inverse (MR.CLAM Dataset 1: 2.7 s, against 0.18 s for the whole inverse
-and 0.4 ms for the base nodes' blocks). :class:`DenseStateCovariance` wraps a dense matrix (the
-dense oracle's).
-"""
+eliminated last: :mod:`~csam_ros.core.sam.block_cholesky`); other entries come from solves
+with the factor, one per wanted column; the blocks on the factor's pattern all at once from
+its block selected inverse (:meth:`FactoredStateCovariance.selected_inverse`, which Algorithm 2
+starts from, with the information matrix kept: docs/METHOD.md section 6.1). The whole matrix
+(:meth:`FactoredStateCovariance.dense`) is formed only on request. :class:`DenseStateCovariance`
+wraps a dense matrix (the dense oracle's)."""
 
 from __future__ import annotations
 
@@ -20,7 +17,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from csam_ros.core.joining.block_cholesky import BlockFactor
+from csam_ros.core.sam.block_cholesky import BlockFactor
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

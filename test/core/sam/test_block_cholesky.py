@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from csam_ros.core.joining.block_cholesky import (
+from csam_ros.core.sam.block_cholesky import (
     BlockPattern,
     _elimination_order,
     block_cholesky,
