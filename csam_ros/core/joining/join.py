@@ -67,7 +67,7 @@ from csam_ros.core.model.log import RendezvousLog
 from csam_ros.core.model.rendezvous import RendezvousSet, collect
 from csam_ros.core.sam.covariance import covariance_block, factorize_at_estimate
 from csam_ros.core.sam.normal_equations import NormalEquations
-from csam_ros.core.sam.selected_inverse import SelectedInverse
+from csam_ros.core.sam.selected_inverse import BlockInverse, SelectedInverse
 from csam_ros.core.sam.solver import Problem, SolveReport
 from csam_ros.core.smoothing.robot_map import RobotMap
 
@@ -388,9 +388,13 @@ class JointMarginals:
     alone: LocalView | None
 
     @cached_property
-    def inverse(self) -> SelectedInverse:
-        """The selected inverse of ``system``."""
-        return self.alone.inverse if self.alone is not None else SelectedInverse(self.system)
+    def inverse(self) -> SelectedInverse | BlockInverse:
+        """The selected inverse of ``system`` (by blocks when it was factored by blocks)."""
+        if self.alone is not None:
+            return self.alone.inverse
+        if self.system.block_factor is not None:
+            return BlockInverse(self.system.block_factor)
+        return SelectedInverse(self.system)
 
     def feature_covariances(self, solution: JointSolution) -> Array:
         """(F, 2, 2) marginal covariances of the joined features (``solution.features``)."""

@@ -272,3 +272,32 @@ def factor_blocks(
                     target[np.ix_(rows_i, rows_j)] -= update
         below.append(column)
     return BlockFactor(pattern, diagonal, below)
+
+
+def factor_flops(pattern: BlockPattern) -> float:
+    """Multiply-adds of :func:`block_cholesky` on the pattern, from a symbolic run of its
+    elimination (the nonzero rows of each block below the diagonal, as the numeric one keeps
+    them): ``s^3 / 3`` per diagonal block of size ``s``, ``r s^2`` per block of ``r`` rows
+    below it, ``r_i r_j s`` per update."""
+    count = len(pattern.sizes)
+    rows: dict[tuple[int, int], IntArray] = {}
+    for (a, b), (_, positions) in pattern._entries.items():
+        if a != b:
+            rows[a, b] = np.unique(positions // pattern.sizes[b])
+    columns: list[set[int]] = [set() for _ in range(count)]
+    for a, b in rows:
+        columns[b].add(a)
+    flops = 0.0
+    for k in range(count):
+        size = float(pattern.sizes[k])
+        flops += size**3 / 3.0
+        below = [(i, rows.pop((i, k))) for i in sorted(columns[k])]
+        for a, (i, rows_i) in enumerate(below):
+            flops += len(rows_i) * size * size
+            for j, rows_j in below[: a + 1]:
+                flops += len(rows_i) * len(rows_j) * size
+                if i != j:
+                    held = rows.get((i, j))
+                    rows[i, j] = rows_i if held is None else np.union1d(held, rows_i)
+                    columns[j].add(i)
+    return flops

@@ -72,6 +72,11 @@ def covariance_block(system: NormalEquations, scalar_indices: ArrayLike) -> Arra
     """``(A^T A)^-1`` at the given scalar positions (rows and columns in that order) from the
     factorisation ``system``: the joint covariance of those components."""
     cols = np.asarray(scalar_indices, dtype=np.int64)
+    if system.block_factor is not None:
+        rhs = np.zeros((system.n, len(cols)))
+        rhs[cols, np.arange(len(cols))] = 1.0
+        cov = system.block_factor.solve(rhs)[cols]
+        return 0.5 * (cov + cov.T)
     if system.backend != "qdldl":
         rhs = np.zeros((system.n, len(cols)))
         rhs[cols, np.arange(len(cols))] = 1.0

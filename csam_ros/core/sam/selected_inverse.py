@@ -8,6 +8,7 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
+from csam_ros.core.sam.block_cholesky import BlockFactor
 from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.solver import Problem
 
@@ -59,7 +60,25 @@ def _supernodes(indptr: IntArray, indices: IntArray, n: int) -> tuple[IntArray, 
     return begins, ends, np.asarray(depth, dtype=np.int64)
 
 
-class SelectedInverse:
+class _MarginalBlocks:
+    """Marginal covariance blocks of variables from :meth:`entries`."""
+
+    def entries(self, rows: IntArray, cols: IntArray) -> Array:
+        raise NotImplementedError
+
+    def blocks(self, problem: Problem, ids: IntArray) -> Array:
+        """Marginal covariance blocks (K, dim, dim) of variables ``ids`` (one dimension)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0:
+            return np.zeros((0, 0, 0))
+        scalars = problem.scalar_indices(ids).reshape(len(ids), -1)
+        dim = scalars.shape[1]
+        rows = np.repeat(scalars, dim, axis=1)
+        cols = np.tile(scalars, (1, dim))
+        return self.entries(rows.ravel(), cols.ravel()).reshape(len(ids), dim, dim)
+
+
+class SelectedInverse(_MarginalBlocks):
     """Entries of ``(A^T A)^-1`` on the sparsity pattern of its factor (Takahashi et al.).
 
     With ``P (A^T A) P^T = L D L^T`` (the solver's qdldl factorisation at the estimate) the
@@ -146,17 +165,6 @@ class SelectedInverse:
         out[off] = self._values[pos]
         return out
 
-    def blocks(self, problem: Problem, ids: IntArray) -> Array:
-        """Marginal covariance blocks (K, dim, dim) of variables ``ids`` (one dimension)."""
-        ids = np.asarray(ids, dtype=np.int64)
-        if len(ids) == 0:
-            return np.zeros((0, 0, 0))
-        scalars = problem.scalar_indices(ids).reshape(len(ids), -1)
-        dim = scalars.shape[1]
-        rows = np.repeat(scalars, dim, axis=1)
-        cols = np.tile(scalars, (1, dim))
-        return self.entries(rows.ravel(), cols.ravel()).reshape(len(ids), dim, dim)
-
 
 class _SupernodeShape:
     """Supernodes of one shape (width ``w``, ``ms`` rows below), ordered by depth, with what
@@ -212,3 +220,38 @@ class _SupernodeShape:
         lo = np.r_[0, cuts]
         hi = np.r_[cuts, len(depth)]
         return list(zip(depth[lo].tolist(), lo.tolist(), hi.tolist(), strict=True))
+
+
+class BlockInverse(_MarginalBlocks):
+    """Entries of the inverse of the matrix factored by a :class:`BlockFactor`, on its
+    pattern (:meth:`BlockFactor.selected_inverse`), asked for in the problem's scalar order."""
+
+    def __init__(self, factor: BlockFactor) -> None:
+        pattern = factor.pattern
+        self._inverse = factor.selected_inverse()
+        self._position = np.empty(pattern.n, dtype=np.int64)
+        self._local = np.empty(pattern.n, dtype=np.int64)
+        for p, scalars in enumerate(pattern.scalars):
+            self._position[scalars] = p
+            self._local[scalars] = np.arange(len(scalars))
+
+    def entries(self, rows: IntArray, cols: IntArray) -> Array:
+        """``Z[rows, cols]`` (pairs, the problem's scalar order) for pairs on the pattern."""
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        pr, pc = self._position[rows], self._position[cols]
+        lr, lc = self._local[rows], self._local[cols]
+        swap = pr < pc
+        hi, lo = np.where(swap, pc, pr), np.where(swap, pr, pc)
+        hi_local, lo_local = np.where(swap, lc, lr), np.where(swap, lr, lc)
+        out = np.empty(rows.shape)
+        key = hi * len(self._local) + lo
+        for value in np.unique(key):
+            sel = key == value
+            block = self._inverse.get(
+                (int(value // len(self._local)), int(value % len(self._local)))
+            )
+            if block is None:
+                raise ValueError("requested covariance entries are not on the factor's pattern")
+            out[sel] = block[hi_local[sel], lo_local[sel]]
+        return out

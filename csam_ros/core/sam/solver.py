@@ -146,6 +146,9 @@ class Problem:
         self.factors: list[Factor] = []
         self._angle_positions: IntArray = np.zeros(0, dtype=np.int64)
         self._system: NormalEquations | None = None
+        # variables grouped for a block factorisation, taken where it is cheaper than qdldl's
+        # (NormalEquations._choose_blocks); None: never
+        self.variable_blocks: list[IntArray] | None = None
 
     # -- variables ---------------------------------------------------------------------------
 

@@ -323,3 +323,27 @@ def _assert_same(a: object, b: object, where: str) -> None:
         assert abs(a - b) <= 1e-6, (where, a, b)
     else:
         assert a == b, (where, a, b)
+
+
+def test_joint_problem_by_blocks_equals_it_by_qdldl(monkeypatch) -> None:
+    """The joint solve and its marginals factored by robot blocks (where they are cheaper than
+    qdldl: many robots observing each other at every sample) give the join qdldl gives."""
+    import csam_ros.core.sam.normal_equations as normal_equations
+
+    log = simulate(many_robot_scenario(8, "ring", rendezvous_every=1))
+    config = CsamConfig.from_dict(CSAM_SECTION, "ring")
+    built = build_robot_maps(log, config)
+    choose = normal_equations.NormalEquations._choose_blocks
+    switched: list[bool] = []
+
+    def spy(self: normal_equations.NormalEquations) -> None:
+        choose(self)
+        switched.append(self.block_pattern is not None)
+
+    monkeypatch.setattr(normal_equations.NormalEquations, "_choose_blocks", spy)
+    joined = {}
+    for ratio in (0.0, 1e9):
+        monkeypatch.setattr(normal_equations, "BLOCK_FLOPS_RATIO", ratio)
+        joined[ratio] = join_maps(built.maps, built.rendezvous_logs, config).to_dict()
+    assert switched == [False, True]  # the joint problem's only: the local maps have no blocks
+    _assert_same(joined[1e9], joined[0.0], "")

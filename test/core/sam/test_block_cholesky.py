@@ -13,6 +13,7 @@ from csam_ros.core.sam.block_cholesky import (
     _elimination_order,
     block_cholesky,
     factor_blocks,
+    factor_flops,
 )
 
 
@@ -154,3 +155,21 @@ def test_blocks_must_cover_every_index_once() -> None:
     upper = sp.csc_matrix(np.eye(4))
     with pytest.raises(ValueError, match="every scalar index exactly once"):
         BlockPattern(upper.indptr, upper.indices, [np.arange(2), np.arange(1, 3)], 1)
+
+
+@pytest.mark.parametrize("sizes", [SIZES, [30, 24, 18, 27, 12]])
+def test_factor_flops_count_the_numeric_factors_work(sizes: list[int]) -> None:
+    last = len(sizes) - 1
+    pattern, data = _pattern(_ring_matrix(np.random.default_rng(2), sizes, last), sizes, last)
+    factor = block_cholesky(pattern, data)
+    assert factor is not None
+    expected = 0.0
+    for k, column in enumerate(factor.below):
+        size = pattern.sizes[k]
+        expected += size**3 / 3 + sum(len(rows) * size * size for _, rows, _ in column)
+        expected += sum(
+            len(rows_i) * len(rows_j) * size
+            for a, (_, rows_i, _) in enumerate(column)
+            for _, rows_j, _ in column[: a + 1]
+        )
+    assert factor_flops(pattern) == pytest.approx(expected)

@@ -107,3 +107,28 @@ def test_missing_gauge_is_reported():
     p.add_factor(RelativePose(ids[:-1], ids[1:], np.ones((2, 3)), np.tile(np.eye(3), (2, 1, 1))))
     with pytest.raises(SingularProblemError, match="singular.*gauge"):
         p.solve()
+
+
+def test_variable_blocks_factor_by_blocks_where_cheaper(monkeypatch) -> None:
+    """With variable blocks and a block factorisation within BLOCK_FLOPS_RATIO of qdldl's
+    work, the factorisations after the first are by blocks: the same steps, solution and
+    solves; beyond the ratio, qdldl throughout."""
+    import csam_ros.core.sam.normal_equations as normal_equations
+
+    plain = mixed_problem(3)
+    plain.solve()
+    for ratio, by_blocks in ((1e9, True), (0.0, False)):
+        monkeypatch.setattr(normal_equations, "BLOCK_FLOPS_RATIO", ratio)
+        p = mixed_problem(3)
+        p.variable_blocks = [np.arange(0, 8), np.arange(8, 14)]
+        report = p.solve()
+        system = p.normal_equations()
+        assert (system.block_pattern is not None) == by_blocks
+        assert report.converged
+        np.testing.assert_allclose(p.values, plain.values, atol=1e-10)
+        system.linearize(p.values)
+        system.factorize()
+        assert (system.block_factor is not None) == by_blocks
+        rhs = np.random.default_rng(0).normal(size=system.n)
+        expected = np.linalg.solve(system.full_matrix().toarray(), rhs)
+        np.testing.assert_allclose(system.solve(rhs), expected, rtol=1e-9, atol=1e-12)
