@@ -212,8 +212,9 @@ class SparseConditioning:
     """The state conditioned on sets of matches in the information form (module docs),
     factored again only when the set changed by more than :data:`LOW_RANK_ROWS` rows since
     the last factorisation (else corrected by Woodbury's identity) or when the structure grew.
-    Each match's ``H_k Sigma_M H_k^T`` is kept between calls, so a correction costs the
-    matches' products with ``U``, not with the covariance blocks.
+    Each match's ``H_k Sigma_M H_k^T`` and ``U_k = Sigma_M H_k^T`` are kept between calls, so a
+    correction costs two solves per match changed since the last call, and the matches'
+    products with ``U``, not with the covariance blocks.
 
     ``couple`` (robot pairs) extends the structure for good: block pairs kept in the factor's
     pattern even where zero, so that :meth:`SparseState.block` covers the pairs' joint
@@ -228,6 +229,8 @@ class SparseConditioning:
         self._factor: BlockFactor | None = None  # None: Algorithm 1's own
         self._inverse: dict[tuple[int, int], Array] = {}
         self._explained: dict[MatchIndex, Array] = {}  # H_k Sigma_M H_k^T
+        self._columns: dict[MatchIndex, Array] = {}  # U_k = Sigma_M H_k^T (d, 2)
+        self._factored_shift = np.zeros(0)  # Sigma_M times the factored matches' vector
         self._uncorrected: SparseState | None = None  # Sigma_M's blocks, kept
 
     def __call__(
@@ -249,23 +252,32 @@ class SparseConditioning:
         ):
             self._factorise(pairs, rows)
             added, removed = [], []
-        n = self.information.pattern.n
-        rhs = _information_vector(n, rows)
+        assert self._uncorrected is not None
         if not (added or removed):
-            shift = self._solve(rhs)
-            assert self._uncorrected is not None
             state = SparseState(
-                self.information, shift, self._inverse, blocks=self._uncorrected._blocks
+                self.information,
+                self._factored_shift,
+                self._inverse,
+                blocks=self._uncorrected._blocks,
             )
             return state, self._leave_one_out(pairs, rows, state, None)
-        _, h, noise = stack_dense(self.glob, added + removed, n)
-        flat = h.reshape(-1, n)  # H_X (2X, d)
-        solved = self._solve(np.column_stack([rhs, flat.T]))
-        u = solved[:, 1:]  # Sigma_M H_X^T
+        changed = added + removed
+        nu, h, noise = stack_dense(self.glob, changed, self.information.pattern.n)
+        flat = h.reshape(2 * len(changed), -1)  # H_X (2X, d)
+        unknown = [k for k, m in enumerate(changed) if m not in self._columns]
+        if unknown:
+            solved = self._solve(h[unknown].reshape(2 * len(unknown), -1).T)
+            for n_, k in enumerate(unknown):
+                self._columns[changed[k]] = solved[:, 2 * n_ : 2 * n_ + 2]
+        u = np.concatenate([self._columns[m] for m in changed], axis=1)  # Sigma_M H_X^T
         sign = np.repeat(np.r_[np.ones(len(added)), -np.ones(len(removed))], 2)
         inner = flat @ u + _block_diagonal(noise) * sign[:, None]  # W^-1 + H_X U
         c = -np.linalg.inv(0.5 * (inner + inner.T))
-        shift = solved[:, 0] + u @ (c @ (u.T @ rhs))
+        # Sigma_M times the information vector of ``pairs``: the factored matches' step, less
+        # the added matches' terms, plus the removed ones' (Sigma_M H_k^T = U_k)
+        weighted = np.linalg.solve(noise, nu[:, :, None]).reshape(-1)  # N_k^-1 nu_k
+        own = self._factored_shift - u @ (sign * weighted)
+        shift = own + u @ (c @ (flat @ own))
         state = SparseState(self.information, shift, self._inverse, (u, c))
         return state, self._leave_one_out(pairs, rows, state, (u, c))
 
@@ -311,6 +323,7 @@ class SparseConditioning:
         """Factor the information with ``pairs`` and the structure; its selected inverse."""
         self._factored = list(pairs)
         self._explained = {}
+        self._columns = {}
         own = self.information.covariance
         if not pairs and self.structure <= set(own.selected_inverse()):
             self._factor = None
@@ -332,6 +345,7 @@ class SparseConditioning:
             self._factor = factor
             self._inverse = factor.selected_inverse()
         self._uncorrected = SparseState(self.information, np.zeros(0), self._inverse)
+        self._factored_shift = self._solve(_information_vector(self.information.pattern.n, rows))
 
 
 def _information_vector(n: int, rows: list[_PairRows]) -> Array:
