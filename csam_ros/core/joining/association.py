@@ -26,18 +26,19 @@ on global positions (scipy ``cKDTree``): since ``D >= |r|^2 / lambda_max(S)`` an
 position, a pair can pass the gate only if ``|r| <= sqrt(xi) (s_i + s_j)``: the search radius,
 exact, not a heuristic.
 
-Decision, in passes. (1) Pairs of still unmatched features with ``D < xi`` (chi-square, 2 dof;
-default 9.21, the 99 % quantile) are made unique both ways by a global assignment that
-maximises ``sum(xi - D)`` over the gated pairs of each robot pair (``linear_sum_assignment`` on
-each connected component of the candidate graph): a conflict goes to the best-fitting set, not
-to the first pair found. (2) Joint compatibility: every accepted match is a measurement ``r =
-0`` of the state; the state is conditioned on all of them (a linear update on Algorithm 1's
-sparse information: :mod:`~csam_ros.core.joining.match_conditioning`) and each match is tested
-against all the others by its leave-one-out distance ``e_k^T (N_k - H_k Sigma_post H_k^T)^-1
-e_k`` (``e_k`` its posterior residual); while the worst exceeds ``xi`` it is dropped for good
-and the update redone. (3) The next pass gates the remaining features against the conditioned
-state, which is now much tighter, so pairs that were ambiguous (or out of reach) before are
-decided; passes stop when nothing changes.
+Decision, in passes. (1) Pairs of features not yet tied, through the matches accepted, to a
+feature of each other's robot with ``D < xi`` (chi-square, 2 dof; default 9.21, the 99 %
+quantile) are made unique both ways by a global assignment that maximises ``sum(xi - D)`` over
+the gated pairs of each robot pair (``linear_sum_assignment`` on each connected component of
+the candidate graph): a conflict goes to the best-fitting set, not to the first pair found. (2)
+Joint compatibility: every accepted match is a measurement ``r = 0`` of the state; the state is
+conditioned on all of them (a linear update on Algorithm 1's sparse information:
+:mod:`~csam_ros.core.joining.match_conditioning`) and each match is tested against all the
+others by its leave-one-out distance ``e_k^T (N_k - H_k Sigma_post H_k^T)^-1 e_k`` (``e_k`` its
+posterior residual); while the worst exceeds ``xi`` it is dropped for good and the update
+redone. (3) The next pass gates the remaining features against the conditioned state, which is
+now much tighter, so pairs that were ambiguous (or out of reach) before are decided; passes
+stop when nothing changes.
 With more than two robots, matches are merged into clusters (union-find) in increasing ``D``;
 a match that would put two features of one robot into one cluster is rejected and counted.
 Matches that share a feature (clusters over three or more robots) are treated as independent
@@ -46,7 +47,7 @@ in the update, a slight overconfidence of the test only.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -207,8 +208,9 @@ def _pair_distances(
 
 @dataclass
 class _Free:
-    """One robot's still unmatched features in a pass: their global positions given the
-    state and the largest standard deviation of each."""
+    """One robot's features in a pass (for a robot pair: those not matched with the other
+    robot yet): their global positions given the state and the largest standard deviation of
+    each."""
 
     index: IntArray
     position: Array  # (K, 2)
@@ -220,6 +222,13 @@ class _Free:
             return cls(index, np.zeros((0, 2)), np.zeros(0))
         pos, cov = g.moments(state, index)
         return cls(index, pos, np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0)))
+
+    def without(self, index: list[int]) -> _Free:
+        """These features but those of ``index`` (positions in the robot's features)."""
+        if not index:
+            return self
+        keep = ~np.isin(self.index, index)
+        return _Free(self.index[keep], self.position[keep], self.sigma[keep])
 
     def reach(self, root_gate: float) -> tuple[Array, Array]:
         """Corners of the box every gated partner of these features lies in, but for the
@@ -290,8 +299,14 @@ def associate(
     alignment: Alignment,
     parts_sqrt_information: Sequence[Array | None],
     options: AssociationOptions | None = None,
+    met: set[tuple[int, int]] | None = None,
 ) -> Associations:
     """Algorithm 2 over every pair of aligned robots (index ``r`` follows the alignment).
+
+    ``met`` (robot pairs ``(a, c)``, ``a < c``), when given, are the robots that measured each
+    other: their features are compared first, the others' from the second pass on, against
+    the state conditioned on the first matches (and with their joint covariance in the
+    factor by then: the first pass needs no factorisation of its own).
 
     ``parts_sqrt_information[r]`` is robot ``r``'s rendezvous square-root information (the
     ``R`` of its :class:`~csam_ros.core.joining.alignment.RendezvousPart`), which gives the local
@@ -324,24 +339,26 @@ def associate(
     rejected: set[MatchIndex] = set()
     state, _ = condition([])
     candidates = gated = 0
-    for _ in range(options.max_passes):
-        used = {(a, i) for a, i, _, _ in accepted} | {(c, j) for _, _, c, j in accepted}
-        free = {
-            r: _Free.of(
-                g, np.array([i for i in range(len(g.labels)) if (r, i) not in used], int), state
-            )
-            for r, g in glob.items()
-        }
+    later: list[tuple[int, int]] = []  # robot pairs whose comparison waits for the next pass
+    for number in range(options.max_passes):
+        every = {r: _Free.of(g, np.arange(len(g.labels)), state) for r, g in glob.items()}
+        matched = _joined_with(accepted)
         found: dict[tuple[int, int], tuple[IntArray, IntArray]] = {}
         for a, c in robot_pairs:
-            if not _may_meet(free[a], free[c], root_gate):
+            free_a = every[a].without(matched.get((a, c), []))
+            free_c = every[c].without(matched.get((c, a), []))
+            if not _may_meet(free_a, free_c, root_gate):
                 continue
-            ia, ic = _candidates(free[a], free[c], root_gate)
+            ia, ic = _candidates(free_a, free_c, root_gate)
             keep = np.array(
                 [(a, i, c, j) not in rejected for i, j in zip(ia, ic, strict=True)], dtype=bool
             )
-            if keep.any():
-                found[a, c] = ia[keep].astype(np.int64), ic[keep].astype(np.int64)
+            if not keep.any():
+                continue
+            if number == 0 and met is not None and (a, c) not in met:
+                later.append((a, c))
+                continue
+            found[a, c] = ia[keep].astype(np.int64), ic[keep].astype(np.int64)
         missing = [(a, c) for a, c in found if not state.covers(glob[a].columns, glob[c].columns)]
         if (
             missing
@@ -359,12 +376,14 @@ def associate(
                 ((a, int(i), c, int(j)), float(dd))
                 for i, j, dd in zip(ia[pick], ic[pick], d[pick], strict=True)
             )
-        if not new:
+        couple = [(a, c) for a, c in later if not state.covers(glob[a].columns, glob[c].columns)]
+        if not new and not later:
             break
+        later = []
         accepted.update(new)
         while True:  # joint compatibility: drop the match least compatible with the others
             pairs = list(accepted)
-            state, loo = condition(pairs)
+            state, loo = condition(pairs, couple)
             worst = int(np.argmax(loo)) if len(loo) else -1
             if worst < 0 or loo[worst] < gate:
                 break
@@ -377,6 +396,30 @@ def associate(
     result = _cluster(matched, gated, candidates)
     result.rejected_incompatible = len(rejected)
     return result
+
+
+def _joined_with(accepted: Mapping[MatchIndex, float]) -> dict[tuple[int, int], list[int]]:
+    """For each (robot, other robot): the robot's features already tied, through the matches
+    accepted, to a feature of the other (a match between them would say again what the
+    others say)."""
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def root(x: tuple[int, int]) -> tuple[int, int]:
+        while parent.setdefault(x, x) != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for a, i, c, j in accepted:
+        parent[root((a, i))] = root((c, j))
+    robots: dict[tuple[int, int], set[int]] = {}
+    for x in parent:
+        robots.setdefault(root(x), set()).add(x[0])
+    out: dict[tuple[int, int], list[int]] = {}
+    for r, i in parent:
+        for other in robots[root((r, i))] - {r}:
+            out.setdefault((r, other), []).append(i)
+    return out
 
 
 class _Conditioning(Protocol):

@@ -109,7 +109,9 @@ def join_maps(
     clock.lap("local_marginals")
     associations = Associations([], [])
     if config.associate and len(aligned) > 1:
-        associations = associate_features(maps, views, alignment, aligned, checks, config)
+        associations = associate_features(
+            maps, views, alignment, aligned, checks, config, measurements
+        )
         clock.lap("association")
     solution = solve_jointly(maps, aligned, alignment, associations, measurements, config, warm)
     clock.lap("joint_solve")
@@ -319,9 +321,11 @@ def associate_features(
     aligned: Sequence[int],
     checks: Mapping[int, LocalMapCheck],
     config: CsamConfig,
+    measurements: RendezvousSet,
 ) -> Associations:
     """Algorithm 2 (paper section IV-B, eq. 26; docs/METHOD.md section 6.1) over the features
-    of the ``aligned`` robots, but those that failed their map's check (section 6.5)."""
+    of the ``aligned`` robots, but those that failed their map's check (section 6.5); robots
+    that measured each other (``measurements``) compared first."""
     features: list[MapFeatures | None] = [None] * len(maps)
     for r in aligned:
         left_out = checks[r].inconsistent_features if r in checks else []
@@ -331,6 +335,12 @@ def associate_features(
         alignment,
         [v.part.sqrt_information if v.part is not None else None for v in views],
         AssociationOptions(chi2_gate=config.chi2_gate),
+        met={
+            (min(a, c), max(a, c))
+            for a, c in zip(
+                measurements.observer.tolist(), measurements.observed.tolist(), strict=True
+            )
+        },
     )
 
 

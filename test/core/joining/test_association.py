@@ -16,6 +16,7 @@ from csam_ros.core.joining.association import (
     _cluster,
     _Free,
     _global_features,
+    _joined_with,
     _pair_distances,
     associate,
 )
@@ -183,3 +184,31 @@ def test_chain_clusters_span_robots() -> None:
         assert len(truth) == 1  # every cluster is one true feature
         assert len({r for r, _ in cluster}) == len(cluster)
     assert max(len(c) for c in result.clusters) >= 3
+
+
+def test_features_tied_through_clusters_are_not_compared_again() -> None:
+    # r0/0 ~ r1/5 ~ r2/7: r0/0 is tied to robot 2 through robot 1, r2/7 to robot 0
+    tied = _joined_with({(0, 0, 1, 5): 1.0, (1, 5, 2, 7): 2.0, (0, 3, 1, 4): 1.0})
+    assert sorted(tied[0, 2]) == [0] and sorted(tied[2, 0]) == [7]
+    assert sorted(tied[0, 1]) == [0, 3] and sorted(tied[1, 2]) == [5]
+    assert (2, 1) in tied and (0, 3) not in tied
+
+
+def test_robots_that_met_are_compared_first() -> None:
+    """Robot pairs that never met are compared from the second pass on: on the chain (robots
+    meet their neighbours only) the clusters are those of comparing every pair at once, and
+    each is one true feature."""
+    log, maps, alignment, feats, roots = _stage("chain", 0)
+    index = {m.name: r for r, m in enumerate(maps)}
+    met = {
+        (min(index[n], index[o]), max(index[n], index[o]))
+        for n, robot in log.robots.items()
+        for o in robot.rendezvous.observed
+    }
+    assert len(met) < len(maps) * (len(maps) - 1) // 2  # some pairs never met
+    first = associate(feats, alignment, roots)
+    later = associate(feats, alignment, roots, met=met)
+    l2f = log.truth.label_to_feature
+    for cluster in later.clusters:
+        assert len({l2f[maps[r].name][lab] for r, lab in cluster}) == 1
+    assert later.clusters == first.clusters
