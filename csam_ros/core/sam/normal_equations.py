@@ -209,17 +209,7 @@ class NormalEquations:
             used += cols.size
         self._factorization: object | None = None
         self._checked = False
-        blocks = problem.variable_blocks
-        self._scalar_blocks = (
-            None
-            if blocks is None
-            else [
-                (offsets[ids][:, None] + np.arange(dims[ids[0]])).reshape(-1)
-                if len(ids) and np.all(dims[ids] == dims[ids[0]])
-                else np.concatenate([np.arange(offsets[v], offsets[v] + dims[v]) for v in ids])
-                for ids in (np.asarray(b, dtype=np.int64) for b in blocks)
-            ]
-        )
+        self._variable_blocks = problem.variable_blocks  # decided on at the first factorisation
         self.block_pattern: BlockPattern | None = None  # set when the blocks are cheaper
         self.block_factor: BlockFactor | None = None  # the last factorisation, when by blocks
         self.hessian_data: Array = np.zeros(self.nnz)
@@ -335,7 +325,7 @@ class NormalEquations:
     def factorize(self, damping: float = 0.0) -> None:
         """Numeric factorisation of the damped system (symbolic analysis reused)."""
         self.block_factor = None
-        if self._scalar_blocks is not None and self._factorization is None:
+        if self._variable_blocks is not None and self._factorization is None:
             self._choose_blocks()
         if self.block_pattern is not None:
             data = self.hessian_data
@@ -377,14 +367,23 @@ class NormalEquations:
         scalar loops, so where a problem's blocks are dense (robots that observe each other at
         every pose) the block factorisation wins, where they are sparse chains (long
         trajectories) qdldl does. Decided once, from the structure alone."""
-        assert self._scalar_blocks is not None
-        degree = _block_degrees(self.indptr, self.indices, self._scalar_blocks, self.n)
-        pattern = BlockPattern(
-            self.indptr, self.indices, self._scalar_blocks, int(np.argmax(degree))
-        )
-        if factor_flops(pattern) <= BLOCK_FLOPS_RATIO * self._qdldl_flops():
+        variable_blocks, self._variable_blocks = self._variable_blocks, None
+        assert variable_blocks is not None
+        blocks = [self._scalars(np.asarray(ids, dtype=np.int64)) for ids in variable_blocks]
+        budget = BLOCK_FLOPS_RATIO * self._qdldl_flops()
+        if sum(len(b) ** 3 / 3.0 for b in blocks) > budget:  # the diagonal blocks alone
+            return
+        degree = _block_degrees(self.indptr, self.indices, blocks, self.n)
+        pattern = BlockPattern(self.indptr, self.indices, blocks, int(np.argmax(degree)))
+        if factor_flops(pattern) <= budget:
             self.block_pattern = pattern
-        self._scalar_blocks = None
+
+    def _scalars(self, ids: IntArray) -> IntArray:
+        """The scalar positions of variables ``ids``, in order."""
+        problem = self.problem
+        dims = problem._dims[ids]
+        starts = np.repeat(problem.offsets[ids] - np.cumsum(dims) + dims, dims)
+        return starts + np.arange(int(dims.sum()))
 
     def _qdldl_flops(self) -> float:
         """qdldl's multiply-adds on these equations, estimated from its factor of the graph of
