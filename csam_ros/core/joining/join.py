@@ -426,13 +426,16 @@ def joint_marginals(
             m.problem, views[0].system, {0: m.pose_ids}, {0: np.zeros((3, 3))}, views[0]
         )
     joint, aligned = solution.problem, solution.robots
-    system = factorize_at_estimate(joint)
-    first = joint.scalar_indices([int(solution.pose_ids[r][0]) for r in aligned])
-    blocks = covariance_block(system, first).reshape(len(aligned), 3, -1, 3)
-    base_cov = blocks[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
-    return JointMarginals(
-        joint, system, solution.pose_ids, dict(zip(aligned, base_cov, strict=True)), None
-    )
+    marginals = JointMarginals(joint, factorize_at_estimate(joint), solution.pose_ids, {}, None)
+    first = np.array([solution.pose_ids[r][0] for r in aligned], dtype=np.int64)
+    if marginals.system.block_factor is not None:  # its selected inverse holds them
+        base_cov = marginals.inverse.blocks(joint, first)
+    else:  # a few columns of the inverse, cheaper than qdldl's selected inverse
+        scalars = joint.scalar_indices(first)
+        blocks = covariance_block(marginals.system, scalars).reshape(len(aligned), 3, -1, 3)
+        base_cov = blocks[np.arange(len(aligned)), :, np.arange(len(aligned)), :]
+    marginals.base_covariances.update(zip(aligned, base_cov, strict=True))
+    return marginals
 
 
 def _at_local_estimate(solution: JointSolution, m: RobotMap, tolerance: float = 1e-6) -> bool:
