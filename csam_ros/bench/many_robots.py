@@ -17,11 +17,13 @@ lag of the local maps (``/csam/status`` and the bag, ``csam_ros.run.lag``), the 
 the live run, and the largest difference between the live and the offline joined maps.
 
 ``--offline``: the join alone, to 64 robots, each observing its neighbours at every sample
-(``--every 1``). Each N's scenario is written to a bag as ``csam simulate`` writes it (no DDS,
-no nodes) and the bag joined as ``csam replay BAG --offline`` joins it; per N the time of each
-stage of the join (summary.json ``timing_s``), the join alone (``total - local_maps``), and the
-growth exponent of each in N: the log-log slope between successive N and, fitted to them all,
-overall. ``--scenarios-only`` writes the scenario files and stops.
+(``--every 1``); up to 16 robots each bag is joined again by the dense path (``csam:
+alignment_method: dense-newton``) and the largest difference of the joined maps printed. Each
+N's scenario is written to a bag as ``csam simulate`` writes it (no DDS, no nodes) and the bag
+joined as ``csam replay BAG --offline`` joins it; per N the time of each stage of the join
+(summary.json ``timing_s``), the join alone (``total - local_maps``), and the growth exponent
+of each in N: the log-log slope between successive N and, fitted to them all, overall.
+``--scenarios-only`` writes the scenario files and stops.
 """
 
 from __future__ import annotations
@@ -295,11 +297,17 @@ class OfflineRow:
     timing_s: dict[str, float]  # summary.json's: each stage of the join, local_maps and total
     simulate_s: float  # the scenario to a bag, as csam simulate writes it
     replay_s: float  # the bag read and joined, as csam replay --offline (without figures)
+    dense: Difference | None = None  # the joined map against the dense path's (small N only)
 
     @property
     def join_s(self) -> float:
         """The join alone: every stage but the local maps."""
         return self.timing_s["total"] - self.timing_s["local_maps"]
+
+
+# robot counts up to which the offline benchmark also joins each bag by the dense path
+# (Algorithm 1 and the association's conditioning dense: csam alignment_method) to compare
+DENSE_ROBOTS = 16
 
 
 def run_offline(
@@ -323,6 +331,12 @@ def run_offline(
     replay_s = time.perf_counter() - start
     summary.write(out / "summary.json")
     result = summary.result
+    dense = None
+    if n <= DENSE_ROBOTS:
+        document = load_document(path)
+        document["csam"] = {**document.get("csam", {}), "alignment_method": "dense-newton"}
+        oracle, _ = offline_summary(out / "bag", document, progress=lambda _: None)
+        dense = joined_difference(result, oracle.result)
     return OfflineRow(
         robots=n,
         pairs_meeting=meeting,
@@ -335,6 +349,7 @@ def run_offline(
         timing_s=dict(result.timing_s),
         simulate_s=simulate_s,
         replay_s=replay_s,
+        dense=dense,
     )
 
 
@@ -345,6 +360,7 @@ def format_offline_row(row: OfflineRow) -> str:
         f"{row.pairs_meeting}/{row.pairs}, {row.rendezvous} rendezvous, {row.features} "
         f"features, {row.associations} associations; bag of {row.messages} messages in "
         f"{row.simulate_s:.1f} s, replay {row.replay_s:.1f} s, join {row.join_s:.2f} s"
+        + ("" if row.dense is None else f"; against the dense path {row.dense}")
     )
 
 

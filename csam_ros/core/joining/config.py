@@ -45,6 +45,13 @@ class CsamConfig(Section):
     skip_missing_poses: bool = setting(
         False, "leave out rendezvous measurements without a local-map pose", node=MERGER
     )
+    alignment_method: str = setting(
+        "auto",
+        "Algorithm 1's solver and with it Algorithm 2's conditioning: 'auto' (sparse), "
+        "'dense-newton' (both dense: the tests' oracle, small teams only)",
+        choices=("auto", "dense-newton"),
+        node=MERGER,
+    )
     max_iterations: int = setting(
         100, "iterations of Algorithm 1 and of the joint solve", **_POSITIVE
     )
@@ -132,6 +139,7 @@ class CsamConfig(Section):
             max_iterations=self.max_iterations,
             step_tolerance=self.step_tolerance,
             relative_tolerance=self.relative_tolerance,
+            method=self.alignment_method,
         )
 
     def consistency_options(self) -> ConsistencyOptions:
