@@ -237,6 +237,18 @@ class _Free:
         return (self.position - grow).min(axis=0), (self.position + grow).max(axis=0)
 
 
+def _meeting_pairs(
+    robots: list[int], every: Mapping[int, _Free], root_gate: float
+) -> list[tuple[int, int]]:
+    """The robot pairs ``(a, c)``, ``a < c`` in ``robots``' order, whose features can meet:
+    their boxes (:meth:`_Free.reach`, all of each robot's features) overlap, all at once."""
+    boxes = np.array([np.concatenate(every[r].reach(root_gate)) for r in robots])  # lo, hi
+    overlap = np.all(boxes[:, None, :2] <= boxes[None, :, 2:], axis=2)
+    overlap &= overlap.T
+    a, c = np.nonzero(np.triu(overlap, 1))
+    return [(robots[i], robots[j]) for i, j in zip(a.tolist(), c.tolist(), strict=True)]
+
+
 def _may_meet(fa: _Free, fc: _Free, root_gate: float) -> bool:
     """Whether any pair of ``fa`` and ``fc`` can be within the gate's radius: the boxes of
     positions, each grown by ``sqrt(xi)`` times its own spread, overlap (exact)."""
@@ -344,7 +356,7 @@ def associate(
         every = {r: _Free.of(g, np.arange(len(g.labels)), state) for r, g in glob.items()}
         matched = _joined_with(accepted)
         found: dict[tuple[int, int], tuple[IntArray, IntArray]] = {}
-        for a, c in robot_pairs:
+        for a, c in _meeting_pairs(robots, every, root_gate):
             free_a = every[a].without(matched.get((a, c), []))
             free_c = every[c].without(matched.get((c, a), []))
             if not _may_meet(free_a, free_c, root_gate):
