@@ -449,9 +449,7 @@ def condition_dense(
     rows = h.reshape(2 * k, d)
     hp = rows @ prior_covariance
     a_mat = rows @ hp.T
-    innovation = a_mat.copy()
-    for m in range(k):
-        innovation[2 * m : 2 * m + 2, 2 * m : 2 * m + 2] += noise[m]
+    innovation = a_mat + _block_diagonal(noise)
     factor = cho_factor(0.5 * (innovation + innovation.T))
     gain_t = cho_solve(factor, hp)
     shift = -gain_t.T @ nu.reshape(-1)
