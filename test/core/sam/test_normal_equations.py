@@ -132,3 +132,17 @@ def test_variable_blocks_factor_by_blocks_where_cheaper(monkeypatch) -> None:
         rhs = np.random.default_rng(0).normal(size=system.n)
         expected = np.linalg.solve(system.full_matrix().toarray(), rhs)
         np.testing.assert_allclose(system.solve(rhs), expected, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("blocks", [[[0], [1]], [[0, 1]]])
+def test_a_singular_problem_by_blocks_is_named_as_by_qdldl(monkeypatch, blocks) -> None:
+    import csam_ros.core.sam.normal_equations as normal_equations
+
+    monkeypatch.setattr(normal_equations, "BLOCK_FLOPS_RATIO", 1e9)
+    p, ids = chain(2)
+    p.add_factor(PosePrior(ids[:1], np.zeros((1, 3)), np.eye(3)))
+    p.add_factor(RelativePosition(ids[:1], ids[1:], [[1.0, 0.0]], np.eye(2)))
+    p.variable_blocks = [np.asarray(b) for b in blocks]
+    with pytest.raises(SingularProblemError, match=r"\('x', 1\).*rank 2 < 3"):
+        p.solve()
+    assert p.normal_equations().block_pattern is not None
