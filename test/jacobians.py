@@ -6,6 +6,7 @@ test/conftest.py puts this folder on ``sys.path``, so a test imports it as ``jac
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -59,3 +60,15 @@ def numeric_block_jacobians(
         return partial
 
     return [numeric_jacobian(varying(j), b, eps, angles) for j, b in enumerate(values)]
+
+
+def numeric_hessian(system: Any, x: ArrayLike, eps: float = 1e-5) -> Array:
+    """Central differences of the gradient ``A^T r`` of normal equations ``system``
+    (:class:`~csam_ros.core.sam.normal_equations.NormalEquations`) at ``x``: the cost's
+    Hessian, columns by scalar."""
+
+    def gradient(values: Array) -> Array:
+        system.linearize(values)
+        return system.gradient.copy()
+
+    return numeric_jacobian(gradient, x, eps)

@@ -15,25 +15,12 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from csam_ros.core.joining.connector import Connector
-from csam_ros.core.sam.factors import Factor
+from csam_ros.core.joining.sparse_newton import factor_columns
 from csam_ros.core.sam.normal_equations import NormalEquations, SingularProblemError
 from csam_ros.core.sam.solver import Problem, SolveReport, SolverOptions, minimise
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-
-def _factor_columns(problem: Problem, factor: Factor) -> tuple[IntArray, list[int]]:
-    """Scalar columns (K, D) of each factor's variables and the split points of its blocks."""
-    dims = [k.dim for k in factor.kinds]
-    cols = np.concatenate(
-        [
-            problem.offsets[factor.variables[:, j]][:, None] + np.arange(d)
-            for j, d in enumerate(dims)
-        ],
-        axis=1,
-    )
-    return cols, list(np.cumsum(dims)[:-1])
 
 
 def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
@@ -44,7 +31,7 @@ def _connector_curvature(problem: Problem, values: Array, n: int) -> Array:
     for factor in problem.factors:
         if not isinstance(factor, Connector):
             continue
-        cols, splits = _factor_columns(problem, factor)
+        cols, splits = factor_columns(problem, factor)
         curvature = factor.curvature(np.split(values[cols], splits, axis=1))
         rows = np.broadcast_to(cols[:, :, None], curvature.shape)
         np.add.at(out, (rows, np.broadcast_to(cols[:, None, :], curvature.shape)), curvature)

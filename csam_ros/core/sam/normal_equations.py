@@ -32,7 +32,7 @@ from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from csam_ros.core.sam.block_cholesky import BlockFactor, BlockPattern, block_cholesky, factor_flops
 from csam_ros.core.sam.factors import Factor
@@ -56,6 +56,8 @@ class ProblemStructure(Protocol):
     _dims: IntArray  # scalars of each variable
     factors: list[Factor]
     variable_blocks: list[IntArray] | None  # variables grouped for a block factorisation
+
+    def scalar_indices(self, ids: ArrayLike) -> IntArray: ...
 
     @property
     def dim(self) -> int: ...
@@ -369,7 +371,7 @@ class NormalEquations:
         trajectories) qdldl does. Decided once, from the structure alone."""
         variable_blocks, self._variable_blocks = self._variable_blocks, None
         assert variable_blocks is not None
-        blocks = [self._scalars(np.asarray(ids, dtype=np.int64)) for ids in variable_blocks]
+        blocks = [self.problem.scalar_indices(ids) for ids in variable_blocks]
         budget = BLOCK_FLOPS_RATIO * self._qdldl_flops()
         if sum(len(b) ** 3 / 3.0 for b in blocks) > budget:  # the diagonal blocks alone
             return
@@ -377,13 +379,6 @@ class NormalEquations:
         pattern = BlockPattern(self.indptr, self.indices, blocks, int(np.argmax(degree)))
         if factor_flops(pattern) <= budget:
             self.block_pattern = pattern
-
-    def _scalars(self, ids: IntArray) -> IntArray:
-        """The scalar positions of variables ``ids``, in order."""
-        problem = self.problem
-        dims = problem._dims[ids]
-        starts = np.repeat(problem.offsets[ids] - np.cumsum(dims) + dims, dims)
-        return starts + np.arange(int(dims.sum()))
 
     def _qdldl_flops(self) -> float:
         """qdldl's multiply-adds on these equations, estimated from its factor of the graph of

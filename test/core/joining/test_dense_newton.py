@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from jacobians import numeric_hessian
 
 from csam_ros.core.joining.connector import BASE_NODE, Connector
 from csam_ros.core.joining.dense_newton import _connector_curvature, _dense_information
@@ -41,14 +42,6 @@ def test_newton_matrix_is_the_hessian_of_the_cost() -> None:
     x = problem.values.copy()
     system.linearize(x)
     newton = _dense_information(system) + _connector_curvature(problem, x, problem.dim)
-    numeric = np.empty_like(newton)
-    h = 1e-5
-    for j in range(problem.dim):
-        step = np.zeros(problem.dim)
-        step[j] = h
-        system.linearize(x + step)
-        plus = system.gradient.copy()
-        system.linearize(x - step)
-        numeric[:, j] = (plus - system.gradient) / (2 * h)
+    numeric = numeric_hessian(system, x)
     assert np.abs(_connector_curvature(problem, x, problem.dim)).max() > 1.0  # not trivial
     np.testing.assert_allclose(newton, numeric, atol=1e-4 * np.abs(numeric).max())

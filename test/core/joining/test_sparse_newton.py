@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from jacobians import numeric_hessian
 
 from csam_ros.core.joining.connector import BASE_NODE, Connector
 from csam_ros.core.joining.dense_newton import dense_newton
@@ -65,15 +66,7 @@ def test_newton_matrix_on_the_pattern_is_the_hessian_of_the_cost() -> None:
     step = SparseNewtonStep(problem, system, block_pattern(system, blocks))
     step.relinearised()
     newton = _symmetric(step.information + step.curvature, system)
-    numeric = np.empty_like(newton)
-    h = 1e-5
-    for j in range(problem.dim):
-        shift = np.zeros(problem.dim)
-        shift[j] = h
-        system.linearize(x + shift)
-        plus = system.gradient.copy()
-        system.linearize(x - shift)
-        numeric[:, j] = (plus - system.gradient) / (2 * h)
+    numeric = numeric_hessian(system, x)
     assert np.abs(step.curvature).max() > 1.0  # not trivial
     np.testing.assert_allclose(newton, numeric, atol=1e-4 * np.abs(numeric).max())
 
