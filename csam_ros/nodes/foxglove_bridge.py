@@ -37,6 +37,7 @@ import foxglove
 from foxglove.websocket import Capability, ChannelView, Client
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -300,7 +301,9 @@ class FoxgloveBridge(Node):
 
 def main(args: list[str] | None = None) -> int:
     try:
-        return run_node(FoxgloveBridge, args, __doc__)
+        # its websocket threads wake the executor by a guard condition, which Jazzy's
+        # EventsExecutor does not serve (its clients got no answer)
+        return run_node(FoxgloveBridge, args, __doc__, SingleThreadedExecutor)
     except (ServeError, ValueError, InvalidParameterValueException) as error:
         print(f"{NODE_NAME}: {error}", file=sys.stderr)
         return 1

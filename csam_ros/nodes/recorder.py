@@ -33,7 +33,6 @@ from rclpy.event_handler import (
     QoSRequestedIncompatibleQoSInfo,
     SubscriptionEventCallbacks,
 )
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
@@ -41,7 +40,7 @@ from rclpy.utilities import remove_ros_args
 
 from csam_ros.bag import BagError, BagWriter, message_class, subscription_qos
 from csam_ros.bag.types import UnknownMessageTypeError
-from csam_ros.nodes.common import run_rclpy, stop_on_signals, watch_parameters
+from csam_ros.nodes.common import make_executor, run_rclpy, stop_on_signals, watch_parameters
 
 MAX_HELD_BACK = 100_000  # messages kept while waiting for the first /clock under sim time
 
@@ -194,7 +193,7 @@ def main(args: Sequence[str] | None = None) -> int:
     stop = stop_on_signals()
 
     def record(node: RecorderNode) -> int:
-        executor = SingleThreadedExecutor()
+        executor = make_executor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
