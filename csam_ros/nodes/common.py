@@ -281,7 +281,7 @@ EXECUTOR_VARIABLE = "CSAM_EXECUTOR"  # environment: "events" (the default) or "s
 def make_executor() -> Executor:
     """The executor a csam_ros process spins its node with: rclpy's EventsExecutor (its
     waiting and dispatch in C++), or the SingleThreadedExecutor with ``CSAM_EXECUTOR=single``.
-    A raw subscription among 40 cost 37 us of CPU per message in the first and 620 us in the
+    A raw subscription among 40 cost 54 us of CPU per message in the first and 956 us in the
     second (``python -m csam_ros.bench.executors``): the recorder of a five-robot run was a
     core's 44 % busy taking its 700 messages a second."""
     kind = os.environ.get(EXECUTOR_VARIABLE, "events")
