@@ -29,6 +29,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.clock import Clock, ClockType
+from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -278,7 +279,7 @@ def guarded(node: Node, drops: DropCounter, callback: Callable[..., T]) -> Calla
 EXECUTOR_VARIABLE = "CSAM_EXECUTOR"  # environment: "events" (the default) or "single"
 
 
-def make_executor() -> Executor:
+def make_executor(context: Context | None = None) -> Executor:
     """The executor a csam_ros process spins its node with: rclpy's EventsExecutor (its
     waiting and dispatch in C++), or the SingleThreadedExecutor with ``CSAM_EXECUTOR=single``.
     A raw subscription among 40 cost 54 us of CPU per message in the first and 956 us in the
@@ -286,12 +287,12 @@ def make_executor() -> Executor:
     core's 44 % busy taking its 700 messages a second."""
     kind = os.environ.get(EXECUTOR_VARIABLE, "events")
     if kind == "single":
-        return SingleThreadedExecutor()
+        return SingleThreadedExecutor(context=context)
     if kind != "events":
         raise ValueError(f"{EXECUTOR_VARIABLE}={kind!r}: expected 'events' or 'single'")
     from rclpy.experimental import EventsExecutor
 
-    return EventsExecutor()
+    return EventsExecutor(context=context)
 
 
 def run_node(
