@@ -19,7 +19,10 @@ sample (1,917 unknowns) 0.015 s, 0.027 s, 0.072 s; a ring of 32 (5,949 unknowns)
 0.45 s, 1.7 s.
 
 With the base nodes last, their joint covariance is ``(L_BB L_BB^T)^-1`` (the last block of
-the inverse needs only the last block of the factor).
+the inverse needs only the last block of the factor). The kernels are BLAS's and LAPACK's own
+(``potrf``, ``trsm``, ``syrk`` for the half of a diagonal update that is kept, ``potri``),
+updates go to views where a block's rows are a range, and the selected inverse can stay on the
+factor's rows (:meth:`BlockFactor.selected_inverse_rows`, what the joint marginals need).
 """
 
 from __future__ import annotations
@@ -29,14 +32,39 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
+from scipy.linalg.blas import dsyrk, dtrsm
 from scipy.linalg.lapack import dlauum, dpotrf, dpotri, dtrtri
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+Index = slice | IntArray
 
 # a Cholesky pivot whose square is at most this fraction of its diagonal entry counts as zero
 # (as in the sparse normal equations and the dense oracle)
 PIVOT_TOLERANCE = 1e-14
+
+
+def _rows(rows: IntArray) -> Index:
+    """``rows`` (ascending) as a slice where they are a contiguous range: a view, not a copy."""
+    if len(rows) and rows[-1] - rows[0] + 1 == len(rows):
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
+
+
+def _subtract(target: Array, rows: IntArray, cols: IntArray, update: Array) -> None:
+    """``target[rows][:, cols] -= update`` in place (views where the indices are ranges)."""
+    r, c = _rows(rows), _rows(cols)
+    if isinstance(r, slice) and isinstance(c, slice):
+        target[r, c] -= update
+    else:
+        target[np.ix_(rows, cols)] -= update
+
+
+def _right_solve(lower: Array, rhs: Array, transposed: bool) -> Array:
+    """``rhs L^-T`` (``transposed``) or ``rhs L^-1`` for lower-triangular ``L`` (BLAS trsm)."""
+    if not len(rhs):
+        return np.zeros((0, len(lower)))
+    return dtrsm(1.0, lower, rhs, side=1, lower=1, trans_a=int(transposed))
 
 
 def _elimination_order(edges: set[tuple[int, int]], count: int, last: int) -> list[int]:
@@ -166,36 +194,63 @@ class BlockFactor:
 
     def selected_inverse(self) -> dict[tuple[int, int], Array]:
         """The inverse's blocks on the factor's pattern (``(i, j)``, ``i >= j`` in elimination
-        order; diagonal blocks whole), by the block form of Takahashi's recurrence from the
-        last block back: with ``W_jk = L_jk L_kk^-1`` on the blocks ``j`` below ``k``,
-        ``Sigma_ik = -sum_j Sigma_ij W_jk`` and ``Sigma_kk = (L_kk L_kk^T)^-1 - sum_j W_jk^T
-        Sigma_jk``. The blocks ``Sigma_ij`` it needs are on the pattern (the fill makes the
-        blocks below one column a clique), so the cost follows the factor's, not ``n^3``."""
-        inverse: dict[tuple[int, int], Array] = {}
+        order, each whole), by the block form of Takahashi's recurrence from the last block
+        back: with ``W_jk = L_jk L_kk^-1`` on the blocks ``j`` below ``k``, ``Sigma_ik = -sum_j
+        Sigma_ij W_jk`` and ``Sigma_kk = (L_kk L_kk^T)^-1 - sum_j W_jk^T Sigma_jk``. The blocks
+        ``Sigma_ij`` it needs are on the pattern (the fill makes the blocks below one column a
+        clique), so the cost follows the factor's, not ``n^3``."""
+        return self._takahashi(whole=True)[0]
 
-        def entry(i: int, j: int) -> Array:
-            return inverse[i, j] if i >= j else inverse[j, i].T
+    def selected_inverse_rows(
+        self,
+    ) -> tuple[dict[tuple[int, int], Array], dict[tuple[int, int], IntArray]]:
+        """:meth:`selected_inverse` on the factor's nonzero rows only: ``Sigma_ik`` (``i > k``)
+        on the rows of ``L_ik`` (by ``held[i, k]``), the diagonal blocks whole. The recurrence
+        needs no other rows (the rows of a block below a column are among those of the blocks
+        its update fills), so it does a third less work where the coupling is partial."""
+        return self._takahashi(whole=False)
+
+    def _takahashi(
+        self, whole: bool
+    ) -> tuple[dict[tuple[int, int], Array], dict[tuple[int, int], IntArray]]:
+        """The selected inverse's blocks and the rows each off-diagonal block holds."""
+        sizes = self.pattern.sizes
+        inverse: dict[tuple[int, int], Array] = {}
+        held: dict[tuple[int, int], IntArray] = {}
+
+        def part(i: int, j: int, rows: IntArray, cols: Index) -> Array:
+            """``Sigma_ij[rows, cols]``."""
+            if i == j:
+                return inverse[i, i][_rows(rows)][:, cols]
+            if i < j:  # Sigma_ij = Sigma_ji^T
+                return part(j, i, np.arange(sizes[j])[cols], _rows(rows)).T
+            at = np.searchsorted(held[i, j], rows)
+            if not np.array_equal(held[i, j][np.minimum(at, len(held[i, j]) - 1)], rows):
+                raise np.linalg.LinAlgError(f"rows of block ({i}, {j}) not on the factor's pattern")
+            return inverse[i, j][_rows(at)][:, cols]
 
         for k in range(len(self.diagonal) - 1, -1, -1):
             lkk = self.diagonal[k]
-            identity = np.eye(len(lkk))
-            inv_l = solve_triangular(lkk, identity, lower=True, check_finite=False)
-            diagonal = inv_l.T @ inv_l
+            diagonal, info = dpotri(lkk, lower=1)  # (L_kk L_kk^T)^-1, its lower triangle
+            if info != 0:
+                raise np.linalg.LinAlgError(f"a block's inverse failed (LAPACK info {info})")
+            diagonal = np.tril(diagonal) + np.tril(diagonal, -1).T
             below = [
-                (i, rows, solve_triangular(lkk, lik.T, lower=True, trans="T", check_finite=False).T)
+                (i, rows, _right_solve(lkk, lik, transposed=False))
                 for i, rows, lik in self.below[k]
             ]
-            for i, _, _ in below:
-                column = np.zeros((self.pattern.sizes[i], len(lkk)))
+            for i, rows_i, _ in below:
+                wanted = np.arange(sizes[i]) if whole else rows_i
+                column = np.zeros((len(wanted), len(lkk)))
                 for j, rows_j, wjk in below:
-                    if len(rows_j):
-                        column -= entry(i, j)[:, rows_j] @ wjk
-                inverse[i, k] = column
+                    if len(wjk) and len(wanted):
+                        column -= part(i, j, wanted, _rows(rows_j)) @ wjk
+                inverse[i, k], held[i, k] = column, wanted
             for j, rows_j, wjk in below:
-                if len(rows_j):
-                    diagonal -= wjk.T @ inverse[j, k][rows_j]
+                if len(wjk):
+                    diagonal -= wjk.T @ part(j, k, rows_j, slice(None))
             inverse[k, k] = 0.5 * (diagonal + diagonal.T)
-        return inverse
+        return inverse, held
 
     def dense_inverse(self) -> Array:
         """The whole inverse (n, n), problem order: ``L^-1`` (LAPACK ``trtri``) then
@@ -247,6 +302,7 @@ def factor_blocks(
             columns[b].add(a)
     diagonal: list[Array] = []
     below: list[list[tuple[int, IntArray, Array]]] = []
+    filled: dict[tuple[int, int], NDArray[np.bool_]] = {}  # rows an update reached
     for k in range(count):
         # the block is symmetric: its transpose is the Fortran-ordered array LAPACK takes
         lkk, info = dpotrf(blocks.pop((k, k)).T, lower=1, clean=1, overwrite_a=1)
@@ -256,20 +312,28 @@ def factor_blocks(
         column: list[tuple[int, IntArray, Array]] = []
         for i in sorted(columns[k]):
             hik = blocks.pop((i, k))
-            rows = np.flatnonzero(np.any(hik != 0.0, axis=1))
-            lik = solve_triangular(lkk, hik[rows].T, lower=True, check_finite=False).T
-            column.append((i, rows, lik))
+            nonzero = np.any(hik != 0.0, axis=1)
+            if (i, k) in filled:  # kept even where the update cancelled to zero
+                nonzero |= filled.pop((i, k))
+            rows = np.flatnonzero(nonzero)
+            part = hik if len(rows) == len(hik) else hik[rows]
+            column.append((i, rows, _right_solve(lkk, part, transposed=True)))
         for a, (i, rows_i, lik) in enumerate(column):
             for j, rows_j, ljk in column[: a + 1]:
-                update = lik @ ljk.T
                 target = blocks.get((i, j))
                 if target is None:  # i > j: diagonal blocks are never missing
                     target = blocks[i, j] = np.zeros((pattern.sizes[i], pattern.sizes[j]))
                     columns[j].add(i)
-                if len(rows_i) == pattern.sizes[i] and len(rows_j) == pattern.sizes[j]:
-                    target -= update
-                elif len(rows_i) and len(rows_j):
-                    target[np.ix_(rows_i, rows_j)] -= update
+                if not (len(rows_i) and len(rows_j)):
+                    continue
+                if i != j:
+                    filled.setdefault((i, j), np.zeros(pattern.sizes[i], dtype=bool))[rows_i] = True
+                if i == j:  # half the work: the lower triangle, mirrored
+                    update = dsyrk(1.0, lik, lower=1)
+                    update += np.tril(update, -1).T
+                else:
+                    update = lik @ ljk.T
+                _subtract(target, rows_i, rows_j, update)
         below.append(column)
     return BlockFactor(pattern, diagonal, below)
 

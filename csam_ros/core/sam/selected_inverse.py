@@ -224,16 +224,22 @@ class _SupernodeShape:
 
 class BlockInverse(_MarginalBlocks):
     """Entries of the inverse of the matrix factored by a :class:`BlockFactor`, on its
-    pattern (:meth:`BlockFactor.selected_inverse`), asked for in the problem's scalar order."""
+    pattern (:meth:`BlockFactor.selected_inverse_rows`: the diagonal blocks whole, the others
+    on the factor's nonzero rows), asked for in the problem's scalar order."""
 
     def __init__(self, factor: BlockFactor) -> None:
         pattern = factor.pattern
-        self._inverse = factor.selected_inverse()
+        self._inverse, held = factor.selected_inverse_rows()
         self._position = np.empty(pattern.n, dtype=np.int64)
         self._local = np.empty(pattern.n, dtype=np.int64)
         for p, scalars in enumerate(pattern.scalars):
             self._position[scalars] = p
             self._local[scalars] = np.arange(len(scalars))
+        self._row_at: dict[tuple[int, int], IntArray] = {}  # block row -> stored row, or -1
+        for key, rows in held.items():
+            at = np.full(pattern.sizes[key[0]], -1, dtype=np.int64)
+            at[rows] = np.arange(len(rows))
+            self._row_at[key] = at
 
     def entries(self, rows: IntArray, cols: IntArray) -> Array:
         """``Z[rows, cols]`` (pairs, the problem's scalar order) for pairs on the pattern."""
@@ -248,10 +254,12 @@ class BlockInverse(_MarginalBlocks):
         key = hi * len(self._local) + lo
         for value in np.unique(key):
             sel = key == value
-            block = self._inverse.get(
-                (int(value // len(self._local)), int(value % len(self._local)))
-            )
-            if block is None:
+            pair = (int(value // len(self._local)), int(value % len(self._local)))
+            block = self._inverse.get(pair)
+            at = hi_local[sel]
+            if block is not None and pair in self._row_at:
+                at = self._row_at[pair][at]
+            if block is None or np.any(at < 0):
                 raise ValueError("requested covariance entries are not on the factor's pattern")
-            out[sel] = block[hi_local[sel], lo_local[sel]]
+            out[sel] = block[at, lo_local[sel]]
         return out

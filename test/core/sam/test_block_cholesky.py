@@ -15,6 +15,7 @@ from csam_ros.core.sam.block_cholesky import (
     factor_blocks,
     factor_flops,
 )
+from csam_ros.core.sam.selected_inverse import BlockInverse
 
 
 def _ring_matrix(rng: np.random.Generator, sizes: list[int], last: int) -> np.ndarray:
@@ -100,6 +101,46 @@ def test_selected_inverse_equals_the_dense_inverse_on_the_pattern(ring) -> None:
     scale = max(np.abs(b).max() for b in expected.values())
     for key, block in expected.items():
         np.testing.assert_allclose(selected[key], block, atol=1e-10 * scale, err_msg=str(key))
+
+
+def test_selected_inverse_on_rows_equals_the_dense_inverse_on_the_factors_rows(ring) -> None:
+    matrix, pattern, data = ring
+    factor = block_cholesky(pattern, data)
+    assert factor is not None
+    selected, held = factor.selected_inverse_rows()
+    inverse = np.linalg.inv(matrix)
+    scale = np.abs(inverse).max()
+    partial = 0
+    for k, column in enumerate(factor.below):
+        for i, rows, _ in column:
+            np.testing.assert_array_equal(held[i, k], rows)
+            partial += len(rows) < pattern.sizes[i]
+            expected = inverse[np.ix_(pattern.scalars[i][rows], pattern.scalars[k])]
+            np.testing.assert_allclose(selected[i, k], expected, atol=1e-10 * scale)
+    assert partial  # some blocks held on part of their rows
+    for k, scalars in enumerate(pattern.scalars):
+        expected = inverse[np.ix_(scalars, scalars)]
+        np.testing.assert_allclose(selected[k, k], expected, atol=1e-10 * scale)
+
+
+def test_block_inverse_entries_off_the_factors_rows_are_refused(ring) -> None:
+    matrix, pattern, data = ring
+    factor = block_cholesky(pattern, data)
+    assert factor is not None
+    inverse = BlockInverse(factor)
+    k, (i, rows, _) = next(
+        (k, entry)
+        for k, column in enumerate(factor.below)
+        for entry in column
+        if len(entry[1]) < pattern.sizes[entry[0]]
+    )
+    on, off = rows[0], np.setdiff1d(np.arange(pattern.sizes[i]), rows)[0]
+    first = pattern.scalars[k][0]
+    expected = np.linalg.inv(matrix)[pattern.scalars[i][on], first]
+    got = inverse.entries(np.array([pattern.scalars[i][on]]), np.array([first]))
+    np.testing.assert_allclose(got, [expected], atol=1e-10 * np.abs(expected))
+    with pytest.raises(ValueError, match="not on the factor's pattern"):
+        inverse.entries(np.array([pattern.scalars[i][off]]), np.array([first]))
 
 
 def test_a_zero_block_given_stays_in_the_structure(ring) -> None:
