@@ -63,6 +63,7 @@ from csam_ros.core.joining.match_conditioning import (
     SparseConditioning,
     StateInformation,
     condition_dense,
+    stacked_product,
 )
 from csam_ros.core.joining.state_covariance import FactoredStateCovariance
 from csam_ros.core.model import se2
@@ -137,8 +138,8 @@ class _GlobalFeatures:
         """Mean (K, 2) and covariance (K, 2, 2) of global positions ``idx`` given the state."""
         g = self.compact[idx]
         sub = state.block(self.columns, self.columns)
-        pos = self.position[idx] + g @ state.shift[self.columns]
-        cov = g @ sub @ g.transpose(0, 2, 1) + self.noise[idx]
+        pos = self.position[idx] + stacked_product(g, state.shift[self.columns])
+        cov = np.einsum("kim,kjm->kij", stacked_product(g, sub), g) + self.noise[idx]
         return pos, 0.5 * (cov + cov.swapaxes(1, 2))
 
 
@@ -193,7 +194,7 @@ def _pair_distances(
     pa, va = ga.moments(state, ua)
     pc, vc = gc.moments(state, uc)
     sigma_ac = state.block(ga.columns, gc.columns)
-    left = ga.compact[ua] @ sigma_ac  # (A, 2, m_c)
+    left = stacked_product(ga.compact[ua], sigma_ac)  # (A, 2, m_c)
     right = gc.compact[uc]  # (C, 2, m_c)
     for lo in range(0, len(ia), chunk):
         a, c = inv_a[lo : lo + chunk], inv_c[lo : lo + chunk]

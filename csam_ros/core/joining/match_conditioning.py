@@ -50,6 +50,13 @@ class RobotGains(Protocol):
     columns: IntArray  # (m,) state columns
 
 
+def stacked_product(stack: Array, matrix: Array) -> Array:
+    """``stack @ matrix`` for a stack (..., p, m) and one matrix (m, n) or vector (m,), as one
+    BLAS product (NumPy's ``@`` would multiply each matrix of the stack on its own)."""
+    flat = stack.reshape(-1, stack.shape[-1]) @ matrix
+    return flat.reshape(*stack.shape[:-1], *matrix.shape[1:])
+
+
 # a match: robot a, its feature index i, robot c, its feature index j
 MatchIndex = tuple[int, int, int, int]
 
@@ -299,7 +306,7 @@ class SparseConditioning:
             if missing:
                 h = pair.h[missing]
                 sigma = self._uncorrected.block(pair.cols, pair.cols)
-                product = (h.reshape(-1, h.shape[2]) @ sigma).reshape(h.shape)
+                product = stacked_product(h, sigma)
                 explained = np.einsum("kim,kjm->kij", product, h)
                 self._explained.update(
                     (keys[i], e) for i, e in zip(missing, explained, strict=True)
@@ -307,9 +314,9 @@ class SparseConditioning:
             explained = np.stack([self._explained[key] for key in keys])
             if correction is not None:
                 u, c = correction
-                t = pair.h @ u[pair.cols]  # (K, 2, 2X)
-                explained = explained + t @ c @ t.transpose(0, 2, 1)
-            resid = pair.nu + pair.h @ state.shift[pair.cols]
+                t = stacked_product(pair.h, u[pair.cols])  # (K, 2, 2X)
+                explained = explained + np.einsum("kim,kjm->kij", stacked_product(t, c), t)
+            resid = pair.nu + stacked_product(pair.h, state.shift[pair.cols])
             v = pair.noise - 0.5 * (explained + explained.swapaxes(1, 2))
             loo[pair.index] = np.einsum(
                 "ki,ki->k", resid, np.linalg.solve(v, resid[:, :, None])[:, :, 0]

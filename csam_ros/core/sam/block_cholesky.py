@@ -109,8 +109,9 @@ class BlockPattern:
         rows = np.asarray(indices, dtype=np.int64)
         cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(np.asarray(indptr, np.int64)))
         row_block, col_block = block_of[rows], block_of[cols]
-        pairs = np.unique(row_block * len(blocks) + col_block)
-        edges = {(int(p // len(blocks)), int(p % len(blocks))) for p in pairs}
+        count = len(blocks)
+        pairs = np.flatnonzero(np.bincount(row_block * count + col_block, minlength=count**2))
+        edges = {(int(p // count), int(p % count)) for p in pairs}
         order = _elimination_order(edges, len(blocks), last)
         position = np.empty(len(blocks), dtype=np.int64)
         position[order] = np.arange(len(blocks))
@@ -127,7 +128,9 @@ class BlockPattern:
         width = np.asarray(self.sizes, dtype=np.int64)[j]
         flat = li * width + lj
         self._entries: dict[tuple[int, int], tuple[IntArray, IntArray]] = {}
-        key = i * len(blocks) + j
+        key = i * count + j
+        if count**2 <= np.iinfo(np.int16).max:  # NumPy sorts 16-bit keys by radix: O(entries)
+            key = key.astype(np.int16)
         by_pair = np.argsort(key, kind="stable")
         cuts = np.flatnonzero(np.diff(key[by_pair])) + 1
         for group in np.split(by_pair, cuts):
@@ -170,12 +173,13 @@ class BlockFactor:
     def solve(self, rhs: Array) -> Array:
         """``x`` with ``L L^T x = rhs`` (rhs (n,) or (n, m), the problem's scalar order)."""
         parts = [np.array(rhs[s], dtype=float) for s in self.pattern.scalars]
+        below = [[(i, _rows(rows), lik) for i, rows, lik in column] for column in self.below]
         for k, lkk in enumerate(self.diagonal):
             parts[k] = solve_triangular(lkk, parts[k], lower=True, check_finite=False)
-            for i, rows, lik in self.below[k]:
+            for i, rows, lik in below[k]:
                 parts[i][rows] -= lik @ parts[k]
         for k in range(len(self.diagonal) - 1, -1, -1):
-            for i, rows, lik in self.below[k]:
+            for i, rows, lik in below[k]:
                 parts[k] -= lik.T @ parts[i][rows]
             parts[k] = solve_triangular(
                 self.diagonal[k], parts[k], lower=True, trans="T", check_finite=False

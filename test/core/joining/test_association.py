@@ -26,6 +26,7 @@ from csam_ros.core.joining.match_conditioning import (
     StateInformation,
     condition_dense,
     stack_dense,
+    stacked_product,
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.model.rendezvous import collect, required_stamps
@@ -168,6 +169,13 @@ def test_clusters_keep_one_feature_per_robot() -> None:
     assert result.clusters == [[(0, 10), (1, 20), (2, 30)], [(0, 12), (2, 31)]]
     assert result.rejected_conflicts == 1
     assert [m.mahalanobis for m in result.matches] == [1.0, 2.0, 4.0]
+
+
+def test_stacked_product_is_matmul_of_each_matrix() -> None:
+    rng = np.random.default_rng(3)
+    stack, matrix, vector = rng.normal(size=(4, 2, 5)), rng.normal(size=(5, 3)), rng.normal(size=5)
+    np.testing.assert_allclose(stacked_product(stack, matrix), stack @ matrix, atol=1e-14)
+    np.testing.assert_allclose(stacked_product(stack, vector), stack @ vector, atol=1e-14)
 
 
 def test_gate_must_be_positive() -> None:
