@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
 
@@ -270,11 +271,11 @@ class SparseConditioning:
             )
             return state, self._leave_one_out(pairs, rows, state, None)
         changed = added + removed
-        nu, h, noise = stack_dense(self.glob, changed, self.information.pattern.n)
-        flat = h.reshape(2 * len(changed), -1)  # H_X (2X, d)
+        nu, flat, noise = stack_sparse(self.glob, changed, self.information.pattern.n)  # H_X
         unknown = [k for k, m in enumerate(changed) if m not in self._columns]
         if unknown:
-            solved = self._solve(h[unknown].reshape(2 * len(unknown), -1).T)
+            unknown_rows = (2 * np.asarray(unknown)[:, None] + np.arange(2)).reshape(-1)
+            solved = self._solve(flat[unknown_rows].T.toarray())
             for n_, k in enumerate(unknown):
                 self._columns[changed[k]] = solved[:, 2 * n_ : 2 * n_ + 2]
         u = np.concatenate([self._columns[m] for m in changed], axis=1)  # Sigma_M H_X^T
@@ -440,6 +441,27 @@ def stack_dense(
         nu[pair.index], noise[pair.index] = pair.nu, pair.noise
         h[np.ix_(pair.index, [0, 1], pair.cols)] = pair.h
     return nu, h, noise
+
+
+def stack_sparse(
+    glob: dict[int, RobotGains], pairs: Sequence[MatchIndex], dim: int
+) -> tuple[Array, sp.csr_matrix, Array]:
+    """Residuals (K, 2), Jacobians on the whole state as one sparse (2K, dim) matrix (each
+    match's two rows on its two robots' columns only) and noise (K, 2, 2)."""
+    nu = np.empty((len(pairs), 2))
+    noise = np.empty((len(pairs), 2, 2))
+    rows, cols, values = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)], [nu[:0, 0]]
+    for pair in _match_rows(glob, pairs):
+        nu[pair.index], noise[pair.index] = pair.nu, pair.noise
+        own = (2 * pair.index[:, None] + np.arange(2)).reshape(-1)  # (2k,)
+        rows.append(np.repeat(own, len(pair.cols)))
+        cols.append(np.tile(pair.cols, len(own)))
+        values.append(pair.h.reshape(-1))
+    jacobian = sp.csr_matrix(
+        (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(2 * len(pairs), dim),
+    )
+    return nu, jacobian, noise
 
 
 def condition_dense(
