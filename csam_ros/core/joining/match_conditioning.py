@@ -450,7 +450,8 @@ def stack_sparse(
     match's two rows on its two robots' columns only) and noise (K, 2, 2)."""
     nu = np.empty((len(pairs), 2))
     noise = np.empty((len(pairs), 2, 2))
-    rows, cols, values = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)], [nu[:0, 0]]
+    none = np.zeros(0, dtype=np.int64)
+    rows, cols, values = [none], [none], [np.zeros(0)]  # concatenated: no match, no entry
     for pair in _match_rows(glob, pairs):
         nu[pair.index], noise[pair.index] = pair.nu, pair.noise
         own = (2 * pair.index[:, None] + np.arange(2)).reshape(-1)  # (2k,)

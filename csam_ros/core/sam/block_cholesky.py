@@ -211,7 +211,7 @@ class BlockFactor:
         """:meth:`selected_inverse` on the factor's nonzero rows only: ``Sigma_ik`` (``i > k``)
         on the rows of ``L_ik`` (by ``held[i, k]``), the diagonal blocks whole. The recurrence
         needs no other rows (the rows of a block below a column are among those of the blocks
-        its update fills), so it does a third less work where the coupling is partial."""
+        its update fills), so it does less work where the coupling is partial."""
         return self._takahashi(whole=False)
 
     def _takahashi(
