@@ -295,6 +295,14 @@ def make_executor(context: Context | None = None) -> Executor:
     return EventsExecutor(context=context)
 
 
+def spin_while_up(node: Node, executor: Executor, stop: threading.Event | None = None) -> None:
+    """Spin ``node`` on ``executor`` while rclpy is up and ``stop`` is not set, by
+    ``spin_once`` (``EventsExecutor.spin()`` outlives a shutdown)."""
+    executor.add_node(node)
+    while rclpy.ok(context=node.context) and not (stop is not None and stop.is_set()):
+        executor.spin_once(timeout_sec=0.1)
+
+
 def run_node(
     factory: Callable[[], Node],
     args: list[str] | None = None,
@@ -319,10 +327,7 @@ def run_node(
         return 0
 
     def spin(node: Node) -> int:
-        spinning = executor()
-        spinning.add_node(node)
-        while rclpy.ok(context=node.context):  # EventsExecutor.spin() outlives a shutdown
-            spinning.spin_once(timeout_sec=0.1)
+        spin_while_up(node, executor())
         return 0
 
     return run_rclpy(factory, spin, args)

@@ -26,7 +26,6 @@ from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 
-import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import (
     QoSMessageLostInfo,
@@ -40,7 +39,13 @@ from rclpy.utilities import remove_ros_args
 
 from csam_ros.bag import BagError, BagWriter, message_class, subscription_qos
 from csam_ros.bag.types import UnknownMessageTypeError
-from csam_ros.nodes.common import make_executor, run_rclpy, stop_on_signals, watch_parameters
+from csam_ros.nodes.common import (
+    make_executor,
+    run_rclpy,
+    spin_while_up,
+    stop_on_signals,
+    watch_parameters,
+)
 
 MAX_HELD_BACK = 100_000  # messages kept while waiting for the first /clock under sim time
 
@@ -193,10 +198,7 @@ def main(args: Sequence[str] | None = None) -> int:
     stop = stop_on_signals()
 
     def record(node: RecorderNode) -> int:
-        executor = make_executor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+        spin_while_up(node, make_executor(), stop)
         return 0
 
     def close(node: RecorderNode | None) -> None:

@@ -433,14 +433,10 @@ class DenseState:
 def stack_dense(
     glob: dict[int, RobotGains], pairs: Sequence[MatchIndex], dim: int
 ) -> tuple[Array, Array, Array]:
-    """Residuals (K, 2), Jacobians on the whole state (K, 2, dim) and noise (K, 2, 2)."""
-    nu = np.empty((len(pairs), 2))
-    h = np.zeros((len(pairs), 2, dim))
-    noise = np.empty((len(pairs), 2, 2))
-    for pair in _match_rows(glob, pairs):
-        nu[pair.index], noise[pair.index] = pair.nu, pair.noise
-        h[np.ix_(pair.index, [0, 1], pair.cols)] = pair.h
-    return nu, h, noise
+    """Residuals (K, 2), Jacobians on the whole state (K, 2, dim) and noise (K, 2, 2): the
+    dense form of :func:`stack_sparse`."""
+    nu, jacobian, noise = stack_sparse(glob, pairs, dim)
+    return nu, jacobian.toarray().reshape(len(pairs), 2, dim), noise
 
 
 def stack_sparse(

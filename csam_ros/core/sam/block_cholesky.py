@@ -28,6 +28,7 @@ factor's rows (:meth:`BlockFactor.selected_inverse_rows`, what the joint margina
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -170,10 +171,15 @@ class BlockFactor:
         self.diagonal = diagonal
         self.below = below
 
+    @cached_property
+    def _below_views(self) -> list[list[tuple[int, Index, Array]]]:
+        """:attr:`below` with each block's rows as a slice where they are a range."""
+        return [[(i, _rows(rows), lik) for i, rows, lik in column] for column in self.below]
+
     def solve(self, rhs: Array) -> Array:
         """``x`` with ``L L^T x = rhs`` (rhs (n,) or (n, m), the problem's scalar order)."""
         parts = [np.array(rhs[s], dtype=float) for s in self.pattern.scalars]
-        below = [[(i, _rows(rows), lik) for i, rows, lik in column] for column in self.below]
+        below = self._below_views
         for k, lkk in enumerate(self.diagonal):
             parts[k] = solve_triangular(lkk, parts[k], lower=True, check_finite=False)
             for i, rows, lik in below[k]:
@@ -228,6 +234,8 @@ class BlockFactor:
                 return inverse[i, i][_rows(rows)][:, cols]
             if i < j:  # Sigma_ij = Sigma_ji^T
                 return part(j, i, np.arange(sizes[j])[cols], _rows(rows)).T
+            if whole:
+                return inverse[i, j][_rows(rows)][:, cols]
             at = np.searchsorted(held[i, j], rows)
             if not np.array_equal(held[i, j][np.minimum(at, len(held[i, j]) - 1)], rows):
                 raise np.linalg.LinAlgError(f"rows of block ({i}, {j}) not on the factor's pattern")
@@ -330,13 +338,12 @@ def factor_blocks(
                     columns[j].add(i)
                 if not (len(rows_i) and len(rows_j)):
                     continue
-                if i != j:
-                    filled.setdefault((i, j), np.zeros(pattern.sizes[i], dtype=bool))[rows_i] = True
                 if i == j:  # half the work: the lower triangle, mirrored
                     update = dsyrk(1.0, lik, lower=1)
                     update += np.tril(update, -1).T
                 else:
                     update = lik @ ljk.T
+                    filled.setdefault((i, j), np.zeros(pattern.sizes[i], dtype=bool))[rows_i] = True
                 _subtract(target, rows_i, rows_j, update)
         below.append(column)
     return BlockFactor(pattern, diagonal, below)
