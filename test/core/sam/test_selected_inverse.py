@@ -1,0 +1,60 @@
+"""The selected inverse of a qdldl factor against the dense inverse, on factors whose
+elimination trees are deep and whose supernodes are wide (loop closures fill them in)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from csam_ros.core.model import se2
+from csam_ros.core.sam.factors import POSE, PosePrior, RelativePose
+from csam_ros.core.sam.selected_inverse import SelectedInverse, _supernodes
+from csam_ros.core.sam.solver import Problem
+
+
+def _pose_graph(seed: int, poses: int, closures: int) -> Problem:
+    """A random walk of ``poses`` with odometry and ``closures`` random loop closures,
+    linearised and factored at a perturbed estimate."""
+    rng = np.random.default_rng(seed)
+    truth = np.cumsum(rng.normal(0.0, 0.5, size=(poses, 3)), axis=0)
+    problem = Problem()
+    ids = problem.add_variables(
+        POSE, [("x", i) for i in range(poses)], truth + rng.normal(0.0, 0.05, (poses, 3))
+    )
+    problem.add_factor(PosePrior(ids[:1], truth[:1], covariance=np.eye(3) * 1e-2))
+    rel = se2.between(truth[:-1], truth[1:])
+    problem.add_factor(RelativePose(ids[:-1], ids[1:], rel, covariance=np.diag([1e-3, 2e-3, 3e-3])))
+    if closures:
+        a = rng.integers(0, poses, closures)
+        b = (a + rng.integers(2, poses - 1, closures)) % poses
+        between = se2.between(truth[a], truth[b])
+        problem.add_factor(RelativePose(ids[a], ids[b], between, covariance=np.eye(3) * 1e-2))
+    return problem
+
+
+@pytest.mark.parametrize(("seed", "closures"), [(0, 0), (1, 5), (2, 40), (3, 200)])
+def test_every_entry_on_the_pattern_equals_the_dense_inverse(seed: int, closures: int) -> None:
+    problem = _pose_graph(seed, 80, closures)
+    system = problem.normal_equations()
+    system.linearize(problem.values)
+    system.factorize()
+    upper = system.matrix().toarray()
+    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    inverse = SelectedInverse(system)
+    pattern = system._factorization.factors()[0].tocsc()
+    pattern.sort_indices()
+    # the factor has the structure asked for: supernodes wider than a pose, a deep tree
+    indptr, indices = pattern.indptr.astype(np.int64), pattern.indices.astype(np.int64)
+    begins, ends, depth = _supernodes(indptr, indices, system.n)
+    assert (depth == 0).sum() == 1  # one tree: the problem is connected
+    widths = ends - begins + 1
+    if closures == 0:  # a chain: a pose per supernode, about a level per pose
+        assert np.median(widths) == 3 and depth.max() >= 70
+    else:  # filled in: supernodes of more than one pose, still many levels
+        assert widths.max() > 3 and depth.max() > 5
+    coo = pattern.tocoo()
+    rows, cols = inverse.perm[coo.row], inverse.perm[coo.col]
+    atol = 1e-11 * np.abs(dense).max()
+    np.testing.assert_allclose(inverse.entries(rows, cols), dense[rows, cols], rtol=1e-8, atol=atol)
+    every = np.arange(system.n)
+    np.testing.assert_allclose(inverse.entries(every, every), np.diag(dense), rtol=1e-8, atol=atol)
