@@ -29,7 +29,8 @@ from csam_ros.core.exchange.state_checks import (
 from csam_ros.core.model.regular_files import check_replaceable, read_regular
 
 FORMAT = "csam_ros state"
-VERSION = 1
+VERSION = 2  # 2: a merger state's result keeps its per-pose series as arrays
+READABLE_VERSIONS = (1, VERSION)  # 1: the whole result in the header
 
 # The most bytes a state file may hold, and its arrays uncompressed (their sizes in its zip
 # directory are checked before any is read): a checkpoint of an MR.CLAM robot is 8.6 MB.
@@ -162,9 +163,10 @@ def read_npz(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, np.ndarra
         raise CheckpointError(f"{path}: damaged header ({err})") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a {FORMAT} file")
-    if header.get("version") != VERSION:
+    if header.get("version") not in READABLE_VERSIONS:
         raise CheckpointError(
-            f"{path}: version {header.get('version')!r:.40}, this csam_ros reads version {VERSION}"
+            f"{path}: version {header.get('version')!r:.40}, this csam_ros reads versions "
+            f"{', '.join(map(str, READABLE_VERSIONS))}"
         )
     if header.get("kind") != kind:
         raise CheckpointError(f"{path}: a {header.get('kind')!r:.40} file, not a {kind!r} one")
@@ -201,10 +203,14 @@ class StateReader:
             raise self.fail(str(err)) from None
 
     def array(
-        self, key: str, dtype: Any = float, tail: tuple[int, ...] | None = None
+        self,
+        key: str,
+        dtype: Any = float,
+        tail: tuple[int, ...] | None = None,
+        finite: bool = True,
     ) -> np.ndarray:
         """An array of numbers (never a scalar), as ``dtype``; of shape ``(n, *tail)`` when
-        ``tail`` is given. Floats must be finite."""
+        ``tail`` is given. Floats must be finite unless ``finite`` is False."""
         if key not in self.arrays:
             raise self.fail(f"no array {key!r}")
         value = self.arrays[key]
@@ -221,7 +227,7 @@ class StateReader:
         value = value.astype(dtype)
         if tail is not None and (value.ndim != len(tail) + 1 or value.shape[1:] != tail):
             raise self.fail(f"array {key!r} has shape {value.shape}, expected (n, {tail})")
-        if value.dtype.kind == "f" and not np.isfinite(value).all():
+        if finite and value.dtype.kind == "f" and not np.isfinite(value).all():
             raise self.fail(f"array {key!r} holds a number that is not finite")
         return value
 

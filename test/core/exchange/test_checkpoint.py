@@ -29,6 +29,7 @@ from csam_ros.core.exchange.checkpoint import (
 )
 from csam_ros.core.exchange.measurement_filter import MeasurementFilter
 from csam_ros.core.exchange.state_files import CheckpointError, read_npz, write_npz
+from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.join import join_maps
 from csam_ros.core.joining.pipeline import robot_map_from_local_map, run_csam
 from csam_ros.core.joining.rendezvous_filters import RendezvousThinning
@@ -165,6 +166,35 @@ def test_a_merger_state_joins_to_the_same_map(run, tmp_path) -> None:
     assert back.result is not None and back.result.to_dict() == result.to_dict()
     again = join_maps([back.maps[m.name] for m in maps], dict(back.rendezvous))
     assert again.to_dict() | {"timing_s": {}} == result.to_dict() | {"timing_s": {}}
+
+
+def test_a_merger_state_of_version_1_reads_its_result_from_the_header(run, tmp_path) -> None:
+    """Version 1 kept the whole result in the header; version 2 keeps its per-pose series
+    as arrays (a non-finite heading sigma among them, as a warm start's template holds)."""
+    path, _ = _merger_and_offline(run, tmp_path)
+    state = MergerState.read(path)
+    assert state.result is not None
+    state.result.robots["robot1"].sigma_phi_local[0] = np.nan
+    state.write(path)
+    header, arrays = read_npz(path, "merger")
+    assert header["version"] == 2 and "result/robot1/poses_local" in arrays
+    assert header["result"]["robots"]["robot1"]["poses_local"] == []
+    back = MergerState.read(path).result
+    assert back is not None and np.isnan(back.robots["robot1"].sigma_phi_local[0])
+    header["version"] = 1
+    header["result"] = state.result.to_dict()
+    old = tmp_path / "version1.npz"
+    write_npz(old, "merger", header, {k: v for k, v in arrays.items() if "result/" not in k})
+    from_header = MergerState.read(old).result
+    assert from_header is not None
+    for result in (back, from_header):
+        np.testing.assert_array_equal(
+            result.robots["robot1"].sigma_phi_local, state.result.robots["robot1"].sigma_phi_local
+        )
+        assert (
+            result.to_dict()["robots"]["robot1"]["poses_local"]
+            == (state.result.to_dict()["robots"]["robot1"]["poses_local"])
+        )
 
 
 def test_bad_files_are_refused_with_one_clear_error(run, tmp_path) -> None:
@@ -524,15 +554,17 @@ def _merger_and_offline(run: MultiRobotLog, tmp_path: Path) -> tuple[Path, Path]
     local.update(converge=True)
     robot_map = robot_map_from_local_map(local)
     merger = tmp_path / "merger.npz"
+    rendezvous = {"robot1": logs["robot1"].rendezvous}
     MergerState(
         "robot1",
         ["robot1"],
         ["robot1", "robot2"],
         {"robot1": robot_map},
         {"robot1": 10**9},
-        {"robot1": logs["robot1"].rendezvous},
+        rendezvous,
         3,
         {},
+        result=join_maps([robot_map], rendezvous, CsamConfig(skip_missing_poses=True)),
     ).write(merger)
     return merger, offline
 
@@ -544,6 +576,8 @@ MERGER_CASES = {
     "rendezvous_nan_range": ("arrays", "rendezvous/robot1/ranges", lambda a: a * np.nan),
     "poses_a_scalar": ("arrays", "maps/robot1/poses", lambda a: np.float64(1.0)),
     "ends_one_column": ("arrays", "maps/robot1/odometry_ends", lambda a: a[:, 0].copy()),
+    "result_poses_short": ("arrays", "result/robot1/poses_local", lambda a: a[:-1].copy()),
+    "result_sigma_as_text": ("arrays", "result/robot1/sigma_phi_local", lambda a: a.astype(str)),
 }
 OFFLINE_CASES = {
     "odometry_zero_sigma": ("arrays", "logs/robot1/odometry/sigmas", lambda a: 0.0 * a),
