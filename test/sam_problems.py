@@ -4,7 +4,17 @@ import numpy as np
 
 from csam_ros.core.model import se2
 from csam_ros.core.sam import factors as f
+from csam_ros.core.sam.covariance import factorize_at_estimate
+from csam_ros.core.sam.normal_equations import NormalEquations
 from csam_ros.core.sam.solver import Problem
+
+
+def dense_inverse_at_estimate(problem: Problem) -> tuple[NormalEquations, np.ndarray]:
+    """``problem`` linearised and factored at its values, and the dense inverse of its
+    information matrix: the oracle of every covariance the engine computes."""
+    system = factorize_at_estimate(problem)
+    upper = system.matrix().toarray()
+    return system, np.linalg.inv(upper + np.triu(upper, 1).T)
 
 
 def mixed_problem(seed=0):

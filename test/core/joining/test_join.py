@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 import pytest
+from sam_problems import dense_inverse_at_estimate
 from scipy.stats import chi2
 
 from csam_ros.core.joining.config import CsamConfig
@@ -25,7 +26,6 @@ from csam_ros.core.joining.pipeline import build_robot_maps, run_csam
 from csam_ros.core.joining.result import CsamResult, LocalMapCheck
 from csam_ros.core.model import se2
 from csam_ros.core.model.log import RendezvousLog
-from csam_ros.core.sam.covariance import factorize_at_estimate
 from csam_ros.core.truth.evaluation import evaluate
 from csam_ros.datasets.scenario import load_document, load_scenario, scenario_from_dict
 from csam_ros.datasets.simulation import simulate
@@ -295,8 +295,7 @@ def test_one_robot_alone_has_the_marginals_of_its_dense_information(map_joining)
     m.problem.values[:] = np.nan  # the joined estimate goes in, nothing of the local one
     m.problem.set_values(m.pose_ids, robot.poses_joined)
     m.problem.set_values(m.feature_ids, np.array([f.xy for f in features]))
-    upper = factorize_at_estimate(m.problem).matrix().toarray()
-    covariance = np.linalg.inv(upper + np.triu(upper, 1).T)
+    _, covariance = dense_inverse_at_estimate(m.problem)
     headings = m.problem.scalar_indices(m.pose_ids)[2::3]
     first = headings[0]
     np.testing.assert_allclose(

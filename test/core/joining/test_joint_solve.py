@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sam_problems import dense_inverse_at_estimate
 
 from csam_ros.core.joining.joint_solve import heading_sigmas
 from csam_ros.core.joining.pipeline import robot_map_from_local_map, run_csam
@@ -242,11 +243,7 @@ def test_selected_inverse_matches_the_dense_inverse() -> None:
     log = simulate(load_scenario("map_joining"), 0)
     local = robot_map_from_local_map(build_local_map(log.robots["robot2"]))
     problem = local.problem
-    system = problem.normal_equations()
-    system.linearize(problem.values)
-    system.factorize()
-    upper = system.matrix().toarray()
-    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    system, dense = dense_inverse_at_estimate(problem)
     inverse = SelectedInverse(system)
     # the dense inverse's own rounding, relative to its largest entry (CPU dependent)
     atol = 1e-11 * np.abs(dense).max()

@@ -7,6 +7,7 @@ import copy
 
 import numpy as np
 import pytest
+from sam_problems import dense_inverse_at_estimate
 
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.local_views import (
@@ -17,7 +18,6 @@ from csam_ros.core.joining.local_views import (
     with_marginals,
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
-from csam_ros.core.sam.covariance import factorize_at_estimate
 from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.robot_map import RobotMap
 from csam_ros.datasets.scenario import load_scenario
@@ -31,8 +31,7 @@ def robot1() -> RobotMap:
 
 
 def _dense_covariance(m: RobotMap) -> np.ndarray:
-    upper = factorize_at_estimate(m.problem).matrix().toarray()
-    return np.linalg.inv(upper + np.triu(upper, 1).T)
+    return dense_inverse_at_estimate(m.problem)[1]
 
 
 @pytest.mark.parametrize("kept", [4, 8])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sam_problems import dense_inverse_at_estimate
 from straight_logs import straight_robot
 
 from csam_ros.core.joining.config import CsamConfig
@@ -14,7 +15,6 @@ from csam_ros.core.joining.result import RunSummary
 from csam_ros.core.model.log import (
     MultiRobotLog,
 )
-from csam_ros.core.sam.covariance import factorize_at_estimate
 from csam_ros.core.smoothing.local_map_build import build_local_map
 from csam_ros.core.smoothing.local_map_config import LocalMapConfig
 from csam_ros.datasets.scenario import load_scenario
@@ -60,8 +60,7 @@ def test_csams_view_of_a_local_map_has_its_poses_features_and_their_covariances(
     np.testing.assert_array_equal(m.poses, local.poses)
     np.testing.assert_array_equal(m.feature_labels, local.landmark_labels)
     np.testing.assert_array_equal(m.feature_positions, local.landmarks)
-    upper = factorize_at_estimate(m.problem).matrix().toarray()
-    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    _, dense = dense_inverse_at_estimate(m.problem)
     xy = m.problem.scalar_indices(m.feature_ids).reshape(-1, 2)
     expected = dense[xy[:, :, None], xy[:, None, :]]
     np.testing.assert_allclose(m.feature_covariances, expected, rtol=1e-6, atol=1e-12)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sam_problems import dense_inverse_at_estimate
 
 from csam_ros.core.model import se2
 from csam_ros.core.sam.factors import POSE, PosePrior, RelativePose
@@ -35,11 +36,7 @@ def _pose_graph(seed: int, poses: int, closures: int) -> Problem:
 @pytest.mark.parametrize(("seed", "closures"), [(0, 0), (1, 5), (2, 40), (3, 200)])
 def test_every_entry_on_the_pattern_equals_the_dense_inverse(seed: int, closures: int) -> None:
     problem = _pose_graph(seed, 80, closures)
-    system = problem.normal_equations()
-    system.linearize(problem.values)
-    system.factorize()
-    upper = system.matrix().toarray()
-    dense = np.linalg.inv(upper + np.triu(upper, 1).T)
+    system, dense = dense_inverse_at_estimate(problem)
     inverse = SelectedInverse(system)
     pattern = system._factorization.factors()[0].tocsc()
     pattern.sort_indices()
