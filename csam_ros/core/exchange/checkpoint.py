@@ -395,11 +395,8 @@ class MergerState:
             "dropped": self.dropped,
             "restarts": self.restarts,
             "restart_poses_lost": self.restart_poses_lost,
-            "result": None,
+            "result": _put_result(self.result, arrays),
         }
-        if self.result is not None:
-            header["result"], series = _result_parts(self.result)
-            arrays.update(series)
         return write_npz(path, MERGER, header, arrays)
 
     @classmethod
@@ -461,8 +458,8 @@ class MergerState:
 
 
 # a result's per-pose series, as arrays "result/<robot>/<series>" (version 2; the rest of the
-# result is in the header as summary.json holds it): JSON lists of them took 0.27 s of a 0.39 s
-# write of a merger state on MR.CLAM, after every solve
+# result is in the header as summary.json holds it): as JSON lists they took 0.27 s of a 0.39 s
+# write of the merger's state at the end of live MR.CLAM, written after every solve
 _RESULT_SERIES: dict[str, tuple[int, ...]] = {
     "stamps": (),
     "poses_local": (3,),
@@ -481,16 +478,17 @@ _NO_SERIES = {
 }
 
 
-def _result_parts(result: CsamResult) -> tuple[dict[str, Any], dict[str, NDArray[np.float64]]]:
-    """``result`` as its header entry without the per-pose series, and those as arrays."""
-    arrays = {
-        f"result/{name}/{key}": np.asarray(value, dtype=float)
-        for name, robot in result.robots.items()
-        for key in _RESULT_SERIES
-        if (value := getattr(robot, key)) is not None
-    }
+def _put_result(result: CsamResult | None, arrays: dict[str, Any]) -> dict[str, Any] | None:
+    """``result``'s header entry, without the per-pose series: those go into ``arrays``."""
+    if result is None:
+        return None
+    for name, robot in result.robots.items():
+        for key in _RESULT_SERIES:
+            value = getattr(robot, key)
+            if value is not None:
+                arrays[f"result/{name}/{key}"] = np.asarray(value, dtype=float)
     robots = {name: replace(robot, **_NO_SERIES) for name, robot in result.robots.items()}
-    return replace(result, robots=robots).to_dict(), arrays
+    return replace(result, robots=robots).to_dict()
 
 
 def _with_series(result: CsamResult, r: StateReader) -> CsamResult:
@@ -568,7 +566,7 @@ class OfflineState:
             "robots": list(self.logs),
             "lists": lists,
             "filter": self.filter.to_header(),
-            "result": None if self.result is None else self.result.to_dict(),
+            "result": _put_result(self.result, arrays),
         }
         return write_npz(path, OFFLINE, header, arrays)
 

@@ -29,7 +29,7 @@ from csam_ros.core.exchange.state_checks import (
 from csam_ros.core.model.regular_files import check_replaceable, read_regular
 
 FORMAT = "csam_ros state"
-VERSION = 2  # 2: a merger state's result keeps its per-pose series as arrays
+VERSION = 2  # 2: a state's result keeps its per-pose series as arrays
 READABLE_VERSIONS = (1, VERSION)  # 1: the whole result in the header
 
 # The most bytes a state file may hold, and its arrays uncompressed (their sizes in its zip
