@@ -63,6 +63,7 @@ from csam_ros.core.joining.match_conditioning import (
     SparseConditioning,
     StateInformation,
     condition_dense,
+    stacked_congruence,
     stacked_product,
 )
 from csam_ros.core.joining.state_covariance import FactoredStateCovariance
@@ -139,7 +140,7 @@ class _GlobalFeatures:
         g = self.compact[idx]
         sub = state.block(self.columns, self.columns)
         pos = self.position[idx] + stacked_product(g, state.shift[self.columns])
-        cov = np.einsum("kim,kjm->kij", stacked_product(g, sub), g) + self.noise[idx]
+        cov = stacked_congruence(g, sub) + self.noise[idx]
         return pos, 0.5 * (cov + cov.swapaxes(1, 2))
 
 

@@ -58,6 +58,11 @@ def stacked_product(stack: Array, matrix: Array) -> Array:
     return flat.reshape(*stack.shape[:-1], *matrix.shape[1:])
 
 
+def stacked_congruence(stack: Array, matrix: Array) -> Array:
+    """``stack @ matrix @ stack^T`` (K, p, p) for a stack (K, p, m) and one matrix (m, m)."""
+    return np.einsum("kim,kjm->kij", stacked_product(stack, matrix), stack)
+
+
 # a match: robot a, its feature index i, robot c, its feature index j
 MatchIndex = tuple[int, int, int, int]
 
@@ -307,8 +312,7 @@ class SparseConditioning:
             if missing:
                 h = pair.h[missing]
                 sigma = self._uncorrected.block(pair.cols, pair.cols)
-                product = stacked_product(h, sigma)
-                explained = np.einsum("kim,kjm->kij", product, h)
+                explained = stacked_congruence(h, sigma)
                 self._explained.update(
                     (keys[i], e) for i, e in zip(missing, explained, strict=True)
                 )
@@ -316,7 +320,7 @@ class SparseConditioning:
             if correction is not None:
                 u, c = correction
                 t = stacked_product(pair.h, u[pair.cols])  # (K, 2, 2X)
-                explained = explained + np.einsum("kim,kjm->kij", stacked_product(t, c), t)
+                explained = explained + stacked_congruence(t, c)
             resid = pair.nu + stacked_product(pair.h, state.shift[pair.cols])
             v = pair.noise - 0.5 * (explained + explained.swapaxes(1, 2))
             loo[pair.index] = np.einsum(

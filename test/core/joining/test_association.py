@@ -26,6 +26,7 @@ from csam_ros.core.joining.match_conditioning import (
     StateInformation,
     condition_dense,
     stack_dense,
+    stacked_congruence,
     stacked_product,
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
@@ -171,11 +172,14 @@ def test_clusters_keep_one_feature_per_robot() -> None:
     assert [m.mahalanobis for m in result.matches] == [1.0, 2.0, 4.0]
 
 
-def test_stacked_product_is_matmul_of_each_matrix() -> None:
+def test_stacked_products_are_matmuls_of_each_matrix() -> None:
     rng = np.random.default_rng(3)
     stack, matrix, vector = rng.normal(size=(4, 2, 5)), rng.normal(size=(5, 3)), rng.normal(size=5)
     np.testing.assert_allclose(stacked_product(stack, matrix), stack @ matrix, atol=1e-14)
     np.testing.assert_allclose(stacked_product(stack, vector), stack @ vector, atol=1e-14)
+    square = rng.normal(size=(5, 5))
+    expected = stack @ square @ stack.transpose(0, 2, 1)
+    np.testing.assert_allclose(stacked_congruence(stack, square), expected, atol=1e-13)
 
 
 def test_gate_must_be_positive() -> None:
