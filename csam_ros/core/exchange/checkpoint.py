@@ -435,7 +435,7 @@ class MergerState:
         for robot, stamp in stamps.items():
             r.checked(check_integer, f"map_stamps/{robot}", stamp, 0, MAX_STAMP_NS)
         result = r.value("result", (dict, type(None)))
-        parsed = None if result is None else _with_series(_result(result, r), r)
+        parsed = None if result is None else _result(result, r)
         reference = r.value("reference", str)
         heard = [str(h) for h in r.value("heard", list)]
         if reference and reference not in heard or not set(heard) <= set(maps):
@@ -464,17 +464,15 @@ _RESULT_SERIES: dict[str, tuple[int, ...]] = {
     "stamps": (),
     "poses_local": (3,),
     "sigma_phi_local": (),
-    "poses_joined": (3,),
+    "poses_joined": (3,),  # this and the other joined series: None while pending
     "sigma_phi_joined": (),
     "sigma_phi_joined_reference": (),
 }
+_JOINED_SERIES = ("poses_joined", "sigma_phi_joined", "sigma_phi_joined_reference")
+# what a robot's entry in the header holds instead of its series
 _NO_SERIES = {
-    "stamps": np.zeros(0),
-    "poses_local": np.zeros((0, 3)),
-    "sigma_phi_local": np.zeros(0),
-    "poses_joined": None,
-    "sigma_phi_joined": None,
-    "sigma_phi_joined_reference": None,
+    key: None if key in _JOINED_SERIES else np.zeros((0, *tail))
+    for key, tail in _RESULT_SERIES.items()
 }
 
 
@@ -506,7 +504,7 @@ def _with_series(result: CsamResult, r: StateReader) -> CsamResult:
         }
         n = len(series["stamps"])
         for key, value in series.items():
-            if value is None and _NO_SERIES[key] is not None:
+            if value is None and key not in _JOINED_SERIES:
                 raise r.fail(f"result: robot {name!r:.80} has no {key}")
             if value is not None and len(value) != n:
                 raise r.fail(f"result: robot {name!r:.80}: {len(value)} {key} for {n} stamps")
@@ -515,10 +513,12 @@ def _with_series(result: CsamResult, r: StateReader) -> CsamResult:
 
 
 def _result(node: dict[str, Any], r: StateReader) -> CsamResult:
+    """The result of a file: its header entry, with its per-pose series from the arrays."""
     try:
-        return CsamResult.from_dict(node)
+        result = CsamResult.from_dict(node)
     except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
         raise r.fail(f"result: {err}") from None
+    return _with_series(result, r)
 
 
 def _pairs(node: Mapping[str, Any], r: StateReader, where: str) -> list[tuple[str, Any]]:
@@ -600,7 +600,7 @@ class OfflineState:
                 r.checked(_LOG_CHECKS[part], f"logs/{name}/{part}", parts[part])
             logs[name] = RobotLog(name, **parts)
         result = r.value("result", (dict, type(None)))
-        parsed = None if result is None else _with_series(_result(result, r), r)
+        parsed = None if result is None else _result(result, r)
         return cls(logs, FilterState.from_header(r.value("filter", dict), r), parsed)
 
 
