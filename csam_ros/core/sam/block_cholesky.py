@@ -195,6 +195,24 @@ class BlockFactor:
             out[s] = part
         return out
 
+    @cached_property
+    def flops(self) -> float:
+        """Multiply-adds of the factorisation that made this factor (:func:`factor_flops`)."""
+        sizes = self.pattern.sizes
+        return sum(
+            _column_flops(sizes[k], [len(rows) for _, rows, _ in column])
+            for k, column in enumerate(self.below)
+        )
+
+    @cached_property
+    def nonzeros(self) -> int:
+        """Entries of ``L`` kept: a triangular solve's multiply-adds per right-hand side."""
+        sizes = self.pattern.sizes
+        return sum(
+            size * (size + 1) // 2 + sum(len(rows) * size for _, rows, _ in column)
+            for size, column in zip(sizes, self.below, strict=True)
+        )
+
     def last_block_inverse(self) -> Array:
         """The inverse's block of the last block (the base nodes): ``(L_BB L_BB^T)^-1``."""
         inverse, info = dpotri(self.diagonal[-1], lower=1)
@@ -349,11 +367,18 @@ def factor_blocks(
     return BlockFactor(pattern, diagonal, below)
 
 
+def _column_flops(size: int, rows: Sequence[int]) -> float:
+    """Multiply-adds of eliminating one block column of ``size`` whose blocks below have
+    ``rows`` nonzero rows: ``s^3 / 3`` for its diagonal block, ``r s^2`` per block below,
+    ``r_i r_j s`` per update."""
+    flops = size**3 / 3.0 + sum(r * size * size for r in rows)
+    return flops + sum(ri * rj * size for a, ri in enumerate(rows) for rj in rows[: a + 1])
+
+
 def factor_flops(pattern: BlockPattern) -> float:
     """Multiply-adds of :func:`block_cholesky` on the pattern, from a symbolic run of its
     elimination (the nonzero rows of each block below the diagonal, as the numeric one keeps
-    them): ``s^3 / 3`` per diagonal block of size ``s``, ``r s^2`` per block of ``r`` rows
-    below it, ``r_i r_j s`` per update."""
+    them; :attr:`BlockFactor.flops` counts the same on a numeric factor)."""
     count = len(pattern.sizes)
     rows: dict[tuple[int, int], IntArray] = {}
     for (a, b), (_, positions) in pattern._entries.items():
@@ -364,15 +389,11 @@ def factor_flops(pattern: BlockPattern) -> float:
         columns[b].add(a)
     flops = 0.0
     for k in range(count):
-        size = float(pattern.sizes[k])
-        flops += size**3 / 3.0
         below = [(i, rows.pop((i, k))) for i in sorted(columns[k])]
+        flops += _column_flops(pattern.sizes[k], [len(rows_i) for _, rows_i in below])
         for a, (i, rows_i) in enumerate(below):
-            flops += len(rows_i) * size * size
-            for j, rows_j in below[: a + 1]:
-                flops += len(rows_i) * len(rows_j) * size
-                if i != j:
-                    held = rows.get((i, j))
-                    rows[i, j] = rows_i if held is None else np.union1d(held, rows_i)
-                    columns[j].add(i)
+            for j, _ in below[:a]:
+                held = rows.get((i, j))
+                rows[i, j] = rows_i if held is None else np.union1d(held, rows_i)
+                columns[j].add(i)
     return flops

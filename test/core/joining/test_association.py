@@ -25,6 +25,7 @@ from csam_ros.core.joining.match_conditioning import (
     SparseConditioning,
     StateInformation,
     condition_dense,
+    low_rank_rows,
     stack_dense,
     stacked_congruence,
     stacked_product,
@@ -102,7 +103,8 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
     prior = alignment.covariance
     result = associate(feats, alignment, roots)
     index = [{int(lab): k for k, lab in enumerate(g[r].labels)} for r in (0, 1)]
-    pairs = [(0, index[0][m.label_a], 1, index[1][m.label_c]) for m in result.matches][:12]
+    every = [(0, index[0][m.label_a], 1, index[1][m.label_c]) for m in result.matches]
+    pairs = every[:12]
     state, loo = condition_dense(prior, g, pairs)
     # the Kalman-form update equals the information form: (P^-1 + H^T N^-1 H)^-1
     nu, h, noise = stack_dense(g, pairs, len(prior))
@@ -144,6 +146,13 @@ def test_leave_one_out_distance_is_the_deleted_innovation() -> None:
             )
         np.testing.assert_allclose(corrected.shift, oracle.shift, atol=1e-8 * np.abs(shift).max())
         np.testing.assert_allclose(corrected_loo, oracle_loo, rtol=1e-6)
+    # more rows changed than the factor's multiply-adds per nonzero: factored again
+    limit = low_rank_rows(conditioning._current_factor)
+    assert 0 < limit < 2 * (len(every) - len(pairs))
+    conditioning(every)
+    assert conditioning.factorisations == 2
+    conditioning(every[: len(every) - int(limit // 2)])  # 2 * int(limit // 2) rows
+    assert conditioning.factorisations == 2
 
 
 def test_global_assignment_prefers_the_best_set() -> None:

@@ -201,7 +201,8 @@ def test_blocks_must_cover_every_index_once() -> None:
 @pytest.mark.parametrize("sizes", [SIZES, [30, 24, 18, 27, 12]])
 def test_factor_flops_count_the_numeric_factors_work(sizes: list[int]) -> None:
     last = len(sizes) - 1
-    pattern, data = _pattern(_ring_matrix(np.random.default_rng(2), sizes, last), sizes, last)
+    matrix = _ring_matrix(np.random.default_rng(2), sizes, last)
+    pattern, data = _pattern(matrix, sizes, last)
     factor = block_cholesky(pattern, data)
     assert factor is not None
     expected = 0.0
