@@ -13,6 +13,8 @@ from typing import Any
 
 import yaml
 
+from csam_ros.core.model import yaml_text
+
 QosDict = dict[str, Any]
 
 INFINITE_NS = 2**63 - 1  # RMW_DURATION_INFINITE, written as sec 9223372036 nsec 854775807
@@ -95,7 +97,7 @@ def parse_qos_profiles(value: Any) -> list[QosDict]:
         return []
     if isinstance(value, str):
         try:
-            value = yaml.safe_load(value)
+            value = yaml_text.safe_load(value)
         except yaml.YAMLError as error:
             raise ValueError(f"offered_qos_profiles is not valid YAML: {error}") from None
         if value is None:

@@ -34,6 +34,7 @@ from csam_ros.bag.mcapfile import McapScan, iter_messages, scan_file
 from csam_ros.bag.qos import QosDict, parse_qos_profiles
 from csam_ros.bag.types import MessageTypes, message_class
 from csam_ros.bag.writer import METADATA_FILE, BagError
+from csam_ros.core.model import yaml_text
 from csam_ros.core.model.regular_files import open_regular
 
 LOGGER = logging.getLogger("csam_ros.bag")
@@ -99,7 +100,7 @@ def _load_metadata(path: Path) -> dict[str, Any] | None:
             text = stream.read(MAX_METADATA_BYTES + 1)
         if len(text) > MAX_METADATA_BYTES:
             raise ValueError(f"more than {MAX_METADATA_BYTES} bytes")
-        document = yaml.safe_load(text.decode("utf-8"))
+        document = yaml_text.safe_load(text.decode("utf-8"))
         info = document["rosbag2_bagfile_information"]
         if not isinstance(info, dict):
             raise TypeError

@@ -333,7 +333,7 @@ RUN_HEADER = (
 
 def _with_overrides(options: RunOptions, overrides: list[str]) -> RunOptions:
     """``SECTION.KEY=VALUE`` overrides (YAML values) of the ``csam`` / ``local_map`` settings."""
-    import yaml
+    from csam_ros.core.model import yaml_text
 
     sections = {"csam": asdict(options.csam), "local_map": asdict(options.local_map)}
     for item in overrides:
@@ -341,7 +341,7 @@ def _with_overrides(options: RunOptions, overrides: list[str]) -> RunOptions:
         section, _, name = key.partition(".")
         if not sep or section not in sections or not name:
             raise SystemExit(f"--set {item!r}: expected csam.KEY=VALUE or local_map.KEY=VALUE")
-        parsed = yaml.safe_load(value)
+        parsed = yaml_text.safe_load(value)
         if isinstance(parsed, str):  # YAML 1.1 reads 1e-8 as text
             with contextlib.suppress(ValueError):
                 parsed = float(parsed)

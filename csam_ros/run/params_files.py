@@ -33,6 +33,8 @@ from typing import Any
 
 import yaml
 
+from csam_ros.core.model import yaml_text
+
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 SUFFIX = ".params.yaml"
 WIDTH = 100  # the longest line written
@@ -153,7 +155,7 @@ def _demo_values() -> dict[str, dict[str, Any]]:
     simulator = {}
     for value in values:
         name, _, text = value.partition(":=")
-        simulator[name] = yaml.safe_load(text)
+        simulator[name] = yaml_text.safe_load(text)
     sim_time = {USE_SIM_TIME: True}
     return {
         "simulator": {**sim_time, **simulator},
@@ -343,7 +345,7 @@ def merger_robots(params_file: str | Path) -> list[str]:
     an empty list); a file that cannot be read is a ValueError naming it."""
     path = Path(params_file)
     try:
-        document = yaml.safe_load(path.read_text())
+        document = yaml_text.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as error:
         raise ValueError(f"{path}: cannot read it as a params file: {error}") from None
     key = NODES["merger"][0]

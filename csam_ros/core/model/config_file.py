@@ -23,6 +23,8 @@ from typing import Any, ClassVar, Self, TypeVar
 
 import yaml
 
+from csam_ros.core.model import yaml_text
+
 T = TypeVar("T")
 CONFIG_DIR_VARIABLE = "CSAM_CONFIG_DIR"
 _SHARE = Path("share") / "csam_ros" / "config"
@@ -83,7 +85,7 @@ def load_document(name_or_path: str | Path) -> dict[str, Any]:
     each one of :data:`SECTIONS`)."""
     path = resolve_config_path(name_or_path)
     try:
-        document = yaml.safe_load(path.read_bytes().decode("utf-8"))
+        document = yaml_text.safe_load(path.read_bytes().decode("utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as err:
         raise ConfigFileError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from err
     except OSError as err:
