@@ -117,6 +117,21 @@ def victoria_park_path() -> Path | None:
     return path if path.exists() else None
 
 
+def victoria_park_lm_seconds() -> float | None:
+    """Seconds of GTSAM's batch Levenberg-Marquardt on Victoria Park from dead reckoning, in a
+    process of its own with this benchmark's defaults (the figure this benchmark prints on the
+    ``gtsam-native`` line): the machine's speed that hour. None without GTSAM or the file."""
+    path = victoria_park_path()
+    if path is None:
+        return None
+    graph_data = graph_from_slam2d(read_slam2d(str(path)), name=path.stem)
+    with tempfile.TemporaryDirectory() as tmp:
+        saved = Path(tmp) / "problem.npz"
+        save_graph(graph_data, saved)
+        result = run_worker("gtsam-native", str(saved), [], Path(tmp) / "estimate.npy")
+    return None if result is None else float(result["total"])
+
+
 def load_graph(spec: str, args: argparse.Namespace) -> GraphData:
     if spec == "simulated":
         return simulate_landmark_problem(
