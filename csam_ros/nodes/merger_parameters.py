@@ -89,6 +89,15 @@ MERGER_PARAMETERS = (
         3600.0,
     ),
     Declared(
+        "solve_wait",
+        _DEFAULTS.solve_wait,
+        "wall-clock seconds a solve waits, after the first input newer than the last solve's, "
+        "for the other robots' new local maps (local maps that arrive together are solved in "
+        "one); it starts at once when every robot's map is new (0: never waits)",
+        0.0,
+        3600.0,
+    ),
+    Declared(
         "provisional_period",
         _DEFAULTS.provisional_period,
         "minimum wall-clock seconds between provisional joined maps (the newest local maps "
@@ -119,6 +128,7 @@ LIVE_SETTINGS = (
     "reference_wait",
     "stale_after",
     "solve_period",
+    "solve_wait",
     "provisional_period",
     "provisional_quiet",
 )

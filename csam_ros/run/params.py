@@ -6,7 +6,13 @@ from pathlib import Path
 
 from csam_ros.run.errors import RunError
 
-MERGER_KEYS = {"solve_period", "stale_after", "provisional_period", "provisional_quiet"}  # s
+MERGER_KEYS = {
+    "solve_period",
+    "solve_wait",
+    "stale_after",
+    "provisional_period",
+    "provisional_quiet",
+}  # s
 
 
 def load_config_document(path: Path | None) -> dict:
@@ -40,7 +46,7 @@ def node_params(document: dict, section: str, cls: type, node: str) -> dict:
 
 def merger_params(document: dict) -> dict:
     """The merger's parameters: its fields of the ``csam:`` section and the ``merger:``
-    section's ``solve_period``, ``stale_after``, ``provisional_period`` and
+    section's ``solve_period``, ``solve_wait``, ``stale_after``, ``provisional_period`` and
     ``provisional_quiet`` (seconds)."""
     from csam_ros.core.joining.config import MERGER, CsamConfig
 

@@ -8,8 +8,11 @@ measurements, the reference, the counts, the last result) and decides with it:
   first local map, for the configured reference's map and for the maps and rendezvous of every
   robot on the allow-list;
 - when a solve starts: when the inputs changed since the last solve's snapshot (a map
-  delivered again unchanged is no change) and no solve runs (the node asks every
-  ``solve_period`` s); ``~/flush`` solves the newest inputs at once, and after it each robot's
+  delivered again unchanged is no change), no solve runs (the node asks every
+  ``solve_period`` s), and either every robot's map is newer than the last solve's or
+  ``solve_wait`` s passed since the first change: smoothers on one data clock send their
+  maps within a second of each other, and a solve started on the first of them would keep
+  the others waiting for the next; ``~/flush`` solves the newest inputs at once, and after it each robot's
   next local map gives up a running solve, once (a smoother's final map may come after the
   flush that asked for it; no more, so that a flush in the middle of a run does not keep
   solves from ending);
@@ -45,6 +48,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import replace
+from math import inf
 from pathlib import Path
 
 from csam_ros.core.exchange.checkpoint import MergerState
@@ -89,6 +93,7 @@ from csam_ros.core.merging.policy_inputs import (
     ProvisionalMap,
     SolveInputs,
     SolveStart,
+    every_map_newer,
 )
 from csam_ros.core.merging.sessions import SessionPins, not_taken
 from csam_ros.core.merging.status import MergerStatus, RobotStatus, outside_trajectory
@@ -125,6 +130,8 @@ class MergerPolicy:
         self.map_arrival: dict[str, float] = {}  # clock s of each robot's last map
         self.resync_requests: dict[str, int] = {}
         self.dirty = False  # inputs changed since the last solve's snapshot
+        self._changed_at: float | None = None  # clock s they first changed since
+        self._solved_stamps: dict[str, int] = {}  # the local map stamps the last solve took
         self.solving = False  # a solve is running
         self.solves = 0
         self.solves_given_up = 0  # running solves given up by ~/flush for newer inputs
@@ -318,7 +325,7 @@ class MergerPolicy:
         self.local_maps = {**self.local_maps, robot: new}
         self.sources = {**self.sources, robot: held}
         self.local_map_stamps = {**self.local_map_stamps, robot: stamp_ns}
-        self.dirty = True
+        self.inputs_changed()
         if self._unpublished_since is None:
             self._unpublished_since = now
         give_up = robot in self._after_flush
@@ -338,7 +345,7 @@ class MergerPolicy:
         if len(log.stamps) == 0 and robot in self.rendezvous:
             return notices  # a message with no usable measurement never replaces usable ones
         self.rendezvous = {**self.rendezvous, robot: log}
-        self.dirty = True
+        self.inputs_changed()
         return notices
 
     def refused(self, robot: str, what: str, error: RefusedMessageError) -> Refused:
@@ -347,7 +354,9 @@ class MergerPolicy:
         return Refused(robot, what, error.reason, str(error))
 
     def inputs_changed(self) -> None:
-        """Solve the inputs again as if they had changed."""
+        """The inputs changed (or are to be solved again as if they had)."""
+        if not self.dirty:
+            self._changed_at = self.clock()
         self.dirty = True
 
     def take_up(self, saved: MergerState) -> list[str]:
@@ -408,8 +417,13 @@ class MergerPolicy:
     # solves
 
     def solve_wanted(self) -> bool:
-        """Whether a solve is to start: the inputs changed and none runs."""
-        return self.dirty and not self.solving
+        """Whether a solve is to start: the inputs changed, none runs, and the maps that come
+        together are in (:meth:`MergerSettings.solve_settled`)."""
+        if not self.dirty or self.solving:
+            return False
+        waited = self.clock() - (self._changed_at if self._changed_at is not None else -inf)
+        every_map_new = every_map_newer(self.local_map_stamps, self._solved_stamps)
+        return self.settings.solve_settled(waited, every_map_new)
 
     def flush(self) -> bool:
         """``~/flush``: each robot heard from gives up a running solve with its next map;
@@ -431,6 +445,7 @@ class MergerPolicy:
             self.dirty = True  # asked again at the next look
             return None
         _, notice = chosen
+        self._changed_at, self._solved_stamps = None, dict(self.local_map_stamps)
         order, robots = self._order()
         inputs = SolveInputs(
             order=tuple(order),
@@ -559,12 +574,7 @@ class MergerPolicy:
             return None
         waited = now - (now if self._unpublished_since is None else self._unpublished_since)
         quiet = now - max(self.map_arrival.values(), default=now)
-        # every robot's map is newer than the last joined and provisional maps: no other is
-        # to come that this one should wait for
-        complete = all(
-            stamp not in (self._published_stamps.get(r), self._provisional_stamps.get(r))
-            for r, stamp in stamps.items()
-        )
+        complete = every_map_newer(stamps, self._published_stamps, self._provisional_stamps)
         if (
             last is None
             or settings.provisional_period <= 0.0

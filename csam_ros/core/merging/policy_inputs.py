@@ -53,6 +53,7 @@ class MergerSettings:
     reference_wait: float = 5.0
     stale_after: float = 30.0  # 0: never stale
     solve_period: float = 0.5
+    solve_wait: float = 1.0
     provisional_period: float = 1.0  # 0: no provisional maps
     provisional_quiet: float = 0.5
     max_robots: int = 64  # robots found and joined at once (the allow-list's always are)
@@ -73,6 +74,12 @@ class MergerSettings:
     def listed(self, robot: str) -> bool:
         """Whether ``robot`` is on the allow-list."""
         return robot in self.robots
+
+    def solve_settled(self, waited: float, every_map_new: bool) -> bool:
+        """Whether a solve of changed inputs may start: every robot's local map is newer than
+        the last solve's, or ``solve_wait`` s passed since the first change (local maps that
+        arrive together are solved in one)."""
+        return every_map_new or waited >= self.solve_wait
 
     @property
     def solve_check_period(self) -> float:
@@ -196,6 +203,13 @@ class ProvisionalMap:
     stamps: dict[str, int]
     robots: tuple[str, ...]
     stamp_tolerance: float  # s: carried_forward's
+
+
+def every_map_newer(stamps: Mapping[str, int], *used: Mapping[str, int]) -> bool:
+    """Whether each robot's local map (its message stamp in ``stamps``) is none of the maps
+    ``used`` (stamps a joined or provisional map took): no robot's newer map is still to come
+    that a map should wait for."""
+    return all(all(stamp != before.get(robot) for before in used) for robot, stamp in stamps.items())
 
 
 def joined_maps(inputs: SolveInputs) -> dict[str, RobotMap]:

@@ -245,12 +245,36 @@ def test_a_solve_starts_only_when_the_inputs_changed(run: Run) -> None:
     assert not merger.policy.solve_wanted()
     merger.policy.solve_done(start.inputs, JoinReply(run.joined), 1.0)
     merger.policy.solve_ended()
+    merger.clock.advance(merger.policy.settings.solve_wait)  # no robot's map is new
     assert merger.policy.solve_wanted()  # the newer inputs next
     assert merger.policy.start_solve() is not None
     merger.policy.solve_ended()
     assert merger.policy.start_solve() is None and not merger.policy.solve_wanted()
     merger.policy.inputs_changed()
+    merger.clock.advance(merger.policy.settings.solve_wait)
     assert merger.policy.solve_wanted()
+
+
+def test_a_solve_waits_for_the_maps_that_come_together(run: Run) -> None:
+    """After a solve, a new map of one robot waits up to solve_wait s for the other robots'
+    (smoothers on one data clock send theirs within a second); it starts at once when every
+    robot's map is new."""
+    merger = Merger(solve_wait=1.0)
+    _all_in(merger, run)
+    merger.solve(run.joined)
+    merger.send(run.late["robot1"], 2.0)
+    assert merger.policy.dirty and not merger.policy.solve_wanted()
+    merger.clock.advance(0.5)
+    assert not merger.policy.solve_wanted()
+    merger.send(run.late["robot2"], 2.0)  # every robot's map is new: no more to wait for
+    assert merger.policy.solve_wanted()
+    merger.solve(run.joined)
+    merger.send(run.early["robot1"], 3.0)
+    merger.clock.advance(0.99)
+    assert not merger.policy.solve_wanted()
+    merger.clock.advance(0.01)  # robot2's map is not coming: solved without it
+    assert merger.policy.solve_wanted()
+    assert Merger(solve_wait=0.0).policy.settings.solve_settled(0.0, every_map_new=False)
 
 
 def test_a_map_delivered_again_starts_no_solve(run: Run) -> None:
