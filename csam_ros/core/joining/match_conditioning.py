@@ -220,8 +220,9 @@ def low_rank_rows(factor: BlockFactor) -> float:
     """Rows of matches changed since a factorisation up to which a low-rank (Woodbury)
     correction is cheaper than factoring again: the factor's multiply-adds per nonzero. A
     correction passes over the factor twice per row; a factorisation with its selected inverse
-    does about three times its multiply-adds, at a third of the solves' speed per operation. Measured: MR.CLAM Dataset 1 (371 rows by this ratio), a factorisation 0.32 s,
-    a correction 0.74 ms a row; a ring of 64 robots (437 rows), 0.9-1.4 s and 1.5 ms."""
+    does about three times its multiply-adds, at a third of the solves' speed per operation.
+    Measured: MR.CLAM Dataset 1 (371 rows by this ratio), a factorisation 0.32 s, a correction
+    0.74 ms a row; a ring of 64 robots (437 rows), 0.9-1.4 s and 1.5 ms."""
     return factor.flops / factor.nonzeros
 
 

@@ -12,10 +12,10 @@ measurements, the reference, the counts, the last result) and decides with it:
   ``solve_period`` s), and either every robot's map is newer than the last solve's or
   ``solve_wait`` s passed since the first change: smoothers on one data clock send their
   maps within a second of each other, and a solve started on the first of them would keep
-  the others waiting for the next; ``~/flush`` solves the newest inputs at once, and after it each robot's
-  next local map gives up a running solve, once (a smoother's final map may come after the
-  flush that asked for it; no more, so that a flush in the middle of a run does not keep
-  solves from ending);
+  the others waiting for the next; ``~/flush`` solves the newest inputs at once, and after
+  it each robot's next local map gives up a running solve, once (a smoother's final map
+  may come after the flush that asked for it; no more, so that a flush in the middle of a
+  run does not keep solves from ending);
 - when the provisional joined map goes out (the newest local maps placed by the last join):
   once every robot's map is newer than the last joined and provisional maps, or
   ``provisional_quiet`` s pass without another map (maps that arrive together go out in one),

@@ -209,7 +209,7 @@ def every_map_newer(stamps: Mapping[str, int], *used: Mapping[str, int]) -> bool
     """Whether each robot's local map (its message stamp in ``stamps``) is none of the maps
     ``used`` (stamps a joined or provisional map took): no robot's newer map is still to come
     that a map should wait for."""
-    return all(all(stamp != before.get(robot) for before in used) for robot, stamp in stamps.items())
+    return all(all(stamp != b.get(robot) for b in used) for robot, stamp in stamps.items())
 
 
 def joined_maps(inputs: SolveInputs) -> dict[str, RobotMap]:
