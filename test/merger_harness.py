@@ -189,7 +189,7 @@ class MergerHarness:
         from csam_ros.ros.topics import JOINED_MAP, RENDEZVOUS_POSES, STATUS
 
         self.spin = spin
-        overrides = {"robots": ROBOTS, "solve_period": 0.02, **parameters}
+        overrides = {"robots": ROBOTS, "solve_period": 0.02, "solve_wait": 0.0, **parameters}
         self.merger = Merger(
             context=context,
             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],

@@ -35,6 +35,7 @@ def smoothers_and_merger(
         parameter_overrides=[
             Parameter("robots", value=robots),
             Parameter("solve_period", value=0.05),
+            Parameter("solve_wait", value=0.0),
             *([Parameter("summary_path", value=str(summary_path))] if summary_path else []),
         ],
     )

@@ -304,7 +304,7 @@ def _replace_merger(harness: MergerHarness, context: Any, **parameters: Any) -> 
 
     harness.executor.remove_node(harness.merger)
     harness.merger.destroy_node()
-    overrides = {"robots": ROBOTS, "solve_period": 0.02, **parameters}
+    overrides = {"robots": ROBOTS, "solve_period": 0.02, "solve_wait": 0.0, **parameters}
     harness.merger = Merger(
         context=context,
         parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],

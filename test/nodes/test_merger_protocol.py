@@ -274,6 +274,7 @@ def test_a_lost_delta_is_restored_by_a_whole_map_within_seconds(
         parameter_overrides=[
             Parameter("robots", value=["robot1"]),
             Parameter("solve_period", value=0.05),
+            Parameter("solve_wait", value=0.0),
         ],
     )
     executor = SingleThreadedExecutor(context=ros_context)
@@ -453,6 +454,7 @@ def test_a_smoother_given_the_team_key_signs_what_the_merger_takes(
         parameter_overrides=[
             Parameter("robots", value=["robot1"]),
             Parameter("solve_period", value=0.05),
+            Parameter("solve_wait", value=0.0),
             Parameter("team_key_file", value=key_file),
         ],
     )

@@ -464,6 +464,7 @@ def _new_merger(harness: MergerHarness, context: Any) -> None:
         parameter_overrides=[
             Parameter("robots", value=ROBOTS),
             Parameter("solve_period", value=0.02),
+            Parameter("solve_wait", value=0.0),
         ],
     )
     harness.executor.add_node(harness.merger)
