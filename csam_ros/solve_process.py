@@ -7,7 +7,9 @@ the interpreter lock allows. :class:`SolveProcess` runs a
 clean process that imported the core once: the merger has threads, which a fork would not copy).
 The child keeps the joiner's state between solves, so a request carries a robot's map only when it
 changed, and the warm start only when the child does not hold it. A child that dies is started
-again at the next solve, which then sends everything. A join's state (when asked for) is written
+again at the next solve, which then sends everything. Between solves the merger sends each new map
+as it arrives (:meth:`SolveProcess.prepare`), so that the child refines and factors it while it
+waits for the others. A join's state (when asked for) is written
 after its reply: :meth:`SolveProcess.state_written` waits for it. :meth:`SolveProcess.cancel` gives
 the running join up (a signal
 the child turns into :class:`~csam_ros.core.merging.joiner.JoinCancelled` while it joins): the child
@@ -21,7 +23,7 @@ import multiprocessing
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import replace
 from multiprocessing.connection import Connection
@@ -35,6 +37,7 @@ from csam_ros.core.merging.joiner import (
     JoinReply,
     JoinRequest,
     MapSource,
+    PrepareRequest,
     StateWritten,
 )
 
@@ -102,6 +105,13 @@ def _serve(connection: Connection, cancelled: Any, niceness: int) -> None:
         except (EOFError, OSError):
             return
         cancellation.request += 1
+        if isinstance(request, PrepareRequest):
+            joiner.prepare(request)
+            try:
+                connection.send(None)  # prepared
+            except (EOFError, OSError):
+                return
+            continue
         try:
             reply = joiner.join(request)
         except Exception as err:  # noqa: BLE001 - the child outlives any one request
@@ -172,6 +182,30 @@ class SolveProcess:
                 self._previous = reply.result
             self._state_pending = reply.state_pending
         return reply
+
+    def prepare(self, maps: Sequence[tuple[str, MapSource]]) -> None:
+        """Send the child the sources of ``maps`` it does not hold, and wait while it takes
+        them and computes what a join derives from each map alone
+        (:meth:`~csam_ros.core.merging.joiner.Joiner.prepare`): work the next join then does
+        not do. A map it refuses is in that join's reply. Call it from the thread that joins;
+        a child that died is started again by the next join."""
+        self.state_written()
+        with self._lock:
+            new = tuple((robot, s) for robot, s in maps if self._sent.get(robot) is not s)
+            if self._closed or not new:
+                return
+            self._ensure_started()
+            connection = self._connection
+            assert connection is not None
+            self._requests += 1
+        try:
+            connection.send(PrepareRequest(new))
+            connection.recv()
+        except (EOFError, OSError):
+            self._stop_child()
+            return
+        with self._lock:
+            self._sent.update(new)
 
     def state_written(self) -> StateWritten | None:
         """Wait for the state write of the last join (None when it asked for none, or it

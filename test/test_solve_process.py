@@ -66,6 +66,22 @@ def test_replies_equal_a_joiner_here_and_unchanged_maps_are_not_sent(process) ->
     assert process.stripped(replace(second, previous=expected)).previous is expected
 
 
+def test_prepared_maps_are_not_sent_again_and_join_as_sent_with_it(process) -> None:
+    first, second = _requests()
+    here = Joiner()
+    here.join(first)
+    expected = here.join(second).result
+    assert process.join(first).result is not None
+    process.prepare(second.maps)
+    assert all(source is None for _, source in process.stripped(second).maps)
+    reply = process.join(second)
+    assert reply.error == "" and reply.result is not None and expected is not None
+    assert largest_difference(reply.result, expected) < 1e-12
+    process.close()
+    process.prepare(second.maps)  # closed: nothing sent, nothing started
+    assert process.starts == 1
+
+
 def test_the_state_is_written_after_the_reply(process, tmp_path) -> None:
     """A request with the merger's state: the reply says a write follows, state_written
     waits for it; a join not waited for lets the write end first."""

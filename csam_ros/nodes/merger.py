@@ -13,7 +13,8 @@ messages signed with the team key are taken (:mod:`csam_ros.nodes.merger_auth`).
 Its decisions are :class:`~csam_ros.core.merging.policy.MergerPolicy`'s: the reference, when to
 solve, when the provisional map goes out, smoother restarts, stale robots and what
 ``/csam/status`` and ``/diagnostics`` say. A worker thread hands each solve to the solve process
-(:mod:`csam_ros.solve_process`; one runs, one is pending), then publishes ``/csam/joined_map``,
+(:mod:`csam_ros.solve_process`; one runs, one is pending; between solves it hands the process
+each new map to prepare), then publishes ``/csam/joined_map``,
 ``/tf`` ``<reference>/map -> <robot>/map`` and ``/<robot>/pose`` (nodes/merger_output.py), and
 the message process writes ``summary_path`` and publishes ``/csam/markers``. A thread of its own
 publishes ``/csam/joined_map/provisional``. ``~/flush`` (the data has ended) solves the newest
@@ -32,7 +33,6 @@ from dataclasses import replace
 from typing import Any
 
 from csam_msgs.msg import LocalMapUpdate, RendezvousPoses
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
@@ -59,7 +59,7 @@ from csam_ros.nodes.merger_resync import ResyncClients
 from csam_ros.nodes.state_services import MergerServices
 from csam_ros.ros.conversions import time_to_ns
 from csam_ros.ros.map_messages import map_update_from_message
-from csam_ros.ros.merger_reports import log_notice, status_array
+from csam_ros.ros.merger_reports import log_notice
 from csam_ros.ros.topics import FLUSH, LOCAL_MAP_UPDATES, MERGER_NODE, RENDEZVOUS_POSES
 from csam_ros.solve_process import SolveProcess
 
@@ -93,6 +93,7 @@ class Merger(Node):
         self._solve_lock = threading.Lock()
         self._publish_lock = threading.Lock()
         self._requested = False  # the timer asked the worker for a solve
+        self._new_maps = False  # maps arrived that the solve process may prepare
         # the newest provisional map decided on and not yet taken by the provisional thread
         self._provisional_due: ProvisionalMap | None = None
         self._writing_state = False  # the worker waits for the last solve's state write
@@ -238,6 +239,9 @@ class Merger(Node):
         if taken.behind:
             self.resyncs.ask(robot, taken.behind)
         if taken.taken:
+            with self._lock:
+                self._new_maps = True
+                self._wake.notify()
             self.publish_provisional()
 
     def on_rendezvous_poses(self, robot: str, msg: RendezvousPoses) -> None:
@@ -277,16 +281,24 @@ class Merger(Node):
         return given_up
 
     def _work(self) -> None:
-        """The solve worker: one solve per request of the timer, until the node stops."""
+        """The solve worker: one solve per request of the timer, and between solves the new
+        maps handed to the solve process to prepare, until the node stops."""
         while True:
             with self._lock:
-                while not (self._requested or self._stopping.is_set()):
+                while not (self._requested or self._new_maps or self._stopping.is_set()):
                     self._wake.wait()
                 if self._stopping.is_set():
                     return
-                self._requested = False
+                solve, self._requested, new_maps = self._requested, False, self._new_maps
+                prepare = new_maps and not (solve or self.policy.solve_wanted())  # else solved
+                self._new_maps = False
+                sources = tuple(self.policy.sources.items())
             try:
-                self.solve_pending()
+                if solve:
+                    self.solve_pending()
+                elif prepare:  # the maps it does not hold, while the solve waits for others
+                    with self._solve_lock:
+                        self.solve_process.prepare(sources)
             except Exception as error:  # noqa: BLE001 - the worker outlives any one solve
                 self.drops.add(CALLBACK_ERROR)
                 self.get_logger().error(f"solve worker: {type(error).__name__}: {error}")
@@ -378,10 +390,6 @@ class Merger(Node):
         with self._lock:
             status = self.policy.status()
         self.output.status(status, self.get_clock().now().to_msg())
-
-    def _status(self) -> DiagnosticArray:
-        """The status message of the node's state now (call under the lock)."""
-        return status_array(self.policy.status(), self.get_clock().now().to_msg())
 
 
 def main(args: list[str] | None = None) -> int:

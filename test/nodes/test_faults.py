@@ -15,6 +15,7 @@ from merger_harness import ROBOTS, MergerHarness, Smoothers, joined_view, run_me
 from node_group import final_joined_result, smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 
 from csam_ros.core.exchange.checkpoint import (
     LOST_WHILE_DOWN,
@@ -26,6 +27,7 @@ from csam_ros.core.exchange.map_updates import HeldMap, KeyedMap, MissingBaseErr
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
+from csam_ros.ros.merger_reports import status_array
 from csam_ros.run.live import smoother_drops
 
 LOST_FROM, LOST_TO = 15.0, 18.0  # s after the start: the smoother is down in between
@@ -519,7 +521,10 @@ def test_a_robot_clock_offset_drops_and_counts_rendezvous_outside_its_trajectory
         assert expected.rendezvous_filter["trajectory_span"].dropped == span
         assert result.robots["robot2"].alignment == "aligned"
         with merger._lock:
-            status = {kv.key: kv.value for kv in merger._status().status[-1].values}
+            status = {
+                kv.key: kv.value
+                for kv in status_array(merger.policy.status(), Time().to_msg()).status[-1].values
+            }
         assert status["outside_trajectory"] == "1"
         for name, want in expected.robots.items():
             np.testing.assert_allclose(

@@ -13,9 +13,11 @@ from typing import Any
 import pytest
 from parameter_services import Parameters, client_node
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.time import Time
 from waiting import wait_until
 
 from csam_ros.nodes.common import START_ONLY, UNKNOWN_PARAMETER
+from csam_ros.ros.merger_reports import status_array
 from csam_ros.run.params_files import CONFIG_DIR
 
 TEAM = CONFIG_DIR / "team.params.yaml"
@@ -167,7 +169,11 @@ def test_unknown_parameters_given_are_refused_and_counted(tmp_path: Path) -> Non
         assert smoother.publish_period == 3.0 and merger.config.chi2_gate == 30.0
         assert smoother.drops.as_dict() == {UNKNOWN_PARAMETER: 1}
         assert merger.drops.as_dict() == {UNKNOWN_PARAMETER: 2}
-        (merger_status,) = [s for s in merger._status().status if s.name == "merger"]
+        (merger_status,) = [
+            s
+            for s in status_array(merger.policy.status(), Time().to_msg()).status
+            if s.name == "merger"
+        ]
         status = {kv.key: kv.value for kv in merger_status.values}
         assert status[f"dropped/{UNKNOWN_PARAMETER}"] == "2", status
     finally:

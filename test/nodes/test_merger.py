@@ -47,6 +47,7 @@ from csam_ros.core.exchange.validation import FAILED_SOLVE
 from csam_ros.core.joining.notes import NoteKind
 from csam_ros.core.joining.result import RunSummary
 from csam_ros.core.joining.warm_start import carried_forward
+from csam_ros.core.merging.joiner import JoinRequest
 from csam_ros.ros.conversions import ns_to_time, time_to_ns
 from csam_ros.ros.map_messages import local_map_update_message
 from csam_ros.ros.topics import FLUSH, PROVISIONAL_MAP, merger_service
@@ -730,3 +731,35 @@ def test_maps_are_checked_on_arrival_and_joined_refined(
     assert np.abs(held.poses - refined.poses).max() > 1e-9  # the update left some behind
     np.testing.assert_allclose(joined.poses_local, refined.poses, atol=1e-12)
     np.testing.assert_allclose(refined.poses, last.robot_maps["robot2"].poses, atol=1e-6)
+
+
+def test_maps_are_prepared_in_the_solve_process_while_the_solve_waits(
+    ros_context, spin, growing: list[RunMessages]
+) -> None:
+    """robot2's newer map, robot1's not yet (solve_wait far off, so no solve is wanted): the
+    solve process holds it before the next solve, which then does not send it."""
+    harness = MergerHarness(ros_context, spin, solve_period=3600.0, solve_wait=3600.0)
+    try:
+        middle, last = growing[1], growing[2]
+        sender = UpdateSender(11)
+        first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
+        harness.hold(with_robot2(middle, first))
+        merger = harness.merger
+        assert merger.solve_pending() and merger.policy.solves == 1
+        update = sender.update(robot_map_arrays(last.robot_maps["robot2"]))
+        harness.publish("robot2", local_map_update_message(update, "robot2", STAMP_NS + 10**9))
+
+        def sent() -> list[bool]:
+            sources = tuple(merger.policy.sources.items())
+            request = JoinRequest(sources, {}, merger.config)
+            return [s is None for _, s in merger.solve_process.stripped(request).maps]
+
+        harness.wait(lambda: merger.policy.sources["robot2"].sequence == update.sequence)
+        harness.wait(lambda: all(sent()))
+        assert merger.policy.solves == 1 and not merger.policy.solve_wanted()
+        assert merger.solve_pending() and merger.policy.solves == 2
+        joined = merger.policy.last_result.robots["robot2"]
+        assert len(joined.stamps) == len(last.robot_maps["robot2"].stamps)
+        assert merger.solve_process.starts == 1
+    finally:
+        harness.close()

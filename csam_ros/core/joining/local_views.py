@@ -1,10 +1,12 @@
 """What C-SAM derives from each local map alone (docs/METHOD.md sections 4.5, 5, 6.1 and 6.4).
 
-A :class:`LocalView` holds a local map's factorisation at its estimate, its rendezvous part (the
-marginal square-root information of its rendezvous poses, which Algorithm 1 takes) and the cross
-covariance ``P_l,rho`` of its features with those poses (which association takes), and on first
-use its local marginals. :class:`LocalViewCache` keeps them per robot while the map and its
-rendezvous poses stay the same, as a live merger joins again and again.
+A :class:`LocalFactor` holds a local map's factorisation at its estimate and, on first use, its
+local marginals; a :class:`LocalView` adds, on that factor, its rendezvous part (the marginal
+square-root information of its rendezvous poses, which Algorithm 1 takes) and the cross covariance
+``P_l,rho`` of its features with those poses (which association takes). :class:`LocalViewCache`
+keeps them per robot while the map (and, for a view, its rendezvous poses) stay the same, as a live
+merger joins again and again; it computes a factor ahead of the join when the map arrives
+(:meth:`LocalViewCache.prepare`).
 """
 
 from __future__ import annotations
@@ -39,17 +41,13 @@ U = TypeVar("U")
 
 
 @dataclass
-class LocalView:
-    """What a join derives from one local map alone, for its given rendezvous poses: the
-    marginal square-root information of those poses (``part``), the cross covariance
-    ``P_l,rho`` (F, 2, k) of the features with them (``cross``), and on first use the map's
-    marginals from its selected inverse."""
+class LocalFactor:
+    """A local map's factorisation at its estimate and, on first use, its marginals from the
+    factor's selected inverse: what a join derives from the map alone, whatever its
+    rendezvous poses."""
 
     robot_map: RobotMap
     system: NormalEquations  # factorised at the map's estimate
-    rendezvous_poses: NDArray[np.int64]
-    part: RendezvousPart | None  # None without rendezvous poses
-    cross: Array | None
 
     @cached_property
     def inverse(self) -> SelectedInverse:
@@ -70,18 +68,65 @@ class LocalView:
             return np.zeros((0, 2, 2))
         return self.inverse.blocks(m.problem, m.feature_ids)
 
+    def with_marginals(self) -> LocalFactor:
+        """This factor with its marginals computed (cached properties)."""
+        self.sigma_phi, self.feature_covariances  # noqa: B018
+        return self
 
-def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
-    """The :class:`LocalView` of ``m`` for ``rendezvous_poses``: the rendezvous part and
+
+def local_factor(m: RobotMap) -> LocalFactor:
+    """The :class:`LocalFactor` of ``m`` (its marginals computed on first use)."""
+    return LocalFactor(m, factorize_at_estimate(m.problem))
+
+
+@dataclass
+class LocalView:
+    """What a join derives from one local map alone, for its given rendezvous poses: the
+    marginal square-root information of those poses (``part``) and the cross covariance
+    ``P_l,rho`` (F, 2, k) of the features with them (``cross``), from the map's
+    :class:`LocalFactor`, which holds its marginals."""
+
+    factor: LocalFactor
+    rendezvous_poses: NDArray[np.int64]
+    part: RendezvousPart | None  # None without rendezvous poses
+    cross: Array | None
+
+    @property
+    def robot_map(self) -> RobotMap:
+        return self.factor.robot_map
+
+    @property
+    def system(self) -> NormalEquations:
+        return self.factor.system
+
+    @property
+    def inverse(self) -> SelectedInverse:
+        return self.factor.inverse
+
+    @property
+    def sigma_phi(self) -> Array:
+        return self.factor.sigma_phi
+
+    @property
+    def feature_covariances(self) -> Array:
+        return self.factor.feature_covariances
+
+
+def local_view(
+    m: RobotMap, rendezvous_poses: NDArray[np.int64], factor: LocalFactor | None = None
+) -> LocalView:
+    """The :class:`LocalView` of ``m`` for ``rendezvous_poses`` (on ``factor``, ``m``'s, when
+    given; else a new one): the rendezvous part and
     ``P_l,rho`` both come from the covariance of the features and those poses. With no more
     feature than pose scalars (the dense work then a few times that of the rendezvous part
     itself), it is their joint covariance with the other poses eliminated along the
     trajectory (:func:`covariance_by_elimination`); otherwise, or where a map's other factors
     make that no band, the covariance columns of the poses (:func:`covariance_columns`)."""
     problem = m.problem
-    system = factorize_at_estimate(problem)
+    factor = factor or local_factor(m)
+    system = factor.system
     if len(rendezvous_poses) == 0:
-        return LocalView(m, system, rendezvous_poses, None, None)
+        return LocalView(factor, rendezvous_poses, None, None)
     pose_columns = problem.scalar_indices(m.pose_ids[rendezvous_poses])
     selected = np.r_[pose_columns, problem.scalar_indices(m.feature_ids)]
     k = len(pose_columns)
@@ -99,7 +144,7 @@ def local_view(m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
     root = upper_sqrt_information(0.5 * (block + block.T))
     part = RendezvousPart(rendezvous_poses, m.poses[rendezvous_poses], root)
     cross = columns[k:].reshape(len(m.feature_ids), 2, k)
-    return LocalView(m, system, rendezvous_poses, part, cross)
+    return LocalView(factor, rendezvous_poses, part, cross)
 
 
 def _other_scalars(m: RobotMap, selected: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -114,8 +159,8 @@ def _other_scalars(m: RobotMap, selected: NDArray[np.int64]) -> NDArray[np.int64
 
 
 def with_marginals(view: LocalView) -> LocalView:
-    """``view`` with its local marginals computed (cached properties)."""
-    view.sigma_phi, view.feature_covariances  # noqa: B018
+    """``view`` with its local marginals computed (cached in its factor)."""
+    view.factor.with_marginals()
     return view
 
 
@@ -131,10 +176,12 @@ def in_threads(function: Callable[[T], U], items: Sequence[T]) -> list[U]:
 
 class LocalViewCache:
     """:class:`LocalView` per robot, kept while its map is the same object and its rendezvous
-    poses the same (a live merger replaces a map when a new one arrives, never changes it)."""
+    poses the same, and :class:`LocalFactor` per robot, kept while its map is the same object
+    (a live merger replaces a map when a new one arrives, never changes it)."""
 
     def __init__(self) -> None:
         self._views: dict[str, LocalView] = {}
+        self._factors: dict[str, LocalFactor] = {}
         self._checks: dict[str, tuple[RobotMap, ConsistencyOptions, LocalMapCheck]] = {}
         self.reused = 0
         self.built = 0
@@ -148,6 +195,21 @@ class LocalViewCache:
         check = check_local_map(m, options)
         self._checks[m.name] = (m, options, check)
         return check
+
+    def factor(self, m: RobotMap) -> LocalFactor:
+        """The cached :class:`LocalFactor` of ``m`` if it is of ``m`` itself, else a new one
+        (then cached)."""
+        kept = self._factors.get(m.name)
+        if kept is not None and kept.robot_map is m:
+            return kept
+        self._factors[m.name] = factor = local_factor(m)
+        return factor
+
+    def prepare(self, maps: Sequence[RobotMap]) -> None:
+        """Compute now, in threads, what later joins derive from each of ``maps`` alone
+        whatever the rendezvous: its :class:`LocalFactor` with its marginals (a live merger
+        prepares a map when it arrives, before the join that takes it)."""
+        in_threads(lambda m: self.factor(m).with_marginals(), maps)
 
     def view(self, m: RobotMap, rendezvous_poses: NDArray[np.int64]) -> LocalView:
         """The cached view of ``m`` if it is still valid, else a new one (then cached)."""
@@ -171,8 +233,10 @@ class LocalViewCache:
         self.reused += len(out) - len(todo)
         self.built += len(todo)
 
-        built = in_threads(lambda i: local_view(maps[i], rendezvous_poses[i]), todo)
-        for i, view in zip(todo, built, strict=True):
+        def build(i: int) -> LocalView:
+            return local_view(maps[i], rendezvous_poses[i], self.factor(maps[i]))
+
+        for i, view in zip(todo, in_threads(build, todo), strict=True):
             out[i] = self._views[maps[i].name] = view
         return [view for view in out if view is not None]
 

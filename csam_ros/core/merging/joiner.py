@@ -8,8 +8,9 @@ source (a map built from updates, refined here once; or a map as saved, joined a
 when it changed. A join may be given up part-way (:class:`JoinCancelled`, raised inside the
 ``cancellable`` context the joiner was made with): the joiner keeps the maps it took and its warm
 start, and the reply says it was cancelled. A request may carry the merger's state, written by
-:meth:`Joiner.write_state` after the reply (the joined map goes out first). The merger node runs a
-joiner in a process of its own (:mod:`csam_ros.solve_process`); nothing here knows of ROS.
+:meth:`Joiner.write_state` after the reply (the joined map goes out first). :meth:`Joiner.prepare`
+takes map sources ahead of their join, with what a join derives from each map alone. The merger node
+runs a joiner in a process of its own (:mod:`csam_ros.solve_process`); nothing here knows of ROS.
 """
 
 from __future__ import annotations
@@ -60,6 +61,13 @@ class JoinRequest:
 
 
 @dataclass(frozen=True)
+class PrepareRequest:
+    """Robots' new map sources, to be taken and prepared before the join that uses them."""
+
+    maps: tuple[tuple[str, MapSource], ...]
+
+
+@dataclass(frozen=True)
 class Refusal:
     """A map source that could not be refined (its robot's last map is joined instead)."""
 
@@ -105,6 +113,7 @@ class Joiner:
         self.maps: dict[str, RobotMap] = {}  # each robot's last usable map, refined
         self.local_views = LocalViewCache()
         self.previous: CsamResult | None = None
+        self._refused: list[Refusal] = []  # by prepare, to go with the next join's reply
         self._state: tuple[MergerState, Path] | None = None  # what write_state writes
         # entered around the join itself (not the maps' refinement or the state write): a
         # JoinCancelled raised within gives the join up
@@ -118,7 +127,8 @@ class Joiner:
             self.previous = request.previous
         # refined in threads, one per core (their factorisations release the interpreter lock)
         taken = in_threads(lambda item: self._take(*item), request.maps)
-        refused = tuple(r for r in taken if r is not None)
+        refused = (*self._refused, *(r for r in taken if r is not None))
+        self._refused = []
         order = [robot for robot, _ in request.maps]
         config = request.config
         try:
@@ -151,6 +161,17 @@ class Joiner:
             )
             self._state = (state, request.state_path)
         return JoinReply(result, refused=refused, state_pending=self._state is not None)
+
+    def prepare(self, request: PrepareRequest) -> None:
+        """Take the request's map sources as a join would, and compute what joins derive from
+        each map alone (:meth:`~csam_ros.core.joining.local_views.LocalViewCache.prepare`), so
+        that the join that uses them does not: a live merger prepares a map when it arrives,
+        while it waits for the others. Refusals go with the next join's reply. Never raises."""
+        taken = in_threads(lambda item: self._take(*item), request.maps)
+        self._refused.extend(r for r in taken if r is not None)
+        maps = [self.maps[robot] for robot, _ in request.maps if robot in self.maps]
+        with contextlib.suppress(Exception):  # the join computes it again and says what failed
+            self.local_views.prepare(maps)
 
     def write_state(self) -> StateWritten | None:
         """Write the state of the last join's request (None when it had none to write)."""

@@ -17,7 +17,13 @@ from csam_ros.core.exchange.map_updates import HeldMap, UpdateSender, apply_upda
 from csam_ros.core.exchange.validation import MALFORMED_LOCAL_MAP
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.join import join_maps
-from csam_ros.core.merging.joiner import JoinCancelled, Joiner, JoinRequest, MapSource
+from csam_ros.core.merging.joiner import (
+    JoinCancelled,
+    Joiner,
+    JoinRequest,
+    MapSource,
+    PrepareRequest,
+)
 from csam_ros.core.model.log import MultiRobotLog
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
@@ -76,6 +82,37 @@ def test_an_unusable_source_is_refused_and_the_last_map_joined(run: MultiRobotLo
     assert [(r.robot, r.reason) for r in reply.refused] == [(bad_robot, MALFORMED_LOCAL_MAP)]
     assert reply.result is not None
     assert largest_difference(reply.result, first.result) < 1e-6
+
+
+def test_prepared_maps_join_as_maps_sent_with_the_join(run: MultiRobotLog) -> None:
+    """Maps prepared before their join (refined, factored, their marginals computed) are
+    held as the join would take them: the join of None sources equals a join of the
+    sources (1e-12), uses the prepared factors, and its reply carries a refusal of prepare."""
+    first, later = (maps_until(run, t) for t in _moments(run)[1:])
+    joiner, reference = Joiner(), Joiner()
+    for joins in (joiner, reference):
+        sources = tuple((m.name, robot_map_arrays(m)) for m in first[0])
+        assert joins.join(JoinRequest(sources, first[1], CONFIG)).result is not None
+    senders = {m.name: UpdateSender(7) for m in later[0]}
+    held = {
+        m.name: apply_update(None, senders[m.name].update(robot_map_arrays(m))) for m in later[0]
+    }
+    joiner.prepare(PrepareRequest(tuple(held.items())))
+    factors = {name: joiner.local_views.factor(joiner.maps[name]) for name in held}
+    assert all("feature_covariances" in vars(f) for f in factors.values())  # computed
+    bad_robot = later[0][1].name
+    poses = robot_map_arrays(later[0][1]).poses.copy()
+    poses[3, 0] = np.nan
+    bad = replace(robot_map_arrays(later[0][1]), poses=poses)
+    joiner.prepare(PrepareRequest(((bad_robot, bad),)))  # refused: the last map stays
+    reply = joiner.join(JoinRequest(tuple((name, None) for name in held), later[1], CONFIG))
+    assert [(r.robot, r.reason) for r in reply.refused] == [(bad_robot, MALFORMED_LOCAL_MAP)]
+    assert all(joiner.local_views.factor(joiner.maps[n]) is f for n, f in factors.items())
+    expected = reference.join(JoinRequest(tuple(held.items()), later[1], CONFIG)).result
+    assert reply.result is not None and expected is not None
+    assert largest_difference(reply.result, expected) < 1e-12
+    again = joiner.join(JoinRequest(tuple((name, None) for name in held), later[1], CONFIG))
+    assert again.refused == ()  # reported once
 
 
 def test_a_map_never_sent_cannot_be_taken_again(run: MultiRobotLog) -> None:
