@@ -13,15 +13,14 @@ messages signed with the team key are taken (:mod:`csam_ros.nodes.merger_auth`).
 Its decisions are :class:`~csam_ros.core.merging.policy.MergerPolicy`'s: the reference, when to
 solve, when the provisional map goes out, smoother restarts, stale robots and what
 ``/csam/status`` and ``/diagnostics`` say. A worker thread hands each solve to the solve process
-(:mod:`csam_ros.solve_process`; one runs, one is pending; between solves it hands the process
-each new map to prepare), then publishes ``/csam/joined_map``,
-``/tf`` ``<reference>/map -> <robot>/map`` and ``/<robot>/pose`` (nodes/merger_output.py), and
-the message process writes ``summary_path`` and publishes ``/csam/markers``. A thread of its own
-publishes ``/csam/joined_map/provisional``. ``~/flush`` (the data has ended) solves the newest
-inputs at once, giving up a running solve of older ones. With ``state_path`` set, the merger
-writes its state there after each solve and takes it up when started with it
-(:class:`~csam_ros.core.exchange.checkpoint.MergerState`). ``~/save_state``, ``~/load_state``,
-``~/reset`` and ``~/pause``: :mod:`csam_ros.nodes.state_services`.
+(:mod:`csam_ros.solve_process`; one runs, one is pending; between solves, each new map to
+prepare), then publishes ``/csam/joined_map``, ``/tf`` ``<reference>/map -> <robot>/map`` and
+``/<robot>/pose`` (nodes/merger_output.py), and the message process writes ``summary_path``
+and publishes ``/csam/markers``. A thread of its own publishes ``/csam/joined_map/provisional``.
+``~/flush`` (the data has ended) solves the newest inputs at once, giving up a running solve of
+older ones. With ``state_path`` set, the merger writes its state there after each solve and takes
+it up when started with it (``MergerState``). ``~/save_state``, ``~/load_state``, ``~/reset`` and
+``~/pause``: :mod:`csam_ros.nodes.state_services`.
 """
 
 from __future__ import annotations
@@ -281,8 +280,8 @@ class Merger(Node):
         return given_up
 
     def _work(self) -> None:
-        """The solve worker: one solve per request of the timer, and between solves the new
-        maps handed to the solve process to prepare, until the node stops."""
+        """The solve worker: one solve per request of the timer, and new maps handed to the
+        solve process to prepare between solves, until the node stops."""
         while True:
             with self._lock:
                 while not (self._requested or self._new_maps or self._stopping.is_set()):
@@ -292,12 +291,13 @@ class Merger(Node):
                 solve, self._requested, new_maps = self._requested, False, self._new_maps
                 prepare = new_maps and not (solve or self.policy.solve_wanted())  # else solved
                 self._new_maps = False
-                sources = tuple(self.policy.sources.items())
             try:
                 if solve:
                     self.solve_pending()
                 elif prepare:  # the maps it does not hold, while the solve waits for others
-                    with self._solve_lock:
+                    with self._solve_lock:  # the solve process of now (~/reset replaces it)
+                        with self._lock:
+                            sources = tuple(self.policy.sources.items())
                         self.solve_process.prepare(sources)
             except Exception as error:  # noqa: BLE001 - the worker outlives any one solve
                 self.drops.add(CALLBACK_ERROR)

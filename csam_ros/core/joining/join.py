@@ -42,6 +42,7 @@ from csam_ros.core.joining.association import (
 from csam_ros.core.joining.config import CsamConfig
 from csam_ros.core.joining.joint_solve import JointSolution, heading_sigmas, joint_solve
 from csam_ros.core.joining.local_views import (
+    LocalFactor,
     LocalView,
     LocalViewCache,
     in_threads,
@@ -389,13 +390,13 @@ def solve_jointly(
 class JointMarginals:
     """Where the joined map's marginals come from (docs/METHOD.md section 6.3): the factor
     of the joint problem at its solution or, when that is the reference's local problem at
-    its local estimate, the reference's local view (``alone``)."""
+    its local estimate, the reference's local factor (``alone``)."""
 
     problem: Problem
     system: NormalEquations  # factorised at the estimate
     pose_ids: dict[int, IntArray]  # robot -> ids of its poses in ``problem``
     base_covariances: dict[int, Array]  # aligned robot -> (3, 3) covariance of its first pose
-    alone: LocalView | None
+    alone: LocalFactor | None
 
     @cached_property
     def inverse(self) -> SelectedInverse | BlockInverse:
@@ -423,7 +424,11 @@ def joint_marginals(
     if solution.robots == [0] and _at_local_estimate(solution, maps[0]):
         m = maps[0]
         return JointMarginals(
-            m.problem, views[0].system, {0: m.pose_ids}, {0: np.zeros((3, 3))}, views[0]
+            m.problem,
+            views[0].factor.system,
+            {0: m.pose_ids},
+            {0: np.zeros((3, 3))},
+            views[0].factor,
         )
     joint, aligned = solution.problem, solution.robots
     marginals = JointMarginals(joint, factorize_at_estimate(joint), solution.pose_ids, {}, None)
@@ -467,13 +472,13 @@ def robot_results(
             alignment=alignment.status[r],
             stamps=stamps,
             poses_local=m.poses,
-            sigma_phi_local=views[r].sigma_phi,
+            sigma_phi_local=views[r].factor.sigma_phi,
             alignment_method=alignment.methods.get(r, ""),
             rendezvous_stamps=stamps[views[r].rendezvous_poses],
             alignment_rendezvous_poses=alignment.rendezvous_poses.get(r),
             feature_labels_local=np.asarray(m.feature_labels, dtype=np.int64),
             features_local=m.feature_positions,
-            feature_covariances_local=views[r].feature_covariances,
+            feature_covariances_local=views[r].factor.feature_covariances,
             local_check=checks.get(r),
             odometry_calibration=m.odometry_calibration,
         )

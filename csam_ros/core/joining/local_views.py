@@ -91,26 +91,6 @@ class LocalView:
     part: RendezvousPart | None  # None without rendezvous poses
     cross: Array | None
 
-    @property
-    def robot_map(self) -> RobotMap:
-        return self.factor.robot_map
-
-    @property
-    def system(self) -> NormalEquations:
-        return self.factor.system
-
-    @property
-    def inverse(self) -> SelectedInverse:
-        return self.factor.inverse
-
-    @property
-    def sigma_phi(self) -> Array:
-        return self.factor.sigma_phi
-
-    @property
-    def feature_covariances(self) -> Array:
-        return self.factor.feature_covariances
-
 
 def local_view(
     m: RobotMap, rendezvous_poses: NDArray[np.int64], factor: LocalFactor | None = None
@@ -225,7 +205,7 @@ class LocalViewCache:
             view = self._views.get(m.name)
             valid = (
                 view is not None
-                and view.robot_map is m
+                and view.factor.robot_map is m
                 and np.array_equal(view.rendezvous_poses, poses)
             )
             out.append(view if valid else None)
@@ -253,6 +233,6 @@ def map_features(m: RobotMap, view: LocalView, left_out: Sequence[int] = ()) -> 
     if m.feature_covariances is not None:
         covs = np.asarray(m.feature_covariances, dtype=float)
     else:
-        covs = view.feature_covariances
+        covs = view.factor.feature_covariances
     keep = ~np.isin(m.feature_labels, left_out)
     return MapFeatures(m.feature_labels[keep], m.feature_positions[keep], covs[keep], gain[keep])

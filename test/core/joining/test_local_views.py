@@ -61,10 +61,10 @@ def test_the_local_marginals_are_those_of_the_dense_inverse(robot1: RobotMap) ->
     view = with_marginals(local_view(robot1, np.array([3, 9])))
     dense = _dense_covariance(robot1)
     headings = robot1.problem.scalar_indices(robot1.pose_ids)[2::3]
-    np.testing.assert_allclose(view.sigma_phi, np.sqrt(dense[headings, headings]), rtol=1e-6)
+    np.testing.assert_allclose(view.factor.sigma_phi, np.sqrt(dense[headings, headings]), rtol=1e-6)
     xy = robot1.problem.scalar_indices(robot1.feature_ids).reshape(-1, 2)
     expected = dense[xy[:, :, None], xy[:, None, :]]
-    np.testing.assert_allclose(view.feature_covariances, expected, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(view.factor.feature_covariances, expected, rtol=1e-6, atol=1e-12)
 
 
 def test_a_map_without_rendezvous_poses_has_no_part_and_no_features_to_associate(
