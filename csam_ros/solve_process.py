@@ -106,7 +106,8 @@ def _serve(connection: Connection, cancelled: Any, niceness: int) -> None:
             return
         cancellation.request += 1
         if isinstance(request, PrepareRequest):
-            joiner.prepare(request)
+            with contextlib.suppress(Exception):  # the child outlives it; the join says more
+                joiner.prepare(request)
             try:
                 connection.send(None)  # prepared
             except (EOFError, OSError):
