@@ -238,8 +238,9 @@ class Merger(Node):
         if taken.behind:
             self.resyncs.ask(robot, taken.behind)
         if taken.taken:
-            with self._lock:
+            with self._lock:  # the worker prepares it, or solves if it completes a round
                 self._new_maps = True
+                self._requested |= self.policy.solve_wanted(on_arrival=True)
                 self._wake.notify()
             self.publish_provisional()
 

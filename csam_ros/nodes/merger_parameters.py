@@ -84,7 +84,8 @@ MERGER_PARAMETERS = (
     Declared(
         "solve_period",
         _DEFAULTS.solve_period,
-        "minimum wall-clock seconds between solves",
+        "minimum wall-clock seconds between solves: the merger looks this often whether one "
+        "is to start, and a local map that makes every robot's map new starts one at once",
         0.0,
         3600.0,
     ),

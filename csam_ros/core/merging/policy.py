@@ -9,13 +9,13 @@ measurements, the reference, the counts, the last result) and decides with it:
   robot on the allow-list;
 - when a solve starts: when the inputs changed since the last solve's snapshot (a map
   delivered again unchanged is no change), no solve runs (the node asks every
-  ``solve_period`` s), and either every robot's map is newer than the last solve's or
-  ``solve_wait`` s passed since the first change: smoothers on one data clock send their
-  maps within a second of each other, and a solve started on the first of them would keep
-  the others waiting for the next; ``~/flush`` solves the newest inputs at once, and after
-  it each robot's next local map gives up a running solve, once (a smoother's final map
-  may come after the flush that asked for it; no more, so that a flush in the middle of a
-  run does not keep solves from ending);
+  ``solve_period`` s, and as a map completes a round), and either every robot's map is newer
+  than the last solve's or ``solve_wait`` s passed since the first change: smoothers on one
+  data clock send their maps within a second of each other, and a solve started on the first
+  of them would keep the others waiting for the next; ``~/flush`` solves the newest inputs at
+  once, and after it each robot's next local map gives up a running solve, once (a smoother's
+  final map may come after the flush that asked for it; no more, so that a flush in the middle
+  of a run does not keep solves from ending);
 - when the provisional joined map goes out (the newest local maps placed by the last join):
   once every robot's map is newer than the last joined and provisional maps, or
   ``provisional_quiet`` s pass without another map (maps that arrive together go out in one),
@@ -131,6 +131,7 @@ class MergerPolicy:
         self.resync_requests: dict[str, int] = {}
         self.dirty = False  # inputs changed since the last solve's snapshot
         self._changed_at: float | None = None  # clock s they first changed since
+        self._solve_started_at = clock()  # clock s the last solve started (or none yet)
         self._solved_stamps: dict[str, int] = {}  # the local map stamps the last solve took
         self.solving = False  # a solve is running
         self.solves = 0
@@ -416,13 +417,19 @@ class MergerPolicy:
 
     # solves
 
-    def solve_wanted(self) -> bool:
+    def solve_wanted(self, on_arrival: bool = False) -> bool:
         """Whether a solve is to start: the inputs changed, none runs, and the maps that come
-        together are in (:meth:`MergerSettings.solve_settled`)."""
+        together are in (:meth:`MergerSettings.solve_settled`). ``on_arrival`` (a local map
+        just taken): only once every robot's map is new and ``solve_period`` s passed since
+        the last solve started, so that the map that completes a round starts the solve at
+        once instead of at the node's next look."""
         if not self.dirty or self.solving:
             return False
-        waited = self.clock() - (self._changed_at if self._changed_at is not None else -inf)
         every_map_new = every_map_newer(self.local_map_stamps, self._solved_stamps)
+        if on_arrival:
+            since = self.clock() - self._solve_started_at
+            return every_map_new and since >= self.settings.solve_period
+        waited = self.clock() - (self._changed_at if self._changed_at is not None else -inf)
         return self.settings.solve_settled(waited, every_map_new)
 
     def flush(self) -> bool:
@@ -446,6 +453,7 @@ class MergerPolicy:
             return None
         _, notice = chosen
         self._changed_at, self._solved_stamps = None, dict(self.local_map_stamps)
+        self._solve_started_at = self.clock()
         order, robots = self._order()
         inputs = SolveInputs(
             order=tuple(order),

@@ -277,6 +277,28 @@ def test_a_solve_waits_for_the_maps_that_come_together(run: Run) -> None:
     assert Merger(solve_wait=0.0).policy.settings.solve_settled(0.0, every_map_new=False)
 
 
+def test_the_map_that_completes_a_round_starts_the_solve_at_once(run: Run) -> None:
+    """On a map's arrival a solve is wanted only when every robot's map is new, and at least
+    solve_period s after the last solve started (or the policy was made)."""
+    merger = Merger(solve_wait=1.0, solve_period=0.5)
+    _all_in(merger, run)
+    assert not merger.policy.solve_wanted(on_arrival=True)  # made just now
+    merger.clock.advance(0.5)
+    assert merger.policy.solve_wanted(on_arrival=True)
+    merger.solve(run.joined)
+    merger.send(run.late["robot1"], 2.0)
+    merger.clock.advance(2.0)  # past solve_wait: the node's look would start it
+    assert merger.policy.solve_wanted() and not merger.policy.solve_wanted(on_arrival=True)
+    merger.send(run.late["robot2"], 2.0)
+    assert merger.policy.solve_wanted(on_arrival=True)
+    merger.solve(run.joined)
+    merger.send(run.early["robot1"], 3.0)
+    merger.send(run.early["robot2"], 3.0)
+    assert merger.policy.solve_wanted() and not merger.policy.solve_wanted(on_arrival=True)
+    merger.clock.advance(0.5)  # solve_period after the last start
+    assert merger.policy.solve_wanted(on_arrival=True)
+
+
 def test_a_map_delivered_again_starts_no_solve(run: Run) -> None:
     merger = Merger()
     sender = UpdateSender(3)
