@@ -47,7 +47,6 @@ from csam_ros.core.joining.local_views import (
     LocalViewCache,
     in_threads,
     map_features,
-    with_marginals,
 )
 from csam_ros.core.joining.notes import Note
 from csam_ros.core.joining.rendezvous_filters import (
@@ -106,7 +105,7 @@ def join_maps(
     alignment = align_maps(maps, views, measurements, checks, config, warm)
     aligned = [r for r in range(len(maps)) if alignment.aligned(r)]
     clock.lap("alignment")
-    in_threads(with_marginals, views)  # the local marginals the summary reports
+    in_threads(lambda view: view.factor.with_marginals(), views)  # the summary reports them
     clock.lap("local_marginals")
     associations = Associations([], [])
     if config.associate and len(aligned) > 1:

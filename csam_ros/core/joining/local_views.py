@@ -138,12 +138,6 @@ def _other_scalars(m: RobotMap, selected: NDArray[np.int64]) -> NDArray[np.int64
     return order[outside[order]]
 
 
-def with_marginals(view: LocalView) -> LocalView:
-    """``view`` with its local marginals computed (cached in its factor)."""
-    view.factor.with_marginals()
-    return view
-
-
 def in_threads(function: Callable[[T], U], items: Sequence[T]) -> list[U]:
     """``[function(x) for x in items]`` in threads, one per core (for work that releases the
     interpreter lock: sparse factorisations and solves, LAPACK)."""

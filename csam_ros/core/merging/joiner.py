@@ -166,12 +166,12 @@ class Joiner:
         """Take the request's map sources as a join would, and compute what joins derive from
         each map alone (:meth:`~csam_ros.core.joining.local_views.LocalViewCache.prepare`), so
         that the join that uses them does not: a live merger prepares a map when it arrives,
-        while it waits for the others. Refusals go with the next join's reply. Never raises."""
+        while it waits for the others. Refusals go with the next join's reply."""
         taken = in_threads(lambda item: self._take(*item), request.maps)
         self._refused.extend(r for r in taken if r is not None)
-        maps = [self.maps[robot] for robot, _ in request.maps if robot in self.maps]
-        with contextlib.suppress(Exception):  # the join computes it again and says what failed
-            self.local_views.prepare(maps)
+        self.local_views.prepare(
+            [self.maps[robot] for robot, _ in request.maps if robot in self.maps]
+        )
 
     def write_state(self) -> StateWritten | None:
         """Write the state of the last join's request (None when it had none to write)."""

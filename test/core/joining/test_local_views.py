@@ -15,7 +15,6 @@ from csam_ros.core.joining.local_views import (
     in_threads,
     local_view,
     map_features,
-    with_marginals,
 )
 from csam_ros.core.joining.pipeline import robot_map_from_local_map
 from csam_ros.core.smoothing.local_map_build import build_local_map
@@ -58,7 +57,8 @@ def test_a_local_view_is_the_dense_covariance_of_its_rendezvous_poses_and_featur
 
 
 def test_the_local_marginals_are_those_of_the_dense_inverse(robot1: RobotMap) -> None:
-    view = with_marginals(local_view(robot1, np.array([3, 9])))
+    view = local_view(robot1, np.array([3, 9]))
+    view.factor.with_marginals()
     dense = _dense_covariance(robot1)
     headings = robot1.problem.scalar_indices(robot1.pose_ids)[2::3]
     np.testing.assert_allclose(view.factor.sigma_phi, np.sqrt(dense[headings, headings]), rtol=1e-6)
