@@ -1,5 +1,5 @@
 """The merger's solves replayed from a recorded live run, cold against warm:
-``python -m csam_ros.bench.merger_replay BAG [--config FILE] [--every S]``.
+``python -m csam_ros.bench.merger_replay BAG [--config FILE] [--every S] [--ahead]``.
 
 A live run's bag holds every local map update and rendezvous poses message the merger
 received (``/<robot>/local_map_updates``, ``/<robot>/rendezvous_poses``). Read in log-time
@@ -8,7 +8,8 @@ is joined twice by the core: cold (:func:`~csam_ros.core.joining.join.join_maps`
 warm (from the previous warm result, with the local views kept between solves, as the merger
 does). The table gives each solve's time and iterations and the largest difference between
 the warm and the cold joined map (poses and features); the last line the distribution of the
-solve times.
+solve times. ``--ahead`` compares instead two chains of warm joins, with the joint solve ahead
+of Algorithm 2 (:class:`~csam_ros.core.joining.join.JointSolveAhead`) and without it.
 """
 
 from __future__ import annotations
@@ -94,15 +95,71 @@ def snapshots(bag: Path, every: float):
         yield t, dict(maps), dict(rendezvous), robots
 
 
+def ordered_inputs(
+    maps: dict[str, RobotMap], messages: dict, robots: list[str], reference: str, config: CsamConfig
+) -> tuple[list[RobotMap], dict]:
+    """The maps in join order (``reference`` first) and the rendezvous logs of a snapshot."""
+    order = [reference] + [r for r in maps if r != reference]
+    logs = {
+        r: rendezvous_log_from_message(m, r, robots, maps[r].stamps, config.stamp_tolerance)
+        for r, m in messages.items()
+        if r in maps
+    }
+    return [maps[r] for r in order], logs
+
+
+def compare_ahead(
+    bag: Path, every: float, start_s: float, reference: str, config: CsamConfig
+) -> None:
+    """Two chains of warm joins, one with the joint solve ahead of Algorithm 2 and one
+    without (in turns first, each with its maps prepared as the merger does): each solve's
+    time, whether the solve ahead was taken, and the means after the first solve."""
+    chains: dict[bool, tuple[LocalViewCache, list[CsamResult]]] = {
+        on: (LocalViewCache(), []) for on in (False, True)
+    }
+    seconds: dict[bool, list[float]] = {False: [], True: []}
+    print(f"{'t':>7} {'without':>8} {'ahead':>7} {'taken':>5}")
+    for n, (t, maps, messages, robots) in enumerate(snapshots(bag, every)):
+        if (reference or robots[0]) not in maps or t < start_s:
+            continue
+        ordered, logs = ordered_inputs(maps, messages, robots, reference or robots[0], config)
+        for on in (n % 2 == 1, n % 2 == 0):
+            cache, results = chains[on]
+            cache.prepare(ordered)
+            start = time.perf_counter()
+            previous = results[-1] if results else None
+            results.append(join_maps(ordered, logs, config, previous, cache, overlap=on))
+            seconds[on].append(time.perf_counter() - start)
+        taken = chains[True][1][-1].statistics["joint_solve_ahead"]
+        print(f"{t:7.1f} {seconds[False][-1]:7.2f}s {seconds[True][-1]:6.2f}s {taken:5.0f}")
+    taken = [r.statistics["joint_solve_ahead"] for r in chains[True][1][1:]]
+    print(
+        f"after the first: without {np.mean(seconds[False][1:]):.3f} s, ahead "
+        f"{np.mean(seconds[True][1:]):.3f} s, taken in {sum(taken):.0f} of {len(taken)}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("bag", type=Path)
     parser.add_argument("--config", help="YAML file with a csam: section (config/mrclam.yaml)")
     parser.add_argument("--every", type=float, default=60.0, help="s of log time between solves")
     parser.add_argument("--reference", default="", help="reference robot (default: the first)")
+    parser.add_argument(
+        "--start", type=float, default=0.0, help="s of log time before the first solve"
+    )
+    parser.add_argument(
+        "--ahead",
+        action="store_true",
+        help="warm joins with the joint solve ahead of Algorithm 2 against without it, "
+        "instead of cold against warm",
+    )
     args = parser.parse_args()
     config = CsamConfig.from_file(args.config) if args.config else CsamConfig()
     config = replace(config, skip_missing_poses=True)  # as the merger
+    if args.ahead:
+        compare_ahead(args.bag, args.every, args.start, args.reference, config)
+        return
     cache = LocalViewCache()
     warm: CsamResult | None = None
     print(
@@ -112,15 +169,9 @@ def main() -> None:
     cold_s, warm_s = [], []
     for t, maps, messages, robots in snapshots(args.bag, args.every):
         reference = args.reference or robots[0]
-        if reference not in maps:
+        if reference not in maps or t < args.start:
             continue
-        order = [reference] + [r for r in maps if r != reference]
-        ordered = [maps[r] for r in order]
-        logs = {
-            r: rendezvous_log_from_message(m, r, robots, maps[r].stamps, config.stamp_tolerance)
-            for r, m in messages.items()
-            if r in maps
-        }
+        ordered, logs = ordered_inputs(maps, messages, robots, reference, config)
         start = time.perf_counter()
         cold = join_maps(ordered, logs, config)
         cold_s.append(time.perf_counter() - start)

@@ -34,3 +34,16 @@ def test_merger_replay_joins_a_live_run_cold_and_warm_alike(demo_run: Path) -> N
     assert all(float(row[-1]) < 1e-6 for row in rows), printed
     solves = [line for line in lines if line.startswith(("cold:", "warm:"))]
     assert [s.split()[1] for s in solves] == [str(len(rows))] * 2, printed
+
+
+def test_merger_replay_compares_warm_joins_with_and_without_the_solve_ahead(
+    demo_run: Path,
+) -> None:
+    printed = _run("csam_ros.bench.merger_replay", demo_run / "bag", "--every", "0.5", "--ahead")
+    lines = printed.splitlines()
+    assert lines[0].split() == ["t", "without", "ahead", "taken"]
+    rows = [line.split() for line in lines[1:-1]]
+    assert len(rows) >= 3 and all(row[3] in ("0", "1") for row in rows), printed
+    assert rows[0][3] == "0"  # the first join has no previous one
+    taken = sum(int(row[3]) for row in rows[1:])
+    assert lines[-1].endswith(f"taken in {taken} of {len(rows) - 1}"), printed

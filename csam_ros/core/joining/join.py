@@ -24,8 +24,10 @@ logs, and runs these steps, each a function of this module:
 
 from __future__ import annotations
 
+import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -40,7 +42,12 @@ from csam_ros.core.joining.association import (
     associate,
 )
 from csam_ros.core.joining.config import CsamConfig
-from csam_ros.core.joining.joint_solve import JointSolution, heading_sigmas, joint_solve
+from csam_ros.core.joining.joint_solve import (
+    JointSolution,
+    aligned_clusters,
+    heading_sigmas,
+    joint_solve,
+)
 from csam_ros.core.joining.local_views import (
     LocalFactor,
     LocalView,
@@ -81,13 +88,16 @@ def join_maps(
     config: CsamConfig | None = None,
     previous: CsamResult | None = None,
     cache: LocalViewCache | None = None,
+    overlap: bool = True,
 ) -> CsamResult:
     """Run C-SAM on solved local maps (the first map's robot is the reference).
 
     ``previous``, the result of an earlier join with the same reference, gives the initial
     values (:mod:`csam_ros.core.joining.warm_start`); ``cache`` keeps each map's
     :class:`~csam_ros.core.joining.local_views.LocalView` between calls. Neither changes the
-    problem solved: converged, the result is the same as without them."""
+    problem solved: converged, the result is the same as without them. With ``previous`` and
+    ``overlap``, the joint solve starts beside Algorithm 2 on the previous join's
+    associations (:class:`JointSolveAhead`); the result is the same as without it."""
     config = config or CsamConfig()
     names = _robot_names(maps)
     cache = cache or LocalViewCache()
@@ -108,19 +118,36 @@ def join_maps(
     in_threads(lambda view: view.factor.with_marginals(), views)  # the summary reports them
     clock.lap("local_marginals")
     associations = Associations([], [])
+    ahead: JointSolveAhead | None = None
     if config.associate and len(aligned) > 1:
+        if warm is not None and overlap and (os.cpu_count() or 1) > 1:
+
+            def solve(expected: Associations) -> tuple[JointSolution, JointMarginals]:
+                solution = solve_jointly(
+                    maps, aligned, alignment, expected, measurements, config, warm
+                )
+                return solution, joint_marginals(solution, maps, views)
+
+            ahead = JointSolveAhead(warm.clusters(names), aligned, solve)
         associations = associate_features(
             maps, views, alignment, aligned, checks, config, measurements
         )
         clock.lap("association")
-    solution = solve_jointly(maps, aligned, alignment, associations, measurements, config, warm)
-    clock.lap("joint_solve")
-    marginals = joint_marginals(solution, maps, views)
+    solved = ahead.result(associations.clusters) if ahead is not None else None
+    if solved is None:
+        solution = solve_jointly(maps, aligned, alignment, associations, measurements, config, warm)
+        clock.lap("joint_solve")
+        marginals = joint_marginals(solution, maps, views)
+    else:
+        solution, marginals = solved
+        clock.lap("joint_solve")
     clock.lap("joint_base_node_covariance")
     robots = robot_results(maps, views, checks, alignment, solution, marginals)
     features = joined_features(names, solution, marginals)
     clock.lap("joint_marginals")
     notes += convergence_notes(alignment, solution.report)
+    statistics = join_statistics(alignment, associations, solution, measurements)
+    statistics["joint_solve_ahead"] = float(solved is not None)
     return CsamResult(
         reference_frame=f"{names[0]}/map",
         robots=robots,
@@ -128,7 +155,7 @@ def join_maps(
         associations=association_records(names, associations),
         timing_s=clock.with_total(),
         notes=notes,
-        statistics=join_statistics(alignment, associations, solution, measurements),
+        statistics=statistics,
         rendezvous_filter=rendezvous_filter,
     )
 
@@ -380,6 +407,42 @@ def solve_jointly(
         initial_poses,
         initial_features,
     )
+
+
+class JointSolveAhead:
+    """The joint solve and its marginals of a warm join, run in a thread while Algorithm 2
+    runs, on the associations it is expected to find again: the previous join's
+    (docs/METHOD.md section 6.4). That work releases the interpreter lock for most of its
+    time (sparse factorisations, large array operations), so on a second core it costs the
+    join little. :meth:`result` gives it when Algorithm 2 found the same clusters (the joint
+    problem is then the same: :func:`~csam_ros.core.joining.joint_solve.aligned_clusters`),
+    else None, and the join solves on what Algorithm 2 found."""
+
+    def __init__(
+        self,
+        expected: list[list[tuple[int, int]]],
+        aligned: list[int],
+        solve: Callable[[Associations], tuple[JointSolution, JointMarginals]],
+    ) -> None:
+        self.aligned = aligned
+        self.clusters = aligned_clusters(expected, aligned)
+
+        def ahead() -> tuple[JointSolution, JointMarginals]:
+            solution, marginals = solve(Associations([], self.clusters))
+            marginals.inverse  # noqa: B018  (its selected inverse, here beside Algorithm 2)
+            return solution, marginals
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="csam-joint")
+        self._future = pool.submit(ahead)
+        pool.shutdown(wait=False)  # a join given up leaves the thread to finish alone
+
+    def result(
+        self, clusters: Sequence[Sequence[tuple[int, int]]]
+    ) -> tuple[JointSolution, JointMarginals] | None:
+        """The solve and marginals when ``clusters`` (Algorithm 2's) are the expected ones."""
+        if aligned_clusters(clusters, self.aligned) != self.clusters:
+            return None
+        return self._future.result()
 
 
 # --------------------------------------------------------------------------- 7. the result

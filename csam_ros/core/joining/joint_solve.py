@@ -68,7 +68,8 @@ def joint_solve(
 
     ``robots`` lists the aligned robot indices, the reference (index 0) first;
     ``base_nodes[r]`` places ``G_r`` in the reference frame; each cluster lists the
-    ``(robot, label)`` members of one associated feature. Cold start: each robot's local map
+    ``(robot, label)`` members of one associated feature (:func:`aligned_clusters` orders
+    them). Cold start: each robot's local map
     moved by its base node (an associated feature at the mean of its members). Warm start:
     robot ``r``'s poses (N, 3) and features (F, 2) in the reference frame from
     ``initial_poses[r]`` and ``initial_features[r]`` where given, taken only when it costs
@@ -104,11 +105,7 @@ def joint_solve(
     owner: dict[int, IntArray] = {r: np.full(len(maps[r].feature_ids), -1) for r in robots}
     members: list[list[tuple[int, int]]] = []
     cluster_index: list[list[tuple[int, int]]] = []  # (robot, local index) of the members
-    aligned = set(robots)
-    for cluster in clusters:
-        inside = [(r, lab) for r, lab in cluster if r in aligned]
-        if not inside:
-            continue
+    for inside in aligned_clusters(clusters, robots):
         k = len(members)
         for r, lab in inside:
             if lab not in label_index[r]:
@@ -116,7 +113,7 @@ def joint_solve(
             if owner[r][label_index[r][lab]] >= 0:
                 raise ValueError(f"feature {maps[r].name}/{lab} is in two associations")
             owner[r][label_index[r][lab]] = k
-        members.append(sorted(inside))
+        members.append(inside)
         cluster_index.append([(r, label_index[r][lab]) for r, lab in inside])
     free: dict[int, IntArray] = {}
     for r in robots:
@@ -187,6 +184,19 @@ def joint_solve(
     return JointSolution(
         problem, robots, pose_ids, feature_ids, members, feature_var_ids, report, warm_start
     )
+
+
+def aligned_clusters(
+    clusters: Sequence[Sequence[tuple[int, int]]], robots: Sequence[int]
+) -> list[list[tuple[int, int]]]:
+    """The members of ``clusters`` among the aligned ``robots``, each sorted, the clusters in
+    the order of their members (not of Algorithm 2's decisions): equal sets of clusters give
+    the same joint problem."""
+    aligned = set(robots)
+    inside = [
+        sorted((int(r), int(lab)) for r, lab in cluster if r in aligned) for cluster in clusters
+    ]
+    return sorted(members for members in inside if members)
 
 
 def _robot_blocks(

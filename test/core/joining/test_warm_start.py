@@ -35,6 +35,45 @@ def test_warm_equals_cold_over_growing_maps(scenario: str) -> None:
     assert cache.reused == 0  # every map grew between solves
 
 
+@pytest.mark.parametrize("scenario", ["map_joining", "chain"])
+def test_the_joint_solve_ahead_of_algorithm_2_is_the_join_without_it(scenario: str) -> None:
+    """A warm join solves jointly beside Algorithm 2 on the previous associations; taken when
+    Algorithm 2 finds them again, it is the same problem solved the same way as after it."""
+    log = simulate(load_scenario(scenario), 1)
+    first = min(r.rendezvous.stamps.min() for r in log.robots.values() if len(r.rendezvous.stamps))
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    config = CsamConfig(skip_missing_poses=True)
+    ahead: CsamResult | None = None
+    after: CsamResult | None = None
+    taken = []
+    for t in np.arange(first + 2.0, end, 3.0):
+        maps, logs = maps_until(log, float(t))
+        ahead = join_maps(maps, logs, config, previous=ahead)
+        after = join_maps(maps, logs, config, previous=after, overlap=False)
+        assert largest_difference(ahead, after) == 0.0, t
+        assert ahead.statistics["joint_iterations"] == after.statistics["joint_iterations"]
+        assert after.statistics["joint_solve_ahead"] == 0.0
+        taken.append(ahead.statistics["joint_solve_ahead"])
+    # none without a previous join; taken where Algorithm 2 found the last associations again
+    # (the simulated robots find new ones until late in the run)
+    assert taken[0] == 0.0 and 1.0 in taken, taken
+
+
+def test_a_joint_solve_ahead_on_associations_not_found_again_is_not_taken() -> None:
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = maps_until(log, float(end))
+    cold = join_maps(maps, logs)
+    previous = join_maps(maps, logs, previous=cold)
+    assert previous.statistics["joint_solve_ahead"] == 1.0
+    merged = [f for f in previous.features if len(f.members) > 1]
+    previous.features.remove(merged[0])  # the previous join without one association
+    previous.features.extend(replace(merged[0], members=[m]) for m in merged[0].members)
+    again = join_maps(maps, logs, previous=previous)
+    assert again.statistics["joint_solve_ahead"] == 0.0
+    assert largest_difference(again, join_maps(maps, logs, previous=previous, overlap=False)) == 0.0
+
+
 def test_the_same_maps_again_reuse_their_views_and_change_nothing() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
