@@ -89,15 +89,17 @@ def join_maps(
     previous: CsamResult | None = None,
     cache: LocalViewCache | None = None,
     overlap: bool = True,
+    last: CsamResult | None = None,
 ) -> CsamResult:
     """Run C-SAM on solved local maps (the first map's robot is the reference).
 
     ``previous``, the result of an earlier join with the same reference, gives the initial
     values (:mod:`csam_ros.core.joining.warm_start`); ``cache`` keeps each map's
     :class:`~csam_ros.core.joining.local_views.LocalView` between calls. Neither changes the
-    problem solved: converged, the result is the same as without them. With ``previous`` and
-    ``overlap``, the joint solve starts beside Algorithm 2 on the previous join's
-    associations (:class:`JointSolveAhead`); the result is the same as without it."""
+    problem solved: converged, the result is the same as without them. With ``overlap``, the
+    joint solve starts beside Algorithm 2 on the associations of ``last`` (a join of the same
+    robots, by default ``previous``; :class:`JointSolveAhead`): the result is the same as
+    without it."""
     config = config or CsamConfig()
     names = _robot_names(maps)
     cache = cache or LocalViewCache()
@@ -120,7 +122,8 @@ def join_maps(
     associations = Associations([], [])
     ahead: JointSolveAhead | None = None
     if config.associate and len(aligned) > 1:
-        if warm is not None and overlap and (os.cpu_count() or 1) > 1:
+        last = last or previous
+        if last is not None and overlap and (os.cpu_count() or 1) > 1:
 
             def solve(expected: Associations) -> tuple[JointSolution, JointMarginals]:
                 solution = solve_jointly(
@@ -128,7 +131,7 @@ def join_maps(
                 )
                 return solution, joint_marginals(solution, maps, views)
 
-            ahead = JointSolveAhead(warm.clusters(names), aligned, solve)
+            ahead = JointSolveAhead(merged_features(last, names), aligned, solve)
         associations = associate_features(
             maps, views, alignment, aligned, checks, config, measurements
         )
@@ -407,6 +410,14 @@ def solve_jointly(
         initial_poses,
         initial_features,
     )
+
+
+def merged_features(result: CsamResult, names: Sequence[str]) -> list[list[tuple[int, int]]]:
+    """The merged features of ``result`` as ``(index in names, label)`` members, without
+    robots not in ``names``."""
+    index = {name: r for r, name in enumerate(names)}
+    split = [[m.rsplit("/", 1) for m in f.members] for f in result.features if len(f.members) > 1]
+    return [[(index[n], int(label)) for n, label in members if n in index] for members in split]
 
 
 class JointSolveAhead:

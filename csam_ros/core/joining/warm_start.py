@@ -52,7 +52,6 @@ class WarmStart:
     features: Mapping[str, tuple[Array, Array]]  # "robot/label" -> (joined, local) position
     # robot -> (rendezvous stamps, Algorithm 1's rendezvous poses (+) their local ones^-1)
     rendezvous: Mapping[str, tuple[Array, Array]] = field(default_factory=dict)
-    associated: tuple[tuple[str, ...], ...] = ()  # "robot/label" members of merged features
 
     @classmethod
     def from_result(cls, result: CsamResult) -> WarmStart:
@@ -86,18 +85,7 @@ class WarmStart:
             for m in f.members
             if m in local
         }
-        associated = tuple(tuple(f.members) for f in result.features if len(f.members) > 1)
-        return cls(result.reference, base_nodes, corrections, features, rendezvous, associated)
-
-    def clusters(self, names: Sequence[str]) -> list[list[tuple[int, int]]]:
-        """The previous join's merged features as ``(robot index in names, label)`` members,
-        without robots not in ``names``."""
-        index = {name: r for r, name in enumerate(names)}
-        out = []
-        for members in self.associated:
-            split = [m.rsplit("/", 1) for m in members]
-            out.append([(index[n], int(label)) for n, label in split if n in index])
-        return out
+        return cls(result.reference, base_nodes, corrections, features, rendezvous)
 
     def base_node_starts(self, names: Sequence[str]) -> Array:
         """(R, 3) previous base nodes of ``names`` in order, NaN rows for robots without."""

@@ -142,6 +142,7 @@ class Joiner:
                     dict(request.logs),
                     config,
                     previous=self.previous if config.warm_start else None,
+                    last=self.previous,
                     cache=self.local_views,
                 )
             fault = non_finite(result)

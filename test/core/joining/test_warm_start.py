@@ -59,6 +59,20 @@ def test_the_joint_solve_ahead_of_algorithm_2_is_the_join_without_it(scenario: s
     assert taken[0] == 0.0 and 1.0 in taken, taken
 
 
+def test_a_cold_join_solves_ahead_on_the_associations_of_the_last_join() -> None:
+    """Without a warm start (``csam.warm_start`` off) the last join's associations still
+    start the joint solve ahead; the join is the cold one exactly."""
+    log = simulate(load_scenario("map_joining"), 1)
+    end = max(r.odometry.stamps.max() for r in log.robots.values())
+    maps, logs = maps_until(log, float(end))
+    cold = join_maps(maps, logs)
+    assert cold.statistics["joint_solve_ahead"] == 0.0
+    again = join_maps(maps, logs, last=cold)
+    assert again.statistics["joint_solve_ahead"] == 1.0
+    assert again.statistics["joint_warm_start"] == 0.0
+    assert largest_difference(again, cold) == 0.0
+
+
 def test_a_joint_solve_ahead_on_associations_not_found_again_is_not_taken() -> None:
     log = simulate(load_scenario("map_joining"), 1)
     end = max(r.odometry.stamps.max() for r in log.robots.values())
