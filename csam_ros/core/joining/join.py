@@ -15,7 +15,8 @@ logs, and runs these steps, each a function of this module:
    cannot be aligned stay ``pending: <reason>`` and get no joined map.
 5. :func:`associate_features`: Algorithm 2 (section 6.1).
 6. :func:`solve_jointly`: one joint solve of all poses and features of the aligned robots
-   (section 6.2).
+   (section 6.2); run beside step 5 on the last join's associations, and kept when step 5
+   finds them again (:class:`JointSolveAhead`, section 6.4).
 7. :func:`joint_marginals`, :func:`robot_results`, :func:`joined_features`: the marginal
    covariances the summary reports, from a selected inverse of each factor
    (:class:`~csam_ros.core.sam.selected_inverse.SelectedInverse`), never from the dense inverse,
@@ -421,9 +422,9 @@ def merged_features(result: CsamResult, names: Sequence[str]) -> list[list[tuple
 
 
 class JointSolveAhead:
-    """The joint solve and its marginals of a warm join, run in a thread while Algorithm 2
-    runs, on the associations it is expected to find again: the previous join's
-    (docs/METHOD.md section 6.4). That work releases the interpreter lock for most of its
+    """The joint solve and its marginals of a join, run in a thread while Algorithm 2 runs,
+    on the associations it is expected to find again: the last join's (docs/METHOD.md
+    section 6.4). That work releases the interpreter lock for most of its
     time (sparse factorisations, large array operations), so on a second core it costs the
     join little. :meth:`result` gives it when Algorithm 2 found the same clusters (the joint
     problem is then the same: :func:`~csam_ros.core.joining.joint_solve.aligned_clusters`),
