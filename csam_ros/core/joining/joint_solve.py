@@ -69,12 +69,11 @@ def joint_solve(
     ``robots`` lists the aligned robot indices, the reference (index 0) first;
     ``base_nodes[r]`` places ``G_r`` in the reference frame; each cluster lists the
     ``(robot, label)`` members of one associated feature (:func:`aligned_clusters` orders
-    them). Cold start: each robot's local map
-    moved by its base node (an associated feature at the mean of its members). Warm start:
-    robot ``r``'s poses (N, 3) and features (F, 2) in the reference frame from
-    ``initial_poses[r]`` and ``initial_features[r]`` where given, taken only when it costs
-    less than the cold start (maps that changed much since can make it the worse start, and
-    the robust cost has more than one minimum).
+    them). Cold start: each robot's local map moved by its base node (an associated feature
+    at the mean of its members). Warm start: robot ``r``'s poses (N, 3) and features (F, 2)
+    in the reference frame from ``initial_poses[r]`` and ``initial_features[r]`` where given,
+    taken only when it costs less than the cold start (maps that changed much since can make
+    it the worse start, and the robust cost has more than one minimum).
     """
     initial_poses = initial_poses or {}
     initial_features = initial_features or {}
