@@ -120,15 +120,18 @@ def compare_ahead(
     seconds: dict[bool, list[float]] = {False: [], True: []}
     print(f"{'t':>7} {'without':>8} {'ahead':>7} {'taken':>5}")
     for n, (t, maps, messages, robots) in enumerate(snapshots(bag, every)):
-        if (reference or robots[0]) not in maps or t < start_s:
+        first = reference or robots[0]
+        if first not in maps or t < start_s:
             continue
-        ordered, logs = ordered_inputs(maps, messages, robots, reference or robots[0], config)
+        ordered, logs = ordered_inputs(maps, messages, robots, first, config)
         for on in (n % 2 == 1, n % 2 == 0):
             cache, results = chains[on]
             cache.prepare(ordered)
             start = time.perf_counter()
             previous = results[-1] if results else None
-            results.append(join_maps(ordered, logs, config, previous, cache, overlap=on))
+            results.append(
+                join_maps(ordered, logs, config, previous=previous, cache=cache, overlap=on)
+            )
             seconds[on].append(time.perf_counter() - start)
         taken = chains[True][1][-1].statistics["joint_solve_ahead"]
         print(f"{t:7.1f} {seconds[False][-1]:7.2f}s {seconds[True][-1]:6.2f}s {taken:5.0f}")

@@ -150,8 +150,6 @@ def join_maps(
     features = joined_features(names, solution, marginals)
     clock.lap("joint_marginals")
     notes += convergence_notes(alignment, solution.report)
-    statistics = join_statistics(alignment, associations, solution, measurements)
-    statistics["joint_solve_ahead"] = float(solved is not None)
     return CsamResult(
         reference_frame=f"{names[0]}/map",
         robots=robots,
@@ -159,7 +157,9 @@ def join_maps(
         associations=association_records(names, associations),
         timing_s=clock.with_total(),
         notes=notes,
-        statistics=statistics,
+        statistics=join_statistics(
+            alignment, associations, solution, measurements, solved_ahead=solved is not None
+        ),
         rendezvous_filter=rendezvous_filter,
     )
 
@@ -424,11 +424,11 @@ def merged_features(result: CsamResult, names: Sequence[str]) -> list[list[tuple
 class JointSolveAhead:
     """The joint solve and its marginals of a join, run in a thread while Algorithm 2 runs,
     on the associations it is expected to find again: the last join's (docs/METHOD.md
-    section 6.4). That work releases the interpreter lock for most of its
-    time (sparse factorisations, large array operations), so on a second core it costs the
-    join little. :meth:`result` gives it when Algorithm 2 found the same clusters (the joint
-    problem is then the same: :func:`~csam_ros.core.joining.joint_solve.aligned_clusters`),
-    else None, and the join solves on what Algorithm 2 found."""
+    section 6.4). That work releases the interpreter lock for most of its time (sparse
+    factorisations, large array operations), so on a second core it costs the join little.
+    :meth:`result` gives it when Algorithm 2 found the same clusters (the joint problem is
+    then the same: :func:`~csam_ros.core.joining.joint_solve.aligned_clusters`), else None,
+    and the join solves on what Algorithm 2 found."""
 
     def __init__(
         self,
@@ -636,9 +636,11 @@ def join_statistics(
     associations: Associations,
     solution: JointSolution,
     measurements: RendezvousSet,
+    solved_ahead: bool = False,
 ) -> dict[str, float]:
     """The counts of the join (``CsamResult.statistics``): iterations and convergence of
-    Algorithm 1 and of the joint solve, association counts, rendezvous measurements."""
+    Algorithm 1 and of the joint solve, whether the joint solve ran beside Algorithm 2
+    (:class:`JointSolveAhead`), association counts, rendezvous measurements."""
     report = solution.report
     return {
         "algorithm1_iterations": alignment.iterations,
@@ -647,6 +649,7 @@ def join_statistics(
         "joint_iterations": report.iterations,
         "joint_converged": float(report.converged),
         "joint_warm_start": float(solution.warm_start),
+        "joint_solve_ahead": float(solved_ahead),
         "joint_final_cost": report.final_cost,
         "association_candidates": associations.candidates,
         "association_gated": associations.gated,
