@@ -134,8 +134,14 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
         else:
             assert spin(executor, lambda: simulator.next_index == len(simulator.messages), 60)
         spin(executor, lambda: False, 1.0)
-        assert final_joined_result(executor, smoothers, merger) is not None
-        spin(executor, lambda: False, 0.5)  # the last transforms, and the timers' broadcasts
+        result = final_joined_result(executor, smoothers, merger)
+        assert result is not None
+        # the joined map's transforms go out after its result is held (serialised with the
+        # map, 0.1-1.7 s on a loaded machine): wait for them, then the timers' broadcasts
+        joined = result.joined_robots() - {result.reference}
+        links = {(f"{result.reference}/map", f"{r}/map") for r in joined}
+        spin(executor, lambda: links <= set(tf.links), 10)
+        spin(executor, lambda: False, 0.5)
         defaulted = {r: s.filter.defaulted.as_dict() for r, s in smoothers.items()}
         return merger.policy.last_result, tf, defaulted
     finally:
