@@ -31,6 +31,7 @@ Residual convention of the resulting factors: ``between(x_a, x_b) - z`` in the f
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,19 @@ def _coefficients(theta: Array) -> tuple[Array, Array, Array, Array]:
 def increment(inputs: ArrayLike, dt: ArrayLike) -> Array:
     """``U(u, T)`` for inputs ``(K, 3)`` and durations ``(K,)``: relative poses ``(K, 3)``."""
     return increment_and_jacobian(inputs, dt)[0]
+
+
+def increment_one(v: float, v_lat: float, omega: float, T: float) -> tuple[float, float, float]:
+    """``U(u, T)`` of one input in scalar arithmetic, as :func:`increment` (to rounding): what
+    dead reckoning sample by sample calls, some fifty times faster than a row of
+    :func:`increment`. Neither ``a = sin(theta)/theta`` nor ``b = 2 sin(theta/2)^2/theta``
+    cancels for a small ``theta``."""
+    theta = omega * T
+    if theta == 0.0:
+        a, b = 1.0, 0.0
+    else:
+        a, b = math.sin(theta) / theta, 2.0 * math.sin(0.5 * theta) ** 2 / theta
+    return T * (a * v - b * v_lat), T * (b * v + a * v_lat), theta
 
 
 def increment_and_jacobian(inputs: ArrayLike, dt: ArrayLike) -> tuple[Array, Array]:

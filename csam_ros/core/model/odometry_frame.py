@@ -68,8 +68,7 @@ class OdometryFrame:
         if pose is not None:
             at = np.asarray(pose, dtype=float).reshape(3).copy()
         elif self._stamps:
-            step = motion.increment(u[None], [stamp - self._stamps[-1]])[0]
-            at = se2.compose(self._poses[-1], step)
+            at = _moved_on(self._poses[-1], u, stamp - self._stamps[-1])
         else:
             at = np.zeros(3)
         self._stamps.append(float(stamp))
@@ -89,8 +88,7 @@ class OdometryFrame:
             return self._poses[i].copy()
         if i + 1 >= len(self._stamps):
             return None
-        step = motion.increment(self._inputs[i + 1][None], [stamp - self._stamps[i]])[0]
-        return se2.compose(self._poses[i], step)
+        return _moved_on(self._poses[i], self._inputs[i + 1], stamp - self._stamps[i])
 
     def forget_before(self, stamp: float) -> None:
         """Drop the samples before the last one at or before ``stamp`` (no later query asks
@@ -101,6 +99,12 @@ class OdometryFrame:
 
     def _drop(self, count: int) -> None:
         del self._stamps[:count], self._inputs[:count], self._poses[:count]
+
+
+def _moved_on(pose: Array, inputs: Array, dt: float) -> Array:
+    """``pose (+) U(inputs, dt)`` (docs/METHOD.md section 2), one sample in scalar arithmetic."""
+    step = motion.increment_one(*inputs.tolist(), dt)
+    return np.array(se2.compose_one(tuple(pose.tolist()), step))
 
 
 def map_to_odom(key_pose: ArrayLike, odometry_pose: ArrayLike) -> Array:

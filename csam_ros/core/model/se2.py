@@ -6,6 +6,8 @@ broadcasts over the leading axes, so one call handles all factors of one kind.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -34,6 +36,19 @@ def compose(a: ArrayLike, b: ArrayLike) -> Array:
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
     return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], -1)
+
+
+def compose_one(
+    a: tuple[float, float, float], b: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    """:func:`compose` of one pair of poses in scalar arithmetic (to rounding)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    heading = math.remainder(a[2] + b[2], 2.0 * math.pi)
+    return (
+        a[0] + c * b[0] - s * b[1],
+        a[1] + s * b[0] + c * b[1],
+        math.pi if heading == -math.pi else heading,
+    )
 
 
 def inverse(a: ArrayLike) -> Array:

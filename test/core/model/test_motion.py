@@ -184,6 +184,12 @@ def test_input_jacobian_is_the_derivative(u, T):
     np.testing.assert_allclose(G, numeric, atol=1e-8)
 
 
+@given(inputs, durations)
+def test_one_increment_in_scalars_is_the_vectorised_increment(u, T):
+    one = motion.increment_one(*u.tolist(), T)
+    np.testing.assert_allclose(one, motion.increment(u[None], [T])[0], rtol=1e-13, atol=1e-15)
+
+
 @given(inputs, durations, durations)
 def test_constant_input_increments_compose(u, first, second):
     whole = motion.increment(u[None], [first + second])[0]

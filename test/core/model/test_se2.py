@@ -86,6 +86,14 @@ def test_compose_is_associative(a, b, c):
 
 
 @given(poses(), poses())
+@example(np.array([0.0, 0.0, np.pi / 2]), np.array([0.0, 0.0, np.pi / 2]))
+def test_one_compose_in_scalars_is_the_vectorised_compose(a, b):
+    one = np.array(se2.compose_one(tuple(a.tolist()), tuple(b.tolist())))
+    assert -np.pi < one[2] <= np.pi
+    assert_poses_close(one, se2.compose(a, b), atol=1e-12)
+
+
+@given(poses(), poses())
 def test_composed_headings_are_wrapped(a, b):
     for pose in (se2.compose(a, b), se2.inverse(a), se2.between(a, b)):
         assert -np.pi < pose[2] <= np.pi
