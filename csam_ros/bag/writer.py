@@ -52,7 +52,12 @@ class _Topic:
     flushed_count: int = field(default=0)
 
 
-class _PlainDumper(yaml.SafeDumper):
+# libyaml's emitter where PyYAML has it: the same text, a quarter of the time (metadata.yaml is
+# written again at every flush, once a second while recording)
+_SafeDumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+
+
+class _PlainDumper(_SafeDumper):  # type: ignore[misc, valid-type]
     """YAML without anchors and aliases, as rosbag2 writes it."""
 
     def ignore_aliases(self, data: Any) -> bool:
