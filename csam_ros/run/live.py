@@ -254,8 +254,6 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
         markers.on_joined()
 
     subscribe(node, CLOCK, lambda m: latest.__setitem__("clock", m))
-    subscribe(node, JOINED_MAP, on_joined)
-    subscribe(node, MARKERS, markers.on_markers)
     clients = {r: node.create_client(Trigger, smoother_service(r, FLUSH)) for r in run.robots}
     merger_client = node.create_client(Trigger, merger_service(FLUSH))
     try:
@@ -288,6 +286,10 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
             raise LiveRunError(
                 f"{run.source_name} exited with {code}:\n{group.log_tail(run.source_name)}"
             )
+        # only now: each joined map decoded here would cost this process a large message
+        # per solve; both are latched, so the latest comes at once
+        subscribe(node, JOINED_MAP, on_joined)
+        subscribe(node, MARKERS, markers.on_markers)
         progress("  source done; flushing the smoothers, then the merger")
         settle_deadline = time.monotonic() + 120
 
