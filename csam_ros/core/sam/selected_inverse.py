@@ -3,10 +3,16 @@ from its sparse LDL^T factor by supernodes (docs/METHOD.md 4.5)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
+
+try:  # the compiled lookup behind scipy's sparse indexing
+    from scipy.sparse._sparsetools import csr_sample_offsets as _sample_offsets
+except ImportError:  # pragma: no cover - scipy without it: the numpy search
+    _sample_offsets = None
 
 from csam_ros.core.sam.block_cholesky import BlockFactor
 from csam_ros.core.sam.normal_equations import NormalEquations
@@ -32,6 +38,29 @@ def _unit_lower_inverse(strict: Array, w: int, rows: IntArray, cols: IntArray) -
         out[:, rows, cols] = strict
         out = np.linalg.inv(out)
     return out
+
+
+def pattern_positions(
+    indptr: IntArray, indices: IntArray, columns: IntArray, rows: IntArray
+) -> IntArray:
+    """Where entries ``(rows, columns)`` are in the data of a CSC pattern with sorted rows in
+    each column, -1 where the pattern has none: scipy's compiled lookup, one short binary
+    search per entry in its column (4-5 times faster than one search over the whole pattern),
+    or that search over the whole pattern where scipy lacks it (it is not public API)."""
+    columns = np.asarray(columns, dtype=np.int64)
+    rows = np.asarray(rows, dtype=np.int64)
+    n = len(indptr) - 1
+    if _sample_offsets is not None:
+        out = np.empty(len(rows), dtype=indptr.dtype)
+        _sample_offsets(
+            n, n, indptr, indices, len(rows), columns.astype(indptr.dtype),
+            rows.astype(indptr.dtype), out,
+        )  # fmt: skip
+        return out.astype(np.int64)
+    keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
+    wanted = columns * n + rows
+    found = np.clip(np.searchsorted(keys, wanted), 0, max(len(keys) - 1, 0))
+    return np.where(keys[found] == wanted, found, -1) if len(keys) else np.full(len(rows), -1)
 
 
 @cache
@@ -108,11 +137,11 @@ class SelectedInverse(_MarginalBlocks):
         self.perm = np.asarray(perm, dtype=np.int64)
         self.inverse_perm = np.empty(n, dtype=np.int64)
         self.inverse_perm[self.perm] = np.arange(n)
+        self._indptr, self._indices = lower.indptr, lower.indices
         indptr = lower.indptr.astype(np.int64)
         indices = lower.indices.astype(np.int64)
         data = lower.data
         d = np.asarray(d, dtype=float)
-        self._keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
         nnz = len(data)
         # Z on the pattern, then its diagonal: one array, so Z_SS is one gather
         store = np.zeros(nnz + n)
@@ -121,7 +150,7 @@ class SelectedInverse(_MarginalBlocks):
         below_counts = indptr[ends + 1] - indptr[ends]
         groups = self._by_shape(widths, below_counts, depth)
         shapes = [
-            _SupernodeShape(self._keys, indptr, indices, data, d, begins[members], ends[members])
+            _SupernodeShape(self._locate, indptr, indices, data, d, begins[members], ends[members])
             for members in groups
         ]
         steps = sorted(
@@ -158,12 +187,15 @@ class SelectedInverse(_MarginalBlocks):
         same = lo == hi
         out[same] = self._diag[lo[same]]
         off = ~same
-        keys = lo[off] * self.n + hi[off]
-        pos = np.clip(np.searchsorted(self._keys, keys), 0, max(len(self._keys) - 1, 0))
-        if np.any(self._keys[pos] != keys):
+        pos = self._locate(lo[off], hi[off])
+        if np.any(pos < 0):
             raise ValueError("requested covariance entries are not on the factor's pattern")
         out[off] = self._values[pos]
         return out
+
+    def _locate(self, columns: IntArray, rows: IntArray) -> IntArray:
+        """Positions of entries (rows > columns) in the factor's strict lower pattern."""
+        return pattern_positions(self._indptr, self._indices, columns, rows)
 
 
 class _SupernodeShape:
@@ -174,7 +206,7 @@ class _SupernodeShape:
 
     def __init__(
         self,
-        keys: IntArray,
+        locate: Callable[[IntArray, IntArray], IntArray],
         indptr: IntArray,
         indices: IntArray,
         data: Array,
@@ -182,7 +214,7 @@ class _SupernodeShape:
         begins: IntArray,
         ends: IntArray,
     ) -> None:
-        nnz, n = len(keys), len(d)
+        nnz = len(data)
         w = int(ends[0] - begins[0] + 1)
         ms = self.ms = int(indptr[ends[0] + 1] - indptr[ends[0]])
         jj_i, jj_j = _tril(w)
@@ -205,7 +237,8 @@ class _SupernodeShape:
             every = np.arange(ms)
             ss_index[:, every, every] = nnz + below
             if len(ia):
-                found = np.searchsorted(keys, below[:, ia] * n + below[:, ib])
+                found = locate(below[:, ia].ravel(), below[:, ib].ravel())
+                found = found.reshape(len(begins), len(ia))
                 ss_index[:, ia, ib] = found
                 ss_index[:, ib, ia] = found
             self.ss_index = ss_index

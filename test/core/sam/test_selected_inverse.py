@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from sam_problems import dense_inverse_at_estimate
+from scipy import sparse
 
 from csam_ros.core.model import se2
+from csam_ros.core.sam import selected_inverse
 from csam_ros.core.sam.factors import POSE, PosePrior, RelativePose
 from csam_ros.core.sam.selected_inverse import SelectedInverse, _supernodes
 from csam_ros.core.sam.solver import Problem
@@ -55,3 +57,24 @@ def test_every_entry_on_the_pattern_equals_the_dense_inverse(seed: int, closures
     np.testing.assert_allclose(inverse.entries(rows, cols), dense[rows, cols], rtol=1e-8, atol=atol)
     every = np.arange(system.n)
     np.testing.assert_allclose(inverse.entries(every, every), np.diag(dense), rtol=1e-8, atol=atol)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_pattern_positions_find_each_entry_and_miss_the_others(
+    compiled: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if not compiled:  # the numpy search, for a scipy without its compiled lookup
+        monkeypatch.setattr(selected_inverse, "_sample_offsets", None)
+    rng = np.random.default_rng(4)
+    n = 60
+    dense = np.tril(rng.random((n, n)) < 0.2, -1)
+    pattern = sparse.csc_matrix(dense.astype(float))
+    pattern.sort_indices()
+    columns, rows = rng.integers(0, n, 2000), rng.integers(0, n, 2000)
+    found = selected_inverse.pattern_positions(pattern.indptr, pattern.indices, columns, rows)
+    on = dense[rows, columns]
+    assert on.any() and (~on).any()
+    np.testing.assert_array_equal(found[~on], -1)
+    np.testing.assert_array_equal(pattern.indices[found[on]], rows[on])
+    start = pattern.indptr[columns[on]]
+    assert ((found[on] >= start) & (found[on] < pattern.indptr[columns[on] + 1])).all()
