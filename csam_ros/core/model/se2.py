@@ -1,7 +1,8 @@
 """SE(2) compounding after Smith, Self & Cheeseman, vectorised over leading axes.
 
 A pose is ``(x, y, phi)``; arrays of poses have shape ``(..., 3)``. Every function
-broadcasts over the leading axes, so one call handles all factors of one kind.
+broadcasts over the leading axes, so one call handles all factors of one kind; ``compose_one``
+is :func:`compose` for one pair in scalar arithmetic (dead reckoning sample by sample).
 """
 
 from __future__ import annotations
