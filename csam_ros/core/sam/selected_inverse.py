@@ -3,7 +3,6 @@ from its sparse LDL^T factor by supernodes (docs/METHOD.md 4.5)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from functools import cache
 
 import numpy as np
@@ -40,27 +39,35 @@ def _unit_lower_inverse(strict: Array, w: int, rows: IntArray, cols: IntArray) -
     return out
 
 
-def pattern_positions(
-    indptr: IntArray, indices: IntArray, columns: IntArray, rows: IntArray
-) -> IntArray:
+class PatternPositions:
     """Where entries ``(rows, columns)`` are in the data of a CSC pattern with sorted rows in
     each column, -1 where the pattern has none: scipy's compiled lookup, one short binary
     search per entry in its column (4-5 times faster than one search over the whole pattern),
     or that search over the whole pattern where scipy lacks it (it is not public API)."""
-    columns = np.asarray(columns, dtype=np.int64)
-    rows = np.asarray(rows, dtype=np.int64)
-    n = len(indptr) - 1
-    if _sample_offsets is not None:
-        out = np.empty(len(rows), dtype=indptr.dtype)
-        _sample_offsets(
-            n, n, indptr, indices, len(rows), columns.astype(indptr.dtype),
-            rows.astype(indptr.dtype), out,
-        )  # fmt: skip
-        return out.astype(np.int64)
-    keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
-    wanted = columns * n + rows
-    found = np.clip(np.searchsorted(keys, wanted), 0, max(len(keys) - 1, 0))
-    return np.where(keys[found] == wanted, found, -1) if len(keys) else np.full(len(rows), -1)
+
+    def __init__(self, indptr: IntArray, indices: IntArray) -> None:
+        self.indptr, self.indices = indptr, indices
+        self.n = len(indptr) - 1
+        self._keys = (
+            None
+            if _sample_offsets is not None
+            else np.repeat(np.arange(self.n, dtype=np.int64), np.diff(indptr)) * self.n + indices
+        )
+
+    def __call__(self, columns: IntArray, rows: IntArray) -> IntArray:
+        columns = np.asarray(columns, dtype=self.indptr.dtype)
+        rows = np.asarray(rows, dtype=self.indptr.dtype)
+        if self._keys is None:
+            out = np.empty(len(rows), dtype=self.indptr.dtype)
+            _sample_offsets(
+                self.n, self.n, self.indptr, self.indices, len(rows), columns, rows, out
+            )
+            return out.astype(np.int64)
+        wanted = columns.astype(np.int64) * self.n + rows
+        if not len(self._keys):
+            return np.full(len(rows), -1, dtype=np.int64)
+        found = np.minimum(np.searchsorted(self._keys, wanted), len(self._keys) - 1)
+        return np.where(self._keys[found] == wanted, found, -1)
 
 
 @cache
@@ -137,7 +144,7 @@ class SelectedInverse(_MarginalBlocks):
         self.perm = np.asarray(perm, dtype=np.int64)
         self.inverse_perm = np.empty(n, dtype=np.int64)
         self.inverse_perm[self.perm] = np.arange(n)
-        self._indptr, self._indices = lower.indptr, lower.indices
+        self._locate = PatternPositions(lower.indptr, lower.indices)
         indptr = lower.indptr.astype(np.int64)
         indices = lower.indices.astype(np.int64)
         data = lower.data
@@ -193,10 +200,6 @@ class SelectedInverse(_MarginalBlocks):
         out[off] = self._values[pos]
         return out
 
-    def _locate(self, columns: IntArray, rows: IntArray) -> IntArray:
-        """Positions of entries (rows > columns) in the factor's strict lower pattern."""
-        return pattern_positions(self._indptr, self._indices, columns, rows)
-
 
 class _SupernodeShape:
     """Supernodes of one shape (width ``w``, ``ms`` rows below), ordered by depth, with what
@@ -206,7 +209,7 @@ class _SupernodeShape:
 
     def __init__(
         self,
-        locate: Callable[[IntArray, IntArray], IntArray],
+        locate: PatternPositions,
         indptr: IntArray,
         indices: IntArray,
         data: Array,

@@ -71,7 +71,7 @@ def test_pattern_positions_find_each_entry_and_miss_the_others(
     pattern = sparse.csc_matrix(dense.astype(float))
     pattern.sort_indices()
     columns, rows = rng.integers(0, n, 2000), rng.integers(0, n, 2000)
-    found = selected_inverse.pattern_positions(pattern.indptr, pattern.indices, columns, rows)
+    found = selected_inverse.PatternPositions(pattern.indptr, pattern.indices)(columns, rows)
     on = dense[rows, columns]
     assert on.any() and (~on).any()
     np.testing.assert_array_equal(found[~on], -1)
