@@ -602,10 +602,11 @@ def monitor(
     still) and the merger (:func:`~csam_ros.run.live.end_of_data`) and wait for the joined
     map of those final local maps."""
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
-    from csam_ros.nodes.common import make_executor, subscribe
+    from csam_ros.nodes.common import subscribe
     from csam_ros.ros.topics import (
         FLUSH,
         JOINED_MAP,
@@ -623,7 +624,7 @@ def monitor(
         start_parameter_services=False,
         parameter_overrides=[Parameter("start_type_description_service", value=False)],
     )
-    executor = make_executor()  # as the nodes spin theirs
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
     joined: list = []  # every joined map received
     received: list[float] = []  # when (wall clock)

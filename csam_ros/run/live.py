@@ -222,9 +222,10 @@ def _run_with(run: LiveRun, env: dict[str, str], progress) -> RunSummary:
 
 def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
-    from csam_ros.nodes.common import make_executor, subscribe
+    from csam_ros.nodes.common import subscribe
     from csam_ros.ros.conversions import time_to_ns
     from csam_ros.ros.topics import (
         CLOCK,
@@ -243,7 +244,7 @@ def _run(run: LiveRun, group: ProcessGroup, progress) -> RunSummary:
 
     rclpy.init()
     node = rclpy.create_node("csam_run_monitor")
-    executor = make_executor()  # as the nodes: each /clock (20 a second) costs it little
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
     latest: dict[str, Any] = {"clock": None, "joined": None}
     markers = MarkersAfterJoined()
