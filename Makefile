@@ -17,6 +17,8 @@ VISION_BUILD := build/vision_msgs
 VISION_SOURCES := $(wildcard vision_msg_defs/msg/*.msg) vision_msg_defs/CMakeLists.txt vision_msg_defs/package.xml
 RUN_ARGS ?=
 PYTEST_ARGS ?=
+# make test's parallel workers (each test session reserves its own ROS domain); 1 = serial
+TEST_WORKERS ?= 2
 # MR.CLAM Dataset 1 for the tests on real data (skipped without it): CSAM_MRCLAM_DIR, by
 # default the data folder beside the checkout where there is one
 CSAM_MRCLAM_DIR ?= $(wildcard $(abspath ../shared/data/mrclam/MRCLAM_Dataset1))
@@ -28,7 +30,7 @@ run: setup
 	$(VENV)/bin/csam demo $(RUN_ARGS)
 
 test: setup-dev
-	$(PY) -m pytest -m "not hosts" $(PYTEST_ARGS)
+	$(PY) -m pytest -m "not hosts" -n $(TEST_WORKERS) $(PYTEST_ARGS)
 
 # the live runs over network namespaces (about 1.7 minutes; root, ip and iptables)
 test-hosts: setup-dev
