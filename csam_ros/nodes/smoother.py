@@ -274,7 +274,7 @@ class Smoother(Node):
             samples = [sample for sample, _ in accepted]
             if self._resumed_after is not None:
                 self._count_lost(samples[0][0])
-            stamps, inputs, sigmas, rho = (np.stack(a) for a in zip(*samples, strict=True))
+            stamps, inputs, sigmas, rho = (np.array(a) for a in zip(*samples, strict=True))
             self.map.add_odometry(stamps, inputs, sigmas, rho if rho.any() else None)
             self.last_odometry_ns = time_to_ns(msg.header.stamp)
             self.accepted()

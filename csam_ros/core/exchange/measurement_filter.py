@@ -107,7 +107,10 @@ class MeasurementFilter:
 
     def counter(self, robot: str) -> DropCounter:
         """The drop counter of ``robot`` (unknown robots are counted under their own name)."""
-        return self.drops.setdefault(robot, DropCounter())
+        counter = self.drops.get(robot)
+        if counter is None:  # not setdefault: one new counter per call (per message) otherwise
+            counter = self.drops[robot] = DropCounter()
+        return counter
 
     def clock(self, robot: str) -> float:
         """``robot``'s last accepted odometry stamp, else ``reference()`` (-inf: none)."""
@@ -117,7 +120,10 @@ class MeasurementFilter:
         return self.reference()
 
     def _stream(self, robot: str, stream: str) -> _Stream:
-        return self._streams.setdefault((robot, stream), _Stream())
+        held = self._streams.get((robot, stream))
+        if held is None:
+            held = self._streams[(robot, stream)] = _Stream()
+        return held
 
     def stream_state(self) -> dict[tuple[str, str], tuple[float, OdometrySample | None]]:
         """Each (robot, stream)'s last accepted stamp and held-back odometry sample (copies):

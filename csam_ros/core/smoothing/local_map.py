@@ -137,14 +137,14 @@ class LocalMap:
         if len(t) == 0:
             return
         motion.check_odometry(t, u, q)
-        bad = np.flatnonzero((q <= 0).any(axis=1))
-        if bad.size:
+        if not (q > 0).all():
+            bad = np.flatnonzero((q <= 0).any(axis=1))
             raise ValueError(
                 f"{self.name}: odometry sample {bad[0]} has a non-positive sigma "
                 f"{q[bad[0]].tolist()}; the motion model needs s_v, s_vlat, s_omega > 0"
             )
-        bad = np.flatnonzero(~correlations_valid(rho))
-        if bad.size:
+        bad = np.flatnonzero(~correlations_valid(rho)) if correlations is not None else ()
+        if len(bad):
             raise ValueError(
                 f"{self.name}: odometry sample {bad[0]}: correlations {rho[bad[0]].tolist()} "
                 "do not give a positive definite covariance"

@@ -330,3 +330,26 @@ def test_default_sigmas_do_not_depend_on_the_sampling_rate():
     # at rest the floor: floor^2 per second
     at_rest = motion.default_input_sigmas(np.zeros((1, 3)), [0.25], per_m, per_rad, floor)[0]
     np.testing.assert_allclose((at_rest * 0.25) ** 2, floor**2 * 0.25, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("row", "column", "value", "message"),
+    [
+        (2, "stamps", np.nan, "odometry sample 2: stamp is not finite"),
+        (1, "inputs", np.inf, "odometry sample 1: input is not finite"),
+        (3, "sigmas", np.nan, "odometry sample 3: sigma is not finite"),
+        (2, "stamps", 0.1, "odometry sample 2: stamps must increase strictly"),
+        (1, "sigmas", -0.5, "odometry sample 1: negative sigma"),
+    ],
+)
+def test_check_odometry_names_the_first_bad_sample(row, column, value, message):
+    log = {"stamps": np.arange(5) * 0.1, "inputs": np.ones((5, 3)), "sigmas": np.ones((5, 3))}
+    for n in (1, 2, 5):  # one sample (online: one per message) and batches pass
+        motion.check_odometry(**{k: v[:n] for k, v in log.items()})
+    bad = {k: v.copy() for k, v in log.items()}
+    if column == "stamps":
+        bad[column][row] = value
+    else:
+        bad[column][row, 1] = value
+    with pytest.raises(ValueError, match=message):
+        motion.check_odometry(**bad)

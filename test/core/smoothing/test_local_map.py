@@ -183,6 +183,8 @@ def test_bad_odometry_is_named():
     local = LocalMap("r")
     with pytest.raises(ValueError, match="odometry sample 1 has a non-positive sigma"):
         local.add_odometry([0.0, 0.1], np.ones((2, 3)), [[1, 1, 1], [1, 0, 1]])
+    with pytest.raises(ValueError, match="odometry sample 1: correlations"):
+        local.add_odometry([0.0, 0.1], np.ones((2, 3)), np.ones((2, 3)), [[0, 0, 0], [1, 0, 0]])
     local.add_odometry([0.0, 0.1], np.ones((2, 3)), np.ones((2, 3)))
     with pytest.raises(ValueError, match="does not follow"):
         local.add_odometry([0.05], np.ones((1, 3)), np.ones((1, 3)))
