@@ -63,6 +63,17 @@ def final_joined_result(
     return merger.policy.last_result if wait_until(merged_final, timeout_s, spin_once) else None
 
 
+def simulation_taken(simulator: Any, smoothers: dict[str, Any]) -> bool:
+    """Whether the simulator has sent everything and every smoother has taken its robot's last
+    odometry message (a scenario sent at full speed waits in the smoothers' queues for as long
+    as the machine's load says)."""
+    if simulator.next_index < len(simulator.messages):
+        return False
+    odometry = [m for m in simulator.messages if m.topic.endswith("/odom")]
+    last = {m.topic.split("/")[1]: m.stamp_ns for m in odometry}
+    return all(s.last_odometry_ns == last[r] for r, s in smoothers.items() if r in last)
+
+
 def simulator_node(context: Any, scenario: str, seed: int, *extra: Parameter) -> Any:
     """The simulator of ``scenario`` at full speed (rate 0), in-process."""
     from csam_ros.nodes.simulator import Simulator

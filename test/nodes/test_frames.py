@@ -15,7 +15,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from node_group import final_joined_result, simulator_node, smoothers_and_merger
+from node_group import (
+    final_joined_result,
+    simulation_taken,
+    simulator_node,
+    smoothers_and_merger,
+)
 from rclpy.executors import SingleThreadedExecutor
 
 from csam_ros.core.joining.alignment import ALIGNED
@@ -132,7 +137,7 @@ def _run(context: Any, spin: Callable[..., bool], source: str) -> tuple[Any, TfB
             while not driver.publish(10):
                 spin(executor, lambda: False, 0.02)
         else:
-            assert spin(executor, lambda: simulator.next_index == len(simulator.messages), 60)
+            assert spin(executor, lambda: simulation_taken(simulator, smoothers), 60)
         spin(executor, lambda: False, 1.0)
         result = final_joined_result(executor, smoothers, merger)
         assert result is not None

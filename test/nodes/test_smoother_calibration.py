@@ -8,7 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from node_group import final_joined_result, simulator_node, smoothers_and_merger
+from node_group import (
+    final_joined_result,
+    simulation_taken,
+    simulator_node,
+    smoothers_and_merger,
+)
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -44,7 +49,7 @@ def test_the_joined_map_and_status_carry_each_robots_odometry_calibration(
     for node in (simulator, merger, *smoothers.values()):
         executor.add_node(node)
     try:
-        assert spin(executor, lambda: simulator.next_index == len(simulator.messages), 60)
+        assert spin(executor, lambda: simulation_taken(simulator, smoothers), 60)
         spin(executor, lambda: False, 1.0)
         live = final_joined_result(executor, smoothers, merger)
     finally:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from node_group import simulator_node, smoothers_and_merger
+from node_group import simulation_taken, simulator_node, smoothers_and_merger
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -41,7 +41,7 @@ def _nodes(
 
 
 def _run_to_the_end(executor, spin, simulator, smoothers, merger) -> CsamResult:
-    assert spin(executor, lambda: simulator.next_index == len(simulator.messages), 60)
+    assert spin(executor, lambda: simulation_taken(simulator, smoothers), 60)
     # let reliable messages in flight arrive, then flush every smoother like `csam demo` does
     spin(executor, lambda: False, 1.0)
     for s in smoothers.values():
@@ -79,8 +79,15 @@ def test_nodes_in_one_process_give_the_core_result(
         executor.add_node(n)
     try:
         result = _run_to_the_end(executor, spin, simulator, smoothers, merger)
-        written = RunSummary.read(summary_path)  # the merger's last solve
-        assert written.to_dict() == RunSummary(result, merger=written.merger).to_dict()
+
+        def summary_written() -> bool:  # by the message process, after the result is out
+            if not summary_path.exists():
+                return False
+            written = RunSummary.read(summary_path)  # the merger's last solve
+            return written.to_dict() == RunSummary(result, merger=written.merger).to_dict()
+
+        assert spin(executor, summary_written, 30)
+        written = RunSummary.read(summary_path)
         assert written.merger == MergerStats(merger.drops.as_dict(), merger.policy.solves)
         assert written.merger.solves >= 1
         for name, expected in core_result.robots.items():
