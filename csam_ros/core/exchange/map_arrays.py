@@ -4,11 +4,16 @@ message carries and a saved merger state holds."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
+from numpy.typing import NDArray
 
 from csam_ros.core.exchange.local_map_checks import LocalMapArrays, local_map_fault
-from csam_ros.core.exchange.map_updates import HeldMap
+from csam_ros.core.exchange.map_updates import HeldMap, KeyedMap
 from csam_ros.core.exchange.validation import LocalMapError
+from csam_ros.core.model import se2
+from csam_ros.core.model.stamps import corrected_poses
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
@@ -23,8 +28,13 @@ from csam_ros.core.sam.solver import Problem
 from csam_ros.core.smoothing.local_map_config import LocalMapOptions
 from csam_ros.core.smoothing.robot_map import RobotMap
 
+Array = NDArray[np.float64]
+
 # how a map built from updates is taken back to its sender's optimum (checked_robot_map)
 REFINE = LocalMapOptions().online_solver
+# the same from the robot's last refined map: until a step lowers the cost by less than half
+# a unit of chi-square (under one standard deviation; csam_ros.core.sam.solver)
+REFINE_FROM_LAST = replace(REFINE, cost_tolerance=0.5)
 
 
 def robot_map_arrays(m: RobotMap) -> LocalMapArrays:
@@ -146,7 +156,12 @@ def robot_map_from_arrays(name: str, m: LocalMapArrays) -> RobotMap:
     )
 
 
-def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -> RobotMap:
+def checked_robot_map(
+    name: str,
+    arrays: LocalMapArrays,
+    refine: bool = False,
+    start: tuple[Array, Array] | None = None,
+) -> RobotMap:
     """The local problem of ``arrays``: every field is checked first
     (:func:`~csam_ros.core.exchange.local_map_checks.local_map_fault`), then the problem is
     linearised and factored once at the estimate (non-finite or singular information, which
@@ -157,7 +172,10 @@ def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -
     local map updates), so it is taken back to that optimum first by the online smoother's
     capped Gauss-Newton (:data:`REFINE`): between a pose sent again and a neighbour held back
     the odometry would otherwise disagree by up to the tolerance, which the local map check
-    counts as outliers and the local views linearise at."""
+    counts as outliers and the local views linearise at. ``start`` (poses and features in the
+    order of ``arrays``, :func:`refine_start`): where it costs less than the estimate, the
+    refine starts there and stops at a step under one standard deviation
+    (:data:`REFINE_FROM_LAST`)."""
     try:
         robot_map = robot_map_from_arrays(name, arrays)
     except ValueError as error:
@@ -169,7 +187,8 @@ def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -
             system.linearize(problem.values)
             system.check_blocks()
             if refine:  # its first step factors at the estimate
-                problem.solve(REFINE)
+                warm = start is not None and problem.take_if_cheaper(_values(robot_map, *start))
+                problem.solve(REFINE_FROM_LAST if warm else REFINE)
             else:
                 system.factorize(0.0)
         except (FloatingPointError, SingularProblemError, np.linalg.LinAlgError) as error:
@@ -179,12 +198,59 @@ def checked_robot_map(name: str, arrays: LocalMapArrays, refine: bool = False) -
     return robot_map
 
 
-def held_robot_map(name: str, held: HeldMap, refine: bool = True) -> RobotMap:
+@dataclass(frozen=True)
+class Refined:
+    """A robot's map as a merger refined it (:func:`held_robot_map`) and the map built from
+    updates it was refined from: where the next refine of the robot's map starts."""
+
+    robot_map: RobotMap
+    held: KeyedMap
+
+
+def _values(robot_map: RobotMap, poses: Array, features: Array) -> Array:
+    """The values of ``robot_map``'s problem with its poses and features replaced."""
+    problem = robot_map.problem
+    values = problem.values.copy()
+    values[problem.scalar_indices(robot_map.pose_ids)] = poses.reshape(-1)
+    values[problem.scalar_indices(robot_map.feature_ids)] = features.reshape(-1)
+    return values
+
+
+def refine_start(held: KeyedMap, last: Refined) -> tuple[Array, Array]:
+    """The poses and features of ``held`` to refine it from:
+    every pose and feature held as it was in ``last.held`` (not sent again since) at its
+    value refined in ``last.robot_map``, every other as held; a pose new since, moved as the
+    nearest pose before it that was held (the first one for those before all)."""
+    previous = last.held
+    at = np.minimum(
+        np.searchsorted(previous.pose_stamps, held.pose_stamps), len(previous.pose_stamps) - 1
+    )
+    matched = previous.pose_stamps[at] == held.pose_stamps
+    unchanged = matched.copy()
+    unchanged[matched] = np.all(previous.poses[at[matched]] == held.poses[matched], axis=1)
+    corrections = np.zeros((int(matched.sum()), 3))  # the identity for poses sent again
+    refined = last.robot_map.poses[at[unchanged]]
+    corrections[unchanged[matched]] = se2.compose(refined, se2.inverse(held.poses[unchanged]))
+    stamps = held.pose_stamps.astype(np.float64)
+    poses = corrected_poses((stamps[matched], corrections), stamps, held.poses, 0.0)
+    features = held.feature_xy.copy()
+    before = {int(label): k for k, label in enumerate(previous.feature_labels)}
+    for k, label in enumerate(held.feature_labels):
+        j = before.get(int(label))
+        if j is not None and np.array_equal(previous.feature_xy[j], held.feature_xy[k]):
+            features[k] = last.robot_map.feature_positions[j]
+    return (held.poses if poses is None else poses), features
+
+
+def held_robot_map(
+    name: str, held: HeldMap, refine: bool = True, last: Refined | None = None
+) -> RobotMap:
     """The local problem of a map built from updates, with ``refine`` taken back to its
-    sender's optimum (:func:`checked_robot_map`); :class:`LocalMapError` when it is not
-    usable."""
+    sender's optimum (:func:`checked_robot_map`; from where ``last``, the robot's map refined
+    before, leads: :func:`refine_start`); :class:`LocalMapError` when it is not usable."""
     try:
         arrays = held.map.arrays()
     except ValueError as error:  # a factor at a stamp with no pose
         raise LocalMapError(f"{name}: {error}") from None
-    return checked_robot_map(name, arrays, refine=refine)
+    start = refine_start(held.map, last) if refine and last is not None else None
+    return checked_robot_map(name, arrays, refine=refine, start=start)

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from csam_ros.core.joining.notes import Note
 from csam_ros.core.joining.result import CsamResult, FeatureResult, RobotResult
 from csam_ros.core.model import se2
-from csam_ros.core.model.stamps import matching_stamp
+from csam_ros.core.model.stamps import corrected_poses, matching_stamp
 from csam_ros.core.smoothing.robot_map import RobotMap
 
 Array = NDArray[np.float64]
@@ -99,7 +99,7 @@ class WarmStart:
         self, name: str, stamps: Array, local_poses: Array, base_node: Array, tolerance: float
     ) -> Array:
         """(N, 3) initial joined poses of robot ``name`` (module docs)."""
-        corrected = _corrected(self.corrections.get(name), stamps, local_poses, tolerance)
+        corrected = corrected_poses(self.corrections.get(name), stamps, local_poses, tolerance)
         if corrected is None:
             return se2.compose(np.broadcast_to(base_node, local_poses.shape), local_poses)
         return corrected
@@ -110,7 +110,7 @@ class WarmStart:
         """(k, 3) initial Algorithm 1 rendezvous poses of robot ``name`` at ``stamps`` (in
         its own frame): their local estimates moved as the last join's Algorithm 1 moved
         them (a new one as the last one before it), or the local estimates alone."""
-        corrected = _corrected(self.rendezvous.get(name), stamps, local_poses, tolerance)
+        corrected = corrected_poses(self.rendezvous.get(name), stamps, local_poses, tolerance)
         return local_poses if corrected is None else corrected
 
     def feature_start(
@@ -126,23 +126,6 @@ class WarmStart:
                 dx, dy = local_xy[i] - local
                 start[i] = joined + [c * dx - s * dy, s * dx + c * dy]
         return start
-
-
-def _corrected(
-    before: tuple[Array, Array] | None, stamps: Array, local_poses: Array, tolerance: float
-) -> Array | None:
-    """``local_poses`` at ``stamps``, each moved by the correction held at its stamp in
-    ``before`` (stamps, corrections), else by that of the last held stamp before it (the
-    first held one for those before all); None when no stamp is held."""
-    if before is None:
-        return None
-    before_stamps, corrections = before
-    held = matching_stamp(before_stamps, np.asarray(stamps, dtype=float), tolerance)
-    matched = np.flatnonzero(held >= 0)
-    if len(matched) == 0:
-        return None
-    nearest = np.searchsorted(matched, np.arange(len(held)), side="right") - 1
-    return se2.compose(corrections[held[matched[np.maximum(nearest, 0)]]], local_poses)
 
 
 def carried_forward(previous: CsamResult, maps: Sequence[RobotMap], tolerance: float) -> CsamResult:

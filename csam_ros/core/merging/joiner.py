@@ -1,6 +1,7 @@
 """What a live merger's solves share, and one solve on it (docs/METHOD.md section 6.4).
 
-A :class:`Joiner` keeps, between solves, each robot's local map refined to its sender's optimum,
+A :class:`Joiner` keeps, between solves, each robot's local map refined to its sender's optimum
+(the next refine starting from it: :func:`~csam_ros.core.exchange.map_arrays.refine_start`),
 the local views (:class:`~csam_ros.core.joining.local_views.LocalViewCache`) and the last result,
 the warm start of the next join. :meth:`Joiner.join` takes a :class:`JoinRequest`: each robot's map
 source (a map built from updates, refined here once; or a map as saved, joined as it is), or
@@ -26,7 +27,7 @@ import numpy as np
 
 from csam_ros.core.exchange.checkpoint import MergerState
 from csam_ros.core.exchange.local_map_checks import LocalMapArrays
-from csam_ros.core.exchange.map_arrays import checked_robot_map, held_robot_map
+from csam_ros.core.exchange.map_arrays import Refined, checked_robot_map, held_robot_map
 from csam_ros.core.exchange.map_updates import HeldMap
 from csam_ros.core.exchange.validation import LocalMapError
 from csam_ros.core.joining.config import CsamConfig
@@ -95,11 +96,12 @@ class StateWritten:
     seconds: float = 0.0
 
 
-def robot_map_of(robot: str, source: MapSource) -> RobotMap:
+def robot_map_of(robot: str, source: MapSource, last: Refined | None = None) -> RobotMap:
     """``robot``'s map as a join takes it: one built from updates refined to its sender's
-    optimum, a saved one as it is. :class:`LocalMapError` when it is not usable."""
+    optimum (from where ``last``, its map refined before, leads), a saved one as it is.
+    :class:`LocalMapError` when it is not usable."""
     if isinstance(source, HeldMap):
-        return held_robot_map(robot, source)
+        return held_robot_map(robot, source, last=last)
     return checked_robot_map(robot, source)
 
 
@@ -111,6 +113,7 @@ class Joiner:
         cancellable: Callable[[], AbstractContextManager[object]] = contextlib.nullcontext,
     ) -> None:
         self.maps: dict[str, RobotMap] = {}  # each robot's last usable map, refined
+        self._refined: dict[str, Refined] = {}  # where each robot's next refine starts
         self.local_views = LocalViewCache()
         self.previous: CsamResult | None = None
         self._refused: list[Refusal] = []  # by prepare, to go with the next join's reply
@@ -194,7 +197,11 @@ class Joiner:
         if source is None:
             return None
         try:
-            self.maps[robot] = robot_map_of(robot, source)
+            self.maps[robot] = robot_map_of(robot, source, self._refined.get(robot))
+            if isinstance(source, HeldMap):
+                self._refined[robot] = Refined(self.maps[robot], source.map)
+            else:
+                self._refined.pop(robot, None)
             return None
         except LocalMapError as error:
             if robot not in self.maps and isinstance(source, HeldMap):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from csam_ros.core.model import se2
+
 IntArray = NDArray[np.int64]
 
 
@@ -36,3 +38,23 @@ def regular_stamps(stamps: NDArray[np.float64], interval: float, t0: float) -> N
     k = np.concatenate([np.floor(scaled[dense]) + 1, np.floor(scaled[dense + 1])])
     k = np.unique(k[(k >= 0) & (k <= np.floor(scaled[-1]))])
     return t0 + interval * k
+
+
+def corrected_poses(
+    before: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+    stamps: ArrayLike,
+    poses: NDArray[np.float64],
+    tolerance: float,
+) -> NDArray[np.float64] | None:
+    """``poses`` (N, 3) at ``stamps``, each moved by the correction ``C`` (``C (+) pose``)
+    held at its stamp in ``before`` (stamps, corrections), else by that of the last held stamp
+    before it (the first held one for those before all); None when no stamp is held."""
+    if before is None:
+        return None
+    before_stamps, corrections = before
+    held = matching_stamp(before_stamps, np.asarray(stamps, dtype=float), tolerance)
+    matched = np.flatnonzero(held >= 0)
+    if len(matched) == 0:
+        return None
+    nearest = np.searchsorted(matched, np.arange(len(held)), side="right") - 1
+    return se2.compose(corrections[held[matched[np.maximum(nearest, 0)]]], poses)

@@ -57,8 +57,11 @@ minima 35 units higher; on the same solve extrapolation converges in 68 iteratio
 where plain reweighting needs 220.)
 
 Convergence: after an accepted step whose cost decrease is below ``relative_tolerance``
-times the previous cost or whose largest component is below ``step_tolerance`` (metres /
-radians; the stretched step if extrapolated), or when a rejected step is already below
+times the previous cost, or below ``cost_tolerance`` (off by default: a decrease below 0.5,
+half a unit of chi-square, is a Gauss-Newton step under one standard deviation in the
+information metric, since its model predicts ``0.5 ||d||^2`` in ``A^T A``), or whose largest
+component is below ``step_tolerance`` (metres / radians; the stretched step if extrapolated),
+or when a rejected step is already below
 ``step_tolerance`` (numerical minimum). ``iterations`` counts factorisations (accepted and
 rejected steps). A trial point is evaluated once, residuals and Jacobians together
 (:meth:`~csam_ros.core.sam.normal_equations.NormalEquations.evaluate`); if the step is
@@ -101,6 +104,7 @@ class SolverOptions:
 
     max_iterations: int = 100
     relative_tolerance: float = 1e-10
+    cost_tolerance: float = 0.0  # absolute cost decrease (module docstring; 0: off)
     step_tolerance: float = 1e-9
     initial_damping: float = 1e-4
     max_damping: float = 1e12
@@ -113,6 +117,8 @@ class SolverOptions:
     def __post_init__(self) -> None:
         if not self.max_step_scale >= 1.0:
             raise ValueError(f"max_step_scale must be at least 1, got {self.max_step_scale}")
+        if not self.cost_tolerance >= 0.0:
+            raise ValueError(f"cost_tolerance must be at least 0, got {self.cost_tolerance}")
         if not self.extrapolation_gain > 1.0:
             raise ValueError(f"extrapolation_gain must be above 1, got {self.extrapolation_gain}")
 
@@ -367,6 +373,8 @@ class StepControl:
         o = self.options
         if decrease <= o.relative_tolerance * max(previous_cost, 1e-300):
             self.converged, self.reason = True, "relative cost decrease below tolerance"
+        elif decrease <= o.cost_tolerance:
+            self.converged, self.reason = True, "cost decrease below tolerance"
         elif step_norm <= o.step_tolerance:
             self.converged, self.reason = True, "step below tolerance"
         elif self.damping == 0.0:

@@ -111,6 +111,26 @@ def test_extrapolation_options_are_checked():
         SolverOptions(max_step_scale=0.5)
     with pytest.raises(ValueError, match="extrapolation_gain"):
         SolverOptions(extrapolation_gain=1.0)
+    with pytest.raises(ValueError, match="cost_tolerance"):
+        SolverOptions(cost_tolerance=-1.0)
+
+
+def test_cost_tolerance_stops_at_the_first_step_that_lowers_the_cost_less():
+    """The creeping robust solve stops after its first accepted step whose cost decrease is
+    below ``cost_tolerance``, that step taken."""
+    tolerance = 1e-3
+    creeping, _ = flat_robust_problem()
+    history = creeping.solve(SolverOptions(max_iterations=100, relative_tolerance=0.0)).cost_history
+    decreases = -np.diff(history)
+    assert np.all(decreases > 0)
+    first_small = int(np.argmax(decreases < tolerance))
+    assert 0 < first_small < len(decreases) - 1  # neither the first step nor never
+
+    p, _ = flat_robust_problem()
+    report = p.solve(SolverOptions(max_iterations=100, cost_tolerance=tolerance))
+    assert report.converged and report.reason == "cost decrease below tolerance"
+    assert report.iterations == first_small + 1
+    np.testing.assert_allclose(report.cost_history, history[: first_small + 2], rtol=1e-12)
 
 
 def test_a_new_pose_like_kind_works_with_the_generic_factors():
