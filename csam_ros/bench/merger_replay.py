@@ -26,7 +26,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from csam_ros.bag.reader import inspect_bag, read_bag_messages  # noqa: E402
-from csam_ros.core.exchange.map_arrays import held_robot_map  # noqa: E402
+from csam_ros.core.exchange.map_arrays import Refined, held_robot_map  # noqa: E402
 from csam_ros.core.exchange.map_updates import HeldMap, MissingBaseError, apply_update  # noqa: E402
 from csam_ros.core.joining.config import CsamConfig  # noqa: E402
 from csam_ros.core.joining.join import join_maps  # noqa: E402
@@ -62,11 +62,13 @@ def difference(a: CsamResult, b: CsamResult) -> float:
 
 def snapshots(bag: Path, every: float):
     """(s since the first message, the maps in first-heard order, the rendezvous messages,
-    the robots) every ``every`` s of log time."""
+    the robots) every ``every`` s of log time; each map refined from the robot's last, as the
+    merger refines it."""
     declared = [parse(name) for name in inspect_bag(bag).topics]
     robots = sorted(d[1] for d in declared if d is not None and d[0] is LOCAL_MAP_UPDATES)
     topics = [t.of(r) for r in robots for t in (LOCAL_MAP_UPDATES, RENDEZVOUS_POSES)]
     held: dict[str, HeldMap] = {}
+    refined: dict[str, Refined] = {}
     maps: dict[str, RobotMap] = {}
     rendezvous: dict[str, object] = {}
     first = next_t = None
@@ -82,7 +84,8 @@ def snapshots(bag: Path, every: float):
                 held[robot] = apply_update(held.get(robot), update)
             except MissingBaseError:
                 continue  # recorded before the robot's first whole map
-            maps[robot] = held_robot_map(robot, held[robot])
+            maps[robot] = held_robot_map(robot, held[robot], last=refined.get(robot))
+            refined[robot] = Refined(maps[robot], held[robot].map)
         else:
             rendezvous[robot] = message.message
         pending = True

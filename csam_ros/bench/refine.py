@@ -3,11 +3,12 @@ against from the robot's last refine: ``python -m csam_ros.bench.refine BAG [--s
 [--end S] [--robots NAME ...]``.
 
 A live run's bag holds every ``/<robot>/local_map_updates`` message the merger received. Each
-robot's updates are applied in order as the merger applies them, and every map built is refined
-as a live merger refines it, from the robot's last refined map
-(:func:`~csam_ros.core.exchange.map_arrays.refine_start`). Between ``--start`` and ``--end``
-(seconds of log time) each map is also refined from its held estimate alone, and solved to
-convergence (relative cost decrease 1e-13, steps stretched up to 64 times) as the reference.
+robot's updates are applied in order as the merger applies them. From ``--start`` (seconds of
+log time) each map built is refined as a live merger refines it: the first from its held
+estimate, every later one from the robot's last refined map
+(:func:`~csam_ros.core.exchange.map_arrays.refine_start`). Until ``--end`` each of those later
+maps is also refined from its held estimate alone, and solved to convergence (relative cost
+decrease 1e-13, steps stretched up to 64 times) as the reference.
 Per robot: the maps refined, the mean time of each refine, and how far above the converged cost
 each ends, in cost units (half a squared whitened residual; 0.5 is one standard deviation),
 mean and largest (negative: a lower minimum than the reference's).
@@ -64,10 +65,12 @@ def compare(bag: Path, robot: str, start_s: float, end_s: float) -> None:
             held = apply_update(held, map_update_from_message(message.message, robot))
         except MissingBaseError:
             continue  # recorded before the robot's first whole map
-        warm_s, refined = timed_refine(robot, held, last)
-        last = Refined(refined, held.map)
         if t < start_s:
             continue
+        warm_s, refined = timed_refine(robot, held, last)
+        first_refine, last = last is None, Refined(refined, held.map)
+        if first_refine:
+            continue  # refined from its held estimate: the next one starts from it
         cold_s, cold = timed_refine(robot, held, None)
         reference = robot_map_from_arrays(robot, held.map.arrays()).problem
         reference.solve(CONVERGED)
