@@ -41,8 +41,8 @@ from merger_harness import (
 from std_srvs.srv import Trigger
 
 import csam_ros.nodes.merger as merger_module
-from csam_ros.core.exchange.map_arrays import held_robot_map, robot_map_arrays
-from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender
+from csam_ros.core.exchange.map_arrays import Refined, held_robot_map, robot_map_arrays
+from csam_ros.core.exchange.map_updates import KeyedMap, MapUpdate, UpdateSender, apply_update
 from csam_ros.core.exchange.validation import FAILED_SOLVE
 from csam_ros.core.joining.notes import NoteKind
 from csam_ros.core.joining.result import RunSummary
@@ -715,22 +715,29 @@ def test_maps_are_checked_on_arrival_and_joined_refined(
     harness, growing: list[RunMessages]
 ) -> None:
     """The executor holds robot2's grown map as its updates built it (within the smoother's
-    update tolerance of its optimum); the solve joins it refined to that optimum."""
+    update tolerance of its optimum); the solve joins it refined from its first map as the
+    solve refined that (within 1e-4 of the optimum, where a refine from the held estimate
+    reaches it to 1e-6)."""
     middle, last = growing[1], growing[2]
     sender = UpdateSender(11)
-    first = _message(sender.update(robot_map_arrays(middle.robot_maps["robot2"])))
-    harness.start(with_robot2(middle, first))
+    update = sender.update(robot_map_arrays(middle.robot_maps["robot2"]))
+    harness.start(with_robot2(middle, _message(update)))
     solves = harness.merger.policy.solves
     harness.publish("robot2", _message(sender.update(robot_map_arrays(last.robot_maps["robot2"]))))
     harness.wait(
         lambda: harness.merger.policy.solves > solves and not harness.merger.policy.solving
     )
+    held_first = apply_update(None, update)
+    first = Refined(held_robot_map("robot2", held_first), held_first.map)
     held = harness.merger.policy.local_maps["robot2"]
-    refined = held_robot_map("robot2", harness.merger.policy.sources["robot2"])
+    refined = held_robot_map("robot2", harness.merger.policy.sources["robot2"], last=first)
     joined = harness.merger.policy.last_result.robots["robot2"]
     assert np.abs(held.poses - refined.poses).max() > 1e-9  # the update left some behind
     np.testing.assert_allclose(joined.poses_local, refined.poses, atol=1e-12)
-    np.testing.assert_allclose(refined.poses, last.robot_maps["robot2"].poses, atol=1e-6)
+    optimum = last.robot_maps["robot2"].poses
+    np.testing.assert_allclose(refined.poses, optimum, atol=1e-4)
+    from_held = held_robot_map("robot2", harness.merger.policy.sources["robot2"])
+    np.testing.assert_allclose(from_held.poses, optimum, atol=1e-6)
 
 
 def test_maps_are_prepared_in_the_solve_process_while_the_solve_waits(
