@@ -4,13 +4,12 @@ growth exponents, and the command on two robots live and on a few offline."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from module_runs import module_output
 
 from csam_ros.bench.many_robots import (
     HEADER,
@@ -27,8 +26,6 @@ from csam_ros.core.joining.result import RunSummary
 from csam_ros.datasets.formations import CSAM_SECTION, many_robot_scenario, neighbours
 from csam_ros.datasets.scenario import load_scenario
 from csam_ros.datasets.simulation import simulate
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def test_neighbours_of_a_ring_wrap_and_of_a_chain_do_not() -> None:
@@ -70,16 +67,11 @@ def test_the_scenario_file_loads_back_the_same_scenario(layout: str, tmp_path: P
 
 def test_the_command_on_two_robots(tmp_path: Path) -> None:
     out = tmp_path / "out"
-    done = subprocess.run(
-        [sys.executable, "-m", "csam_ros.bench.many_robots", "--robots", "2"]
-        + ["--seconds", "20", "--rate", "4", "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=REPO,
-    )
-    assert done.returncode == 0, done.stdout + done.stderr
-    lines = done.stdout.splitlines()
+    printed = module_output(
+        "csam_ros.bench.many_robots", "--robots", "2", "--seconds", "20", "--rate", "4",
+        "--out", out,
+    )  # fmt: skip
+    lines = printed.splitlines()
     assert HEADER in lines
     row = lines[lines.index(HEADER) + 2].split()
     assert row[:3] == ["2", "1/1", "2/2"]  # two robots, their pair met, both joined
@@ -150,17 +142,12 @@ def test_the_stage_table_holds_each_stage_the_join_alone_and_their_exponents() -
 
 def test_the_offline_command_on_a_few_robots(tmp_path: Path) -> None:
     out = tmp_path / "out"
-    done = subprocess.run(
-        [sys.executable, "-m", "csam_ros.bench.many_robots", "--offline", "--robots", "2", "3"]
-        + ["4", "--max-robots", "3", "--seconds", "10", "--layout", "chain", "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=REPO,
-    )
-    assert done.returncode == 0, done.stdout + done.stderr
-    assert "rendezvous every 1 sample(s)" in done.stdout
-    lines = done.stdout.splitlines()
+    printed = module_output(
+        "csam_ros.bench.many_robots", "--offline", "--robots", "2", "3", "4", "--max-robots",
+        "3", "--seconds", "10", "--layout", "chain", "--out", out,
+    )  # fmt: skip
+    assert "rendezvous every 1 sample(s)" in printed
+    lines = printed.splitlines()
     assert any(line.startswith("  3 robots: 3/3 aligned, pairs met 2/2") for line in lines)
     header = next(line for line in lines if line.startswith("stage [s]"))
     assert header.split()[2:] == ["N=2", "N=3", "2->3", "overall"]

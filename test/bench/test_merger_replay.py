@@ -3,28 +3,14 @@ and warm, the two equal on this Gaussian scenario."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def _run(*args: str | Path) -> str:
-    done = subprocess.run(
-        [sys.executable, "-m", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=REPO,
-    )
-    assert done.returncode == 0, done.stdout + done.stderr
-    return done.stdout
+from module_runs import module_output
 
 
 def test_merger_replay_joins_a_live_run_cold_and_warm_alike(demo_run: Path) -> None:
     # the demo ran at rate 8: its maps arrive over about 5 s of log time
-    printed = _run("csam_ros.bench.merger_replay", demo_run / "bag", "--every", "0.5")
+    printed = module_output("csam_ros.bench.merger_replay", demo_run / "bag", "--every", "0.5")
     lines = printed.splitlines()
     assert lines[0].split() == [
         "t", "poses", "cold", "it1", "itJ", "warm", "it1", "itJ", "reused", "warm-cold",
@@ -39,7 +25,9 @@ def test_merger_replay_joins_a_live_run_cold_and_warm_alike(demo_run: Path) -> N
 def test_merger_replay_compares_warm_joins_with_and_without_the_solve_ahead(
     demo_run: Path,
 ) -> None:
-    printed = _run("csam_ros.bench.merger_replay", demo_run / "bag", "--every", "0.5", "--ahead")
+    printed = module_output(
+        "csam_ros.bench.merger_replay", demo_run / "bag", "--every", "0.5", "--ahead"
+    )
     lines = printed.splitlines()
     assert lines[0].split() == ["t", "without", "ahead", "taken"]
     rows = [line.split() for line in lines[1:-1]]

@@ -4,10 +4,9 @@ for both factorisations of ours, and the online local map ending at the offline 
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 
 import pytest
+from module_runs import module_output
 
 ARGS = [
     "--poses", "300", "--landmarks", "12", "--observations", "400",
@@ -17,15 +16,7 @@ ARGS = [
 
 @pytest.fixture(scope="module")
 def printed() -> str:
-    done = subprocess.run(
-        [sys.executable, "-m", "csam_ros.bench.smoothing", *ARGS],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    return done.stdout
+    return module_output("csam_ros.bench.smoothing", *ARGS)
 
 
 def solver_rows(out: str) -> dict[str, dict[str, float]]:
