@@ -4,11 +4,12 @@ against from the robot's last refine: ``python -m csam_ros.bench.refine BAG [--s
 
 A live run's bag holds every ``/<robot>/local_map_updates`` message the merger received. Each
 robot's updates are applied in order as the merger applies them. From ``--start`` (seconds of
-log time) each map built is refined as a live merger refines it: the first from its held
-estimate, every later one from the robot's last refined map
+log time after the robot's first update) each map built is refined as a live merger refines it:
+the first from its held estimate, every later one from the robot's last refined map
 (:func:`~csam_ros.core.exchange.map_arrays.refine_start`). Until ``--end`` each of those later
 maps is also refined from its held estimate alone, and solved to convergence (relative cost
 decrease 1e-13, steps stretched up to 64 times) as the reference.
+
 Per robot: the maps refined, the mean time of each refine, and how far above the converged cost
 each ends, in cost units (half a squared whitened residual; 0.5 is one standard deviation),
 mean and largest (negative: a lower minimum than the reference's).
@@ -92,8 +93,10 @@ def compare(bag: Path, robot: str, start_s: float, end_s: float) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("bag", type=Path)
-    parser.add_argument("--start", type=float, default=0.0, help="s of log time")
-    parser.add_argument("--end", type=float, default=float("inf"), help="s of log time")
+    parser.add_argument("--start", type=float, default=0.0, help="s after the robot's first update")
+    parser.add_argument(
+        "--end", type=float, default=float("inf"), help="s after the robot's first update"
+    )
     parser.add_argument("--robots", nargs="+", help="default: every robot in the bag")
     args = parser.parse_args()
     declared = [parse(name) for name in inspect_bag(args.bag).topics]
