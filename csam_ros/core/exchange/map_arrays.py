@@ -13,7 +13,7 @@ from csam_ros.core.exchange.local_map_checks import LocalMapArrays, local_map_fa
 from csam_ros.core.exchange.map_updates import HeldMap, KeyedMap
 from csam_ros.core.exchange.validation import LocalMapError
 from csam_ros.core.model import se2
-from csam_ros.core.model.stamps import corrected_poses
+from csam_ros.core.model.stamps import corrected_poses, matching_stamp
 from csam_ros.core.sam.factors import (
     POINT,
     POSE,
@@ -187,7 +187,7 @@ def checked_robot_map(
             system.linearize(problem.values)
             system.check_blocks()
             if refine:  # its first step factors at the estimate
-                warm = start is not None and problem.take_if_cheaper(_values(robot_map, *start))
+                warm = start is not None and problem.take_if_cheaper(values_with(robot_map, *start))
                 problem.solve(REFINE_FROM_LAST if warm else REFINE)
             else:
                 system.factorize(0.0)
@@ -207,7 +207,7 @@ class Refined:
     held: KeyedMap
 
 
-def _values(robot_map: RobotMap, poses: Array, features: Array) -> Array:
+def values_with(robot_map: RobotMap, poses: Array, features: Array) -> Array:
     """The values of ``robot_map``'s problem with its poses and features replaced."""
     problem = robot_map.problem
     values = problem.values.copy()
@@ -222,17 +222,15 @@ def refine_start(held: KeyedMap, last: Refined) -> tuple[Array, Array]:
     value refined in ``last.robot_map``, every other as held; a pose new since, moved as the
     nearest pose before it that was held (the first one for those before all)."""
     previous = last.held
-    at = np.minimum(
-        np.searchsorted(previous.pose_stamps, held.pose_stamps), len(previous.pose_stamps) - 1
-    )
-    matched = previous.pose_stamps[at] == held.pose_stamps
+    at = matching_stamp(previous.pose_stamps, held.pose_stamps, 0)
+    matched = at >= 0
     unchanged = matched.copy()
     unchanged[matched] = np.all(previous.poses[at[matched]] == held.poses[matched], axis=1)
     corrections = np.zeros((int(matched.sum()), 3))  # the identity for poses sent again
     refined = last.robot_map.poses[at[unchanged]]
     corrections[unchanged[matched]] = se2.compose(refined, se2.inverse(held.poses[unchanged]))
-    stamps = held.pose_stamps.astype(np.float64)
-    poses = corrected_poses((stamps[matched], corrections), stamps, held.poses, 0.0)
+    stamps = held.pose_stamps
+    poses = corrected_poses((stamps[matched], corrections), stamps, held.poses, 0)
     features = held.feature_xy.copy()
     before = {int(label): k for k, label in enumerate(previous.feature_labels)}
     for k, label in enumerate(held.feature_labels):

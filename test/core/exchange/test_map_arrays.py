@@ -16,6 +16,7 @@ from csam_ros.core.exchange.map_arrays import (
     refine_start,
     robot_map_arrays,
     robot_map_from_arrays,
+    values_with,
 )
 from csam_ros.core.exchange.map_updates import (
     HeldMap,
@@ -77,13 +78,6 @@ def _last_refined(growth: Growth) -> Refined:
     return Refined(held_robot_map(name, growth.held[1], last=first), growth.held[1].map)
 
 
-def _start_values(robot_map: RobotMap, poses: np.ndarray, features: np.ndarray) -> np.ndarray:
-    values = robot_map.problem.values.copy()
-    values[robot_map.problem.scalar_indices(robot_map.pose_ids)] = poses.reshape(-1)
-    values[robot_map.problem.scalar_indices(robot_map.feature_ids)] = features.reshape(-1)
-    return values
-
-
 def test_the_start_keeps_what_was_not_sent_again_at_its_refined_value(growth: Growth) -> None:
     last = _last_refined(growth)
     held, before = growth.held[2].map, last.held
@@ -119,7 +113,7 @@ def test_a_refine_from_the_last_map_ends_within_a_step_under_a_sigma(growth: Gro
     name = growth.optimum[0].name
     last = _last_refined(growth)
     now = _held_problem(growth)
-    start = _start_values(now, *refine_start(growth.held[2].map, last))
+    start = values_with(now, *refine_start(growth.held[2].map, last))
     assert now.problem.cost(start) < now.problem.cost()
     warm = held_robot_map(name, growth.held[2], last=last)
     cold = held_robot_map(name, growth.held[2])
@@ -145,7 +139,7 @@ def test_a_last_map_that_costs_more_is_not_taken(growth: Growth) -> None:
     )
     robot_map.problem.values = moved
     now = _held_problem(growth)
-    start = _start_values(now, *refine_start(growth.held[2].map, last))
+    start = values_with(now, *refine_start(growth.held[2].map, last))
     assert now.problem.cost(start) > now.problem.cost()
     from_far = held_robot_map(name, growth.held[2], last=last)
     cold = held_robot_map(name, growth.held[2])
