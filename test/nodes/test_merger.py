@@ -502,13 +502,14 @@ def _keyed_equal(a: KeyedMap, b: KeyedMap) -> None:
         assert np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y, name
 
 
-def _assert_joined_close(a: JoinedMap, b: JoinedMap, atol: float) -> None:
-    """The same joined map, its numbers to ``atol``."""
+def _assert_joined_close(a: JoinedMap, b: JoinedMap, atol: float, distance_rtol: float) -> None:
+    """The same joined map: its estimates to ``atol``, the same associations, their Mahalanobis
+    distances to ``distance_rtol``."""
     (fa, aa, na, ta), (fb, ab, nb, tb) = joined_view(a), joined_view(b)
     assert [f[0] for f in fa] == [f[0] for f in fb]
     np.testing.assert_allclose([f[1:3] + f[3] for f in fa], [f[1:3] + f[3] for f in fb], 0, atol)
     assert [x[:2] for x in aa] == [x[:2] for x in ab]
-    np.testing.assert_allclose([x[2] for x in aa], [x[2] for x in ab], 0, atol)
+    np.testing.assert_allclose([x[2] for x in aa], [x[2] for x in ab], distance_rtol, 0)
     assert [n[:2] for n in na] == [n[:2] for n in nb] and ta == tb
     np.testing.assert_allclose([n[2:] for n in na], [n[2:] for n in nb], 0, atol)
 
@@ -570,10 +571,15 @@ def test_a_merger_that_missed_updates_resyncs_and_ends_equal(
     ros_context, spin, growing: list[RunMessages]
 ) -> None:
     """A merger that never got update 2 cannot apply 3: it asks for the whole map, then holds
-    exactly what the smoother holds and joins what a merger given every update joins."""
+    exactly what the smoother holds and joins what a merger given every update joins.
+
+    The association's distances are measured on each map as the merger refined it, and a refine
+    starts from the robot's last one, so they depend on which updates were joined on the way
+    (within a fraction of a standard deviation of the converged map); the joint solve's estimates
+    do not."""
     missed = _joined_from_updates(ros_context, spin, growing, missed=True)
     every = _joined_from_updates(ros_context, spin, growing, missed=False)
-    _assert_joined_close(missed, every, 1e-9)
+    _assert_joined_close(missed, every, 1e-9, distance_rtol=1e-3)
 
 
 def test_an_update_delivered_twice_changes_nothing(harness, growing: list[RunMessages]) -> None:
