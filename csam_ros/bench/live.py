@@ -5,7 +5,8 @@ long as the bag, about 25 minutes for MR.CLAM Dataset 1 with ``--config config/m
 ``csam replay BAG --isolated`` runs the bag through the recorder, the smoothers and the merger
 (its output in ``DIR/replay.log``), then the run is scored as ``csam evaluate`` scores it when
 its bag holds ground truth. Printed: the merger's solves, the lags of the local maps to the
-solved joined map and to the first provisional or solved one (:mod:`csam_ros.run.lag`), the
+solved joined map and to the first provisional or solved one (:mod:`csam_ros.run.lag`), both
+also over tenths of the run (a join that grows with the data shows as lags that grow), the
 final joined map's time after the end of the sensor data, the landmark metrics, and GTSAM's
 batch Levenberg-Marquardt on Victoria Park from dead reckoning (as
 ``python -m csam_ros.bench.smoothing`` runs it) timed just before and just after the run: how
@@ -18,6 +19,8 @@ import argparse
 import subprocess
 import sys
 from pathlib import Path
+
+RUN_PARTS = 10  # spans of the run the lags are also shown over (a join growing with the data)
 
 
 def final_after_data(bag: Path) -> float:
@@ -47,7 +50,7 @@ def live_lines(run_dir: Path) -> list[str]:
     from csam_ros.run.results import latency_lines
 
     bag = run_dir / "bag"
-    lines = latency_lines(bag, RunSummary.read(run_dir / "summary.json"))
+    lines = latency_lines(bag, RunSummary.read(run_dir / "summary.json"), parts=RUN_PARTS)
     lines.append(f"the final joined map {final_after_data(bag):.2f} s after the data")
     try:
         return lines + evaluation_lines(evaluate_run(run_dir))

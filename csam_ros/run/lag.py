@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 SOLVED = "the joined map"  # what lags are to by default: the solved joined maps
 NOT_USED = -np.inf  # the used stamp of a robot that a joined map holds no local map of
 _CHUNK = 1 << 22  # most (local map x joined map) comparisons held at once
@@ -126,6 +127,27 @@ def map_lags(
     return lags
 
 
+def robot_lags(
+    map_arrivals: Mapping[str, ArrayLike],
+    map_stamps: Mapping[str, ArrayLike],
+    joined_times: ArrayLike,
+    used_stamps: Mapping[str, ArrayLike],
+) -> dict[str, FloatArray]:
+    """:func:`map_lags` of every robot's local maps (robot -> arrival times and stamps [s]) to
+    the joined maps (their times, and robot -> the stamp each used, :data:`NOT_USED` for none;
+    a robot missing from ``used_stamps`` is in no joined map)."""
+    n = len(np.asarray(joined_times).reshape(-1))
+    return {
+        robot: map_lags(
+            map_arrivals[robot],
+            map_stamps[robot],
+            joined_times,
+            used_stamps.get(robot, np.full(n, NOT_USED)),
+        )
+        for robot in map_arrivals
+    }
+
+
 def lag_stats(
     map_arrivals: Mapping[str, ArrayLike],
     map_stamps: Mapping[str, ArrayLike],
@@ -133,20 +155,73 @@ def lag_stats(
     used_stamps: Mapping[str, ArrayLike],
     to: str = SOLVED,
 ) -> LagStats:
-    """The lags of every robot's local maps (robot -> arrival times and stamps [s]) to the
-    joined maps (their times, and robot -> the stamp each used, :data:`NOT_USED` for none; a
-    robot missing from ``used_stamps`` is in no joined map); ``to`` names those maps."""
-    n = len(np.asarray(joined_times).reshape(-1))
-    lags = [
-        map_lags(
-            map_arrivals[robot],
-            map_stamps[robot],
-            joined_times,
-            used_stamps.get(robot, np.full(n, NOT_USED)),
-        )
-        for robot in map_arrivals
-    ]
+    """The statistics of :func:`robot_lags` pooled over the robots; ``to`` names the joined
+    maps."""
+    lags = list(robot_lags(map_arrivals, map_stamps, joined_times, used_stamps).values())
     return LagStats.of(np.concatenate(lags) if lags else np.zeros(0), to)
+
+
+@dataclass(frozen=True)
+class RunPart:
+    """The local maps that arrived in ``[start, end)`` s of a run with their lags, and the
+    merger's solves reported in that span."""
+
+    start: float
+    end: float
+    lags: LagStats
+    solves: SolveStats
+
+    def __str__(self) -> str:
+        span = f"{self.start:7.0f} -{self.end:7.0f} s"
+        solves = (
+            f"{self.solves.seen:4d} solves of {self.solves.mean:5.2f} s"
+            if self.solves.seen
+            else f"{'no solve':>20}"
+        )
+        if self.lags.count == 0:
+            return f"{span}  {solves}  {self.lags.never_included:5d} maps, none included"
+        return (
+            f"{span}  {solves}  {self.lags.count:5d} maps, lag mean {self.lags.mean:5.2f} s, "
+            f"p95 {self.lags.p95:5.2f} s, max {self.lags.max:5.2f} s"
+        )
+
+
+def lags_over_run(
+    arrivals: ArrayLike,
+    lags: ArrayLike,
+    parts: int,
+    solve_times: ArrayLike = (),
+    solve_seconds: ArrayLike = (),
+) -> list[RunPart]:
+    """The lags of local maps (their ``arrivals`` [s] and ``lags``, NaN: never included) and
+    the solves (reported at ``solve_times`` [s], each ``solve_seconds`` long) in ``parts``
+    equal spans from the first arrival to the last: whether maps wait longer as the run goes
+    on (a join that grows with the data) or only at its start."""
+    a = np.asarray(arrivals, dtype=float).reshape(-1)
+    x = np.asarray(lags, dtype=float).reshape(-1)
+    t = np.asarray(solve_times, dtype=float).reshape(-1)
+    d = np.asarray(solve_seconds, dtype=float).reshape(-1)
+    if a.shape != x.shape or t.shape != d.shape:
+        raise ValueError("arrivals and lags, solve times and seconds: equal lengths")
+    if parts < 1:
+        raise ValueError(f"parts must be at least 1, not {parts}")
+    if len(a) == 0:
+        return []
+    edges = np.linspace(a.min(), a.max(), parts + 1)
+
+    def part_of(times: FloatArray) -> IntArray:
+        return np.minimum(np.searchsorted(edges, times, side="right") - 1, parts - 1)
+
+    maps, solves = part_of(a), part_of(t)
+    return [
+        RunPart(
+            float(edges[k]),
+            float(edges[k + 1]),
+            LagStats.of(x[maps == k]),
+            SolveStats.of(int(np.sum(solves == k)), d[solves == k]),
+        )
+        for k in range(parts)
+    ]
 
 
 @dataclass(frozen=True)
@@ -160,12 +235,28 @@ class Timeline:
     used_stamps: dict[str, FloatArray]
     solves: int
     solve_seconds: FloatArray
+    solve_times: FloatArray  # when the status that reported each of solve_seconds was logged
     provisional_times: FloatArray  # /csam/joined_map/provisional, as the joined maps above
     provisional_used: dict[str, FloatArray]
 
     def lag_stats(self) -> LagStats:
         """The lags to the solved joined maps."""
         return lag_stats(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
+
+    def map_lags(self) -> tuple[FloatArray, FloatArray]:
+        """Every robot's local maps pooled: their arrival times and their lags to the solved
+        joined maps (NaN: never included), in arrival order."""
+        lags = robot_lags(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
+        if not lags:
+            return np.zeros(0), np.zeros(0)
+        a = np.concatenate([np.asarray(self.map_arrivals[r], dtype=float) for r in lags])
+        x = np.concatenate(list(lags.values()))
+        order = np.argsort(a, kind="stable")
+        return a[order], x[order]
+
+    def lags_over_run(self, parts: int = 10) -> list[RunPart]:
+        """:func:`lags_over_run` of the lags to the solved joined maps, and of the solves."""
+        return lags_over_run(*self.map_lags(), parts, self.solve_times, self.solve_seconds)
 
     def provisional_lag_stats(self) -> LagStats | None:
         """The lags to the first joined map, solved or provisional, that uses a local map;
@@ -202,7 +293,7 @@ def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
     # per kind of joined map: the log times and the local map stamps each used
     joined: dict[str, list[int]] = {k: [] for k in joined_kinds}
     used: dict[str, list[dict[str, int]]] = {k: [] for k in joined_kinds}
-    solves, solve_seconds = 0, []
+    solves, solve_seconds, solve_times = 0, [], []
     start: int | None = None
     for m in read_bag_messages(bag, topics, on_damage=on_damage):
         start = m.log_time_ns if start is None else start
@@ -227,6 +318,7 @@ def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
                     continue
                 if count > solves and np.isfinite(seconds_):
                     solve_seconds.append(seconds_)
+                    solve_times.append(m.log_time_ns)
                 solves = max(solves, count)
         else:
             robot = parse(m.topic)[1]
@@ -248,6 +340,7 @@ def read_timeline(bag: str | os.PathLike[str], on_damage=None) -> Timeline:
         used_stamps={r: used_by(r, JOINED_MAP.name) for r in robots},
         solves=solves,
         solve_seconds=np.asarray(solve_seconds, dtype=float),
+        solve_times=seconds(solve_times, start),
         provisional_times=seconds(joined[PROVISIONAL_MAP.name], start),
         provisional_used={r: used_by(r, PROVISIONAL_MAP.name) for r in robots},
     )

@@ -66,10 +66,11 @@ def write_results(out: Path, summary: RunSummary, worker: FigureWorker | None = 
     return draw_all(summary.result, out, scenario=summary.scenario)
 
 
-def latency_lines(bag: Path, summary: RunSummary) -> list[str]:
+def latency_lines(bag: Path, summary: RunSummary, parts: int = 0) -> list[str]:
     """How long a live run's local maps took to reach the joined map, and how long the
-    merger's solves took (from the run's bag; the merger's count from its summary); no line
-    if the bag cannot be read (a warning says why)."""
+    merger's solves took (from the run's bag; the merger's count from its summary), then
+    (``parts`` > 0) the same over that many equal spans of the run; no line if the bag cannot
+    be read (a warning says why)."""
     from csam_ros.bag import BagError
     from csam_ros.run.lag import read_timeline
 
@@ -83,4 +84,7 @@ def latency_lines(bag: Path, summary: RunSummary) -> list[str]:
     if provisional is not None:
         lines.append(str(provisional))
     lines.append(str(timeline.solve_stats(summary.merger.solves if summary.merger else None)))
+    if parts > 0:
+        lines.append("over the run (local maps by arrival, solves by their report):")
+        lines += [f"  {part}" for part in timeline.lags_over_run(parts)]
     return lines

@@ -49,6 +49,11 @@ def test_lines_of_a_live_run(run_dir: Path) -> None:
     lines = live.live_lines(run_dir)
     assert lines[0].startswith("lag from a local map to the joined map that uses it: mean ")
     assert any(line.startswith("merger: ") for line in lines)
+    over = lines.index("over the run (local maps by arrival, solves by their report):")
+    spans = lines[over + 1 : over + 1 + live.RUN_PARTS]
+    assert len(spans) == live.RUN_PARTS and all(" s " in span for span in spans)
+    counts = [int(span.split(" maps")[0].split()[-1]) for span in spans]
+    assert sum(counts) == 52  # every local map update of bags/map_joining, in one span each
     final = next(line for line in lines if line.startswith("the final joined map "))
     assert f"{live.final_after_data(run_dir / 'bag'):.2f} s after the data" in final
     metrics = json.loads((run_dir / "metrics.json").read_text())

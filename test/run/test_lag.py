@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 
 from csam_ros.run import lag
-from csam_ros.run.lag import NOT_USED, LagStats, SolveStats, lag_stats, map_lags, read_timeline
+from csam_ros.run.lag import (
+    NOT_USED,
+    LagStats,
+    SolveStats,
+    lag_stats,
+    lags_over_run,
+    map_lags,
+    read_timeline,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 SECOND = 1_000_000_000
@@ -95,6 +103,31 @@ def test_printouts() -> None:
     assert str(SolveStats.of(0, [])) == "merger: 0 solves (no solve time in /csam/status)"
 
 
+def test_lags_over_the_run_in_equal_spans() -> None:
+    # maps at 0..9 s with lags growing 0.1 s per second, one never included; solves at 1 and 8
+    arrivals = np.arange(10.0)
+    lags = 0.5 + 0.1 * arrivals
+    lags[3] = np.nan
+    parts = lags_over_run(arrivals, lags, 3, solve_times=[1.0, 8.0], solve_seconds=[0.2, 0.6])
+    assert [(p.start, p.end) for p in parts] == [(0.0, 3.0), (3.0, 6.0), (6.0, 9.0)]
+    assert [p.lags.count + p.lags.never_included for p in parts] == [3, 3, 4]  # 9.0 in the last
+    assert parts[1].lags.never_included == 1 and parts[1].lags.mean == pytest.approx(0.95)
+    assert parts[2].lags.max == pytest.approx(1.4) and parts[0].lags.mean == pytest.approx(0.6)
+    assert [p.solves.seen for p in parts] == [1, 0, 1]
+    assert parts[2].solves.mean == pytest.approx(0.6)
+    assert str(parts[0]) == (
+        "      0 -      3 s     1 solves of  0.20 s      3 maps, lag mean  0.60 s, "
+        "p95  0.69 s, max  0.70 s"
+    )
+    assert "no solve" in str(parts[1])
+    assert str(lags_over_run([2.0], [np.nan], 1)[0]).endswith("1 maps, none included")
+    assert lags_over_run([], [], 4) == []
+    with pytest.raises(ValueError):
+        lags_over_run([1.0], [1.0], 0)
+    with pytest.raises(ValueError):
+        lags_over_run([1.0], [1.0], 2, solve_times=[1.0])
+
+
 def _write_run_bag(path: Path) -> None:
     """Local map updates of two robots, joined maps and merger status at known log times."""
     from csam_msgs.msg import BaseNode, JoinedMap, LocalMapUpdate
@@ -159,6 +192,14 @@ def test_read_timeline_of_a_small_bag(tmp_path: Path) -> None:
     assert (solves.solves, solves.seen) == (3, 2)
     assert solves.max == pytest.approx(0.75)
     assert timeline.solve_stats(solves=4).solves == 4  # the merger's own count, where known
+    np.testing.assert_allclose(timeline.solve_times, [1.5, 2.5])
+    arrivals, lags = timeline.map_lags()
+    np.testing.assert_allclose(arrivals, [0.0, 0.2, 1.0, 2.0])
+    np.testing.assert_allclose(lags, [1.4, 1.2, 0.4, np.nan])
+    (whole,) = timeline.lags_over_run(1)
+    assert (whole.lags.count, whole.lags.never_included) == (3, 1)
+    assert whole.lags.mean == pytest.approx(stats.mean) and whole.lags.max == stats.max
+    assert (whole.solves.seen, whole.solves.max) == (2, 0.75)
     np.testing.assert_allclose(timeline.provisional_times, [2.2])
     provisional = timeline.provisional_lag_stats()
     assert provisional is not None and (provisional.count, provisional.never_included) == (4, 0)
