@@ -10,7 +10,8 @@ also over tenths of the run (a join that grows with the data shows as lags that 
 final joined map's time after the end of the sensor data, the landmark metrics, and GTSAM's
 batch Levenberg-Marquardt on Victoria Park from dead reckoning (as
 ``python -m csam_ros.bench.smoothing`` runs it) timed just before and just after the run: how
-fast the machine was that hour, so that a slow hour can be told from a regression.
+fast the machine was that hour, so that a slow hour can be told from a regression. The lags and
+solves over the run are drawn to ``DIR/run/latency.png`` (:mod:`csam_ros.figures.latency`).
 """
 
 from __future__ import annotations
@@ -58,6 +59,14 @@ def live_lines(run_dir: Path) -> list[str]:
         return [*lines, f"not scored: {err}"]
 
 
+def latency_figure(run_dir: Path) -> Path:
+    """Draw ``run_dir/latency.png`` from its bag (:mod:`csam_ros.figures.latency`)."""
+    from csam_ros.figures.latency import draw_latency
+    from csam_ros.run.lag import read_timeline
+
+    return draw_latency(read_timeline(run_dir / "bag"), run_dir / "latency.png")
+
+
 def main(argv: list[str] | None = None) -> None:
     from csam_ros.bench.smoothing import victoria_park_lm_seconds
     from csam_ros.run.results import fresh_dir
@@ -79,6 +88,7 @@ def main(argv: list[str] | None = None) -> None:
     after = victoria_park_lm_seconds()
     for line in live_lines(out / "run"):
         print(f"  {line.strip()}")
+    print(f"  the lags and solves over the run: {latency_figure(out / 'run')}")
     speed = "n/a (GTSAM or its Victoria Park file missing)"
     if before is not None and after is not None:
         speed = f"{before:.2f} s before the run, {after:.2f} s after"

@@ -290,13 +290,15 @@ def _view(result: CsamResult, scenario: str | None) -> _Summary:
 # --------------------------------------------------------------------------- drawing helpers
 
 
-def _new_figure(height_in: float) -> Figure:
+def new_figure(height_in: float) -> Figure:
+    """A figure of the common width and resolution, ``height_in`` inches high."""
     figure = Figure(figsize=(FIGURE_WIDTH_IN, height_in), dpi=DPI, layout="constrained")
     FigureCanvasAgg(figure)
     return figure
 
 
-def _save(figure: Figure, path: str | Path) -> Path:
+def save_figure(figure: Figure, path: str | Path) -> Path:
+    """Write ``figure`` to ``path`` as PNG (its folder made); the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=DPI, format="png")
@@ -417,7 +419,8 @@ def _key(label: str, **style: Any) -> Line2D:
     return Line2D([], [], **{"ls": "none", **style}, label=label)
 
 
-def _note(axes: Axes, text: str) -> None:
+def axes_note(axes: Axes, text: str) -> None:
+    """``text`` in the middle of ``axes``: why they show nothing."""
     axes.text(0.5, 0.5, text, transform=axes.transAxes, ha="center", va="center", color="0.4")
 
 
@@ -457,14 +460,14 @@ def draw_local_maps(result: CsamResult, path: str | Path, scenario: str | None =
     rows = max(1, math.ceil(len(robots) / columns))
     spans = [_spans([r.poses_local, r.features_local.xy]) for r in robots]
     panel_height = _map_height(spans, 0.85 * FIGURE_WIDTH_IN / columns) + 0.9
-    figure = _new_figure(1.3 + rows * panel_height)
+    figure = new_figure(1.3 + rows * panel_height)
     figure.suptitle(_title(parsed, "local maps before joining, each robot in its own frame"))
     grid = figure.subplots(rows, columns, squeeze=False)
     for axes in grid.ravel()[len(robots) :]:
         axes.set_visible(False)
     if not robots:
-        _note(grid[0, 0], "no robots in the result")
-        return _save(figure, path)
+        axes_note(grid[0, 0], "no robots in the result")
+        return save_figure(figure, path)
 
     # one magnification for every panel, so that panels compare
     extent = max(max(span) for span in spans)
@@ -479,7 +482,7 @@ def draw_local_maps(result: CsamResult, path: str | Path, scenario: str | None =
         poses = robot.poses_local
         features = robot.features_local
         if poses.shape[0] == 0 and features.xy.shape[0] == 0:
-            _note(axes, "empty local map")
+            axes_note(axes, "empty local map")
             continue
         if poses.shape[0]:
             drawn_rendezvous |= _draw_trajectory(axes, robot, poses, tolerance)
@@ -499,14 +502,14 @@ def draw_local_maps(result: CsamResult, path: str | Path, scenario: str | None =
     if drawn_rendezvous:
         handles.append(_key("pose with a rendezvous", marker="o", ms=5, mfc="none", mec="black"))
     figure.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 4))
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def draw_heading_sigma(result: CsamResult, path: str | Path, scenario: str | None = None) -> Path:
     """Paper fig. 5/6 (c): heading standard deviation per sample before and after C-SAM."""
     parsed = _view(result, scenario)
     robots = parsed.robots
-    figure = _new_figure(5.2)
+    figure = new_figure(5.2)
     axes = figure.subplots()
     axes.set_title(_title(parsed, "heading standard deviation before and after C-SAM"))
     axes.set_ylabel("heading std-dev σ_φ [deg]")
@@ -514,8 +517,8 @@ def draw_heading_sigma(result: CsamResult, path: str | Path, scenario: str | Non
     axes.set_axisbelow(True)
     if not robots:
         axes.set_xlabel("time [s]")
-        _note(axes, "no robots in the result")
-        return _save(figure, path)
+        axes_note(axes, "no robots in the result")
+        return save_figure(figure, path)
 
     use_time = all(r.stamps.size for r in robots)
     t0 = min(float(np.min(r.stamps)) for r in robots) if use_time else 0.0
@@ -576,7 +579,7 @@ def draw_heading_sigma(result: CsamResult, path: str | Path, scenario: str | Non
     if scale == "log":
         axes.set_ylabel("heading std-dev σ_φ [deg] (log scale)")
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def draw_joined_map(
@@ -598,7 +601,7 @@ def draw_joined_map(
     aligned = [r for r in parsed.robots if r.aligned]
     bases = [r.base_node[None] for r in aligned if r.base_node is not None]
     drawn = [*(r.poses_joined for r in aligned), parsed.features.xy, truth_xy, *bases]
-    figure = _new_figure(max(4.5, _map_height([_spans(drawn)], 0.68 * FIGURE_WIDTH_IN) + 1.0))
+    figure = new_figure(max(4.5, _map_height([_spans(drawn)], 0.68 * FIGURE_WIDTH_IN) + 1.0))
     axes = figure.subplots()
     axes.set_title(_title(parsed, f"joined map in {frame}" if frame else "joined map"))
     _map_axes(axes, frame)
@@ -677,10 +680,10 @@ def draw_joined_map(
         label = _wrap(f"{robot.name} pending: {robot.pending_reason}")
         handles.append(_key(label, color=robot.colour, ls=":", lw=1.4))
     if not aligned and features.xy.shape[0] == 0:
-        _note(axes, "nothing joined yet")
+        axes_note(axes, "nothing joined yet")
     axes.autoscale_view()
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def _draw_base_node(axes: Axes, robot: _Robot, length: float, magnification: float) -> None:

@@ -243,10 +243,14 @@ class Timeline:
         """The lags to the solved joined maps."""
         return lag_stats(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
 
+    def robot_lags(self) -> dict[str, FloatArray]:
+        """Each robot's local maps' lags to the solved joined maps (NaN: never included)."""
+        return robot_lags(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
+
     def map_lags(self) -> tuple[FloatArray, FloatArray]:
         """Every robot's local maps pooled: their arrival times and their lags to the solved
         joined maps (NaN: never included), in arrival order."""
-        lags = robot_lags(self.map_arrivals, self.map_stamps, self.joined_times, self.used_stamps)
+        lags = self.robot_lags()
         if not lags:
             return np.zeros(0), np.zeros(0)
         a = np.concatenate([np.asarray(self.map_arrivals[r], dtype=float) for r in lags])

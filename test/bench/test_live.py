@@ -61,6 +61,11 @@ def test_lines_of_a_live_run(run_dir: Path) -> None:
     assert any(f"RMSE {rmse:.3f} m" in line for line in lines)
 
 
+def test_latency_figure_beside_the_run(run_dir: Path) -> None:
+    assert live.latency_figure(run_dir) == run_dir / "latency.png"
+    assert (run_dir / "latency.png").read_bytes().startswith(b"\x89PNG")
+
+
 def test_a_bag_without_a_joined_map_is_refused(tmp_path: Path) -> None:
     with BagWriter(tmp_path / "sensors") as bag:
         for message in read_bag(BAG):

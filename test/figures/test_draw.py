@@ -1,7 +1,7 @@
 """Figures of a C-SAM result: geometry helpers, and drawing synthetic and real results.
 
 What a figure draws is checked on the matplotlib Figure each draw function saves (caught at
-``draw._save``): one trajectory line per robot at its poses, feature markers and ellipses at
+``draw.save_figure``): one trajectory line per robot at its poses, feature markers and ellipses at
 the result's positions, titles and legends naming the robots; and in the PNG read back, the
 robots' colours at their trajectories and the features' at theirs."""
 
@@ -205,13 +205,13 @@ def test_robot_colours_are_stable_and_distinct() -> None:
 def drawn(monkeypatch: pytest.MonkeyPatch) -> dict[str, Figure]:
     """Every figure the draw functions save, by file name (still saved as before)."""
     figures: dict[str, Figure] = {}
-    save = draw._save
+    save = draw.save_figure
 
     def keep(figure: Figure, path: str | Path) -> Path:
         figures[Path(path).name] = figure
         return save(figure, path)
 
-    monkeypatch.setattr(draw, "_save", keep)
+    monkeypatch.setattr(draw, "save_figure", keep)
     return figures
 
 
