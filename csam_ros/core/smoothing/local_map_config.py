@@ -75,6 +75,15 @@ class LocalMapConfig(Section):
         node=SMOOTHER,
     )
 
+    # SolverOptions.cost_tolerance of the same converged solves: along the flat directions of a
+    # redescending kernel the cost creeps a fraction of a unit per step for tens of steps
+    converged_cost_tolerance: float = setting(
+        0.0,
+        "converged solves: stop at a step that lowers the cost by less than this (a step under "
+        "one standard deviation: 0.5; 0: off)",
+        **_NON_NEGATIVE,
+    )
+
     update_tolerance_m: float = setting(
         0.02,
         "m a pose moves before a smoother sends it again (0: every change)",
@@ -131,7 +140,10 @@ class LocalMapConfig(Section):
         return LocalMapOptions(
             key_interval=self.key_interval or None,
             robust=robust_kernel(self.robust_kernel, self.robust_threshold),
-            solver=SolverOptions(max_step_scale=self.converged_step_scale),
+            solver=SolverOptions(
+                max_step_scale=self.converged_step_scale,
+                cost_tolerance=self.converged_cost_tolerance,
+            ),
             odometry_calibration=self.odometry_calibration,
             fold_recovery=self.fold_recovery,
             driving_speed=self.driving_speed,
