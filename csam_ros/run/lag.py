@@ -13,8 +13,10 @@ cores) records both late, in bursts, which blurs the lags by its delay. The same
 the first joined map, solved or provisional (``/csam/joined_map/provisional``, the newest
 local maps placed by the last join), say how soon a map shows in the joined frame at all.
 
-:func:`lag_stats` computes this on plain arrays; :func:`read_timeline` takes them from a
-recorded bag (``bag/`` of a ``csam demo`` or live ``csam replay`` output).
+:func:`lag_stats` computes this on plain arrays, :func:`lags_over_run` the same over equal spans
+of the run (a join that grows with the data shows as lags that grow with it);
+:func:`read_timeline` takes them from a recorded bag (``bag/`` of a ``csam demo`` or live
+``csam replay`` output).
 """
 
 from __future__ import annotations
