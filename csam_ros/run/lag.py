@@ -98,6 +98,11 @@ class SolveStats:
         )
 
 
+def _vectors(*values: ArrayLike) -> list[FloatArray]:
+    """Each of ``values`` as a flat float array."""
+    return [np.asarray(v, dtype=float).reshape(-1) for v in values]
+
+
 def map_lags(
     arrivals: ArrayLike,
     stamps: ArrayLike,
@@ -108,10 +113,7 @@ def map_lags(
     map (``joined_times``, and the stamp of this robot's map each one used: ``used_stamps``,
     :data:`NOT_USED` for none) logged no earlier and using a stamp at least as new; NaN for a
     map never included."""
-    a = np.asarray(arrivals, dtype=float).reshape(-1)
-    s = np.asarray(stamps, dtype=float).reshape(-1)
-    t = np.asarray(joined_times, dtype=float).reshape(-1)
-    u = np.asarray(used_stamps, dtype=float).reshape(-1)
+    a, s, t, u = _vectors(arrivals, stamps, joined_times, used_stamps)
     if a.shape != s.shape or t.shape != u.shape:
         raise ValueError("arrivals and stamps, joined times and used stamps: equal lengths")
     order = np.argsort(t, kind="stable")
@@ -199,10 +201,7 @@ def lags_over_run(
     the solves (reported at ``solve_times`` [s], each ``solve_seconds`` long) in ``parts``
     equal spans from the first arrival to the last: whether maps wait longer as the run goes
     on (a join that grows with the data) or only at its start."""
-    a = np.asarray(arrivals, dtype=float).reshape(-1)
-    x = np.asarray(lags, dtype=float).reshape(-1)
-    t = np.asarray(solve_times, dtype=float).reshape(-1)
-    d = np.asarray(solve_seconds, dtype=float).reshape(-1)
+    a, x, t, d = _vectors(arrivals, lags, solve_times, solve_seconds)
     if a.shape != x.shape or t.shape != d.shape:
         raise ValueError("arrivals and lags, solve times and seconds: equal lengths")
     if parts < 1:
