@@ -21,8 +21,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-RUN_PARTS = 10  # spans of the run the lags are also shown over (a join growing with the data)
-
 
 def final_after_data(bag: Path) -> float:
     """Seconds from the last sensor message of a run's bag to its last solved joined map."""
@@ -48,6 +46,7 @@ def live_lines(run_dir: Path) -> list[str]:
     from csam_ros.core.joining.result import RunSummary
     from csam_ros.run.errors import RunError
     from csam_ros.run.evaluation import evaluate_run, evaluation_lines
+    from csam_ros.run.lag import RUN_PARTS
     from csam_ros.run.results import latency_lines
 
     bag = run_dir / "bag"

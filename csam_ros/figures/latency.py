@@ -19,8 +19,6 @@ import numpy as np
 from csam_ros.figures.draw import axes_note, new_figure, robot_colours, save_figure
 from csam_ros.run.lag import Timeline, read_timeline
 
-RUN_PARTS = 10  # the spans whose p95 the figure draws
-
 
 def draw_latency(timeline: Timeline, path: str | Path, title: str = "") -> Path:
     """Draw ``timeline`` (:func:`~csam_ros.run.lag.read_timeline`) to ``path`` (PNG)."""
@@ -41,7 +39,7 @@ def draw_latency(timeline: Timeline, path: str | Path, title: str = "") -> Path:
         lags_axes.plot(
             arrivals[shown], lags[shown], ".", ms=3, color=colours[robot], label=robot, alpha=0.7
         )
-    parts = [p for p in timeline.lags_over_run(RUN_PARTS) if p.lags.count]
+    parts = [p for p in timeline.lags_over_run() if p.lags.count]
     if parts:
         edges = [p.start for p in parts] + [parts[-1].end]
         p95 = [p.lags.p95 for p in parts]

@@ -33,6 +33,7 @@ IntArray = NDArray[np.int64]
 SOLVED = "the joined map"  # what lags are to by default: the solved joined maps
 NOT_USED = -np.inf  # the used stamp of a robot that a joined map holds no local map of
 _CHUNK = 1 << 22  # most (local map x joined map) comparisons held at once
+RUN_PARTS = 10  # the equal spans a run's lags are shown over (Timeline.lags_over_run)
 
 
 @dataclass(frozen=True)
@@ -259,7 +260,7 @@ class Timeline:
         order = np.argsort(a, kind="stable")
         return a[order], x[order]
 
-    def lags_over_run(self, parts: int = 10) -> list[RunPart]:
+    def lags_over_run(self, parts: int = RUN_PARTS) -> list[RunPart]:
         """:func:`lags_over_run` of the lags to the solved joined maps, and of the solves."""
         return lags_over_run(*self.map_lags(), parts, self.solve_times, self.solve_seconds)
 

@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 
 from csam_ros.bag import BagWriter, read_bag
 from csam_ros.bench import live, smoothing
+from csam_ros.run.lag import RUN_PARTS
 from csam_ros.run.offline import offline_summary
 
 BAG = Path(__file__).resolve().parents[2] / "bags" / "map_joining"
@@ -50,8 +51,8 @@ def test_lines_of_a_live_run(run_dir: Path) -> None:
     assert lines[0].startswith("lag from a local map to the joined map that uses it: mean ")
     assert any(line.startswith("merger: ") for line in lines)
     over = lines.index("over the run (local maps by arrival, solves by their report):")
-    spans = lines[over + 1 : over + 1 + live.RUN_PARTS]
-    assert len(spans) == live.RUN_PARTS and all(" s " in span for span in spans)
+    spans = lines[over + 1 : over + 1 + RUN_PARTS]
+    assert len(spans) == RUN_PARTS and all(" s " in span for span in spans)
     counts = [int(span.split(" maps")[0].split()[-1]) for span in spans]
     assert sum(counts) == 52  # every local map update of bags/map_joining, in one span each
     final = next(line for line in lines if line.startswith("the final joined map "))

@@ -12,7 +12,7 @@ from matplotlib.image import imread
 
 from csam_ros.figures import latency
 from csam_ros.figures.draw import DPI, FIGURE_WIDTH_IN
-from csam_ros.run.lag import NOT_USED, Timeline
+from csam_ros.run.lag import NOT_USED, RUN_PARTS, Timeline
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -61,7 +61,7 @@ def test_lags_p95_and_solves_are_drawn(tmp_path: Path, saved: list[Figure]) -> N
     np.testing.assert_allclose(points["b"][:, 1], 0.4)
     (stairs,) = [p for p in lags_axes.patches if p.get_label() == "p95 of each tenth"]
     p95, edges, _ = stairs.get_data()
-    assert len(p95) == latency.RUN_PARTS and edges[0] == 0.0 and edges[-1] == pytest.approx(9.1)
+    assert len(p95) == RUN_PARTS and edges[0] == 0.0 and edges[-1] == pytest.approx(9.1)
     assert np.all((p95 >= 0.4) & (p95 <= 0.5))
     (solves,) = solves_axes.lines
     np.testing.assert_allclose(solves.get_xydata(), np.c_[np.arange(10.0) + 0.5, np.full(10, 0.4)])
