@@ -27,7 +27,7 @@ def draw_latency(timeline: Timeline, path: str | Path, title: str = "") -> Path:
     lags_axes.set_title(title or "lag from a local map to the solved joined map that uses it")
     lags_axes.set_ylabel("lag [s]")
     solves_axes.set_ylabel("solve [s]")
-    solves_axes.set_xlabel("time since the first local map [s]")
+    solves_axes.set_xlabel("time into the run [s] (since its first map, joined map or status)")
     for axes in (lags_axes, solves_axes):
         axes.grid(True, color="0.9", linewidth=0.6)
         axes.set_axisbelow(True)
