@@ -11,7 +11,7 @@ final joined map's time after the end of the sensor data, the landmark metrics, 
 batch Levenberg-Marquardt on Victoria Park from dead reckoning (as
 ``python -m csam_ros.bench.smoothing`` runs it) timed just before and just after the run: how
 fast the machine was that hour, so that a slow hour can be told from a regression. The lags and
-solves over the run are drawn to ``DIR/run/latency.png`` (:mod:`csam_ros.figures.latency`).
+solves over the run are drawn to ``DIR/run/latency.png`` (:mod:`csam_ros.run.latency_figure`).
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ def live_lines(run_dir: Path) -> list[str]:
 
 
 def latency_figure(run_dir: Path) -> Path:
-    """Draw ``run_dir/latency.png`` from its bag (:mod:`csam_ros.figures.latency`)."""
-    from csam_ros.figures.latency import draw_latency
+    """Draw ``run_dir/latency.png`` from its bag (:mod:`csam_ros.run.latency_figure`)."""
     from csam_ros.run.lag import read_timeline
+    from csam_ros.run.latency_figure import draw_latency
 
     return draw_latency(read_timeline(run_dir / "bag"), run_dir / "latency.png")
 

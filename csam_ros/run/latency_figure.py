@@ -1,6 +1,6 @@
-"""The figure of a live run's latency over the run: :func:`draw_latency` (it imports matplotlib),
-and ``python -m csam_ros.figures.latency BAG [--out PNG] [--title TEXT]`` on a recorded live run's
-bag (``csam demo``, ``csam replay`` live, ``python -m csam_ros.bench.live``).
+"""The figure of a live run's latency over the run: :func:`draw_latency` (it imports
+matplotlib), and ``python -m csam_ros.run.latency_figure BAG [--out PNG] [--title TEXT]`` on a
+recorded live run's bag (``csam demo``, ``csam replay`` live, ``python -m csam_ros.bench.live``).
 
 Top: each local map's lag to the solved joined map that uses it, at its arrival, one colour per
 robot, with the p95 of each tenth of the run; bottom: the merger's solve times where its status

@@ -10,8 +10,8 @@ import pytest
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
-from csam_ros.figures import latency
 from csam_ros.figures.draw import DPI, FIGURE_WIDTH_IN
+from csam_ros.run import latency_figure as latency
 from csam_ros.run.lag import NOT_USED, RUN_PARTS, Timeline
 
 REPO = Path(__file__).resolve().parents[2]
