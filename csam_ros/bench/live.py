@@ -41,29 +41,29 @@ def final_after_data(bag: Path) -> float:
 
 
 def live_lines(run_dir: Path) -> list[str]:
-    """What a live run's directory (``summary.json``, ``bag``) says of its speed, then of its
-    map when its bag holds ground truth (``metrics.json`` written, as ``csam evaluate``)."""
+    """What a live run's directory (``summary.json``, ``bag``) says of its speed, also over
+    tenths of the run (drawn to ``latency.png`` there), then of its map when its bag holds
+    ground truth (``metrics.json`` written, as ``csam evaluate``)."""
     from csam_ros.core.joining.result import RunSummary
     from csam_ros.run.errors import RunError
     from csam_ros.run.evaluation import evaluate_run, evaluation_lines
     from csam_ros.run.lag import RUN_PARTS
-    from csam_ros.run.results import latency_lines
+    from csam_ros.run.latency_figure import draw_latency
+    from csam_ros.run.results import run_timeline, timeline_lines
 
     bag = run_dir / "bag"
-    lines = latency_lines(bag, RunSummary.read(run_dir / "summary.json"), parts=RUN_PARTS)
+    lines = []
+    timeline = run_timeline(bag)  # read once: a long run's bag takes a minute or more
+    if timeline is not None:
+        summary = RunSummary.read(run_dir / "summary.json")
+        lines += timeline_lines(timeline, summary, parts=RUN_PARTS)
+        figure = draw_latency(timeline, run_dir / "latency.png")
+        lines.append(f"the lags and solves over the run: {figure}")
     lines.append(f"the final joined map {final_after_data(bag):.2f} s after the data")
     try:
         return lines + evaluation_lines(evaluate_run(run_dir))
     except RunError as err:
         return [*lines, f"not scored: {err}"]
-
-
-def latency_figure(run_dir: Path) -> Path:
-    """Draw ``run_dir/latency.png`` from its bag (:mod:`csam_ros.run.latency_figure`)."""
-    from csam_ros.run.lag import read_timeline
-    from csam_ros.run.latency_figure import draw_latency
-
-    return draw_latency(read_timeline(run_dir / "bag"), run_dir / "latency.png")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -87,7 +87,6 @@ def main(argv: list[str] | None = None) -> None:
     after = victoria_park_lm_seconds()
     for line in live_lines(out / "run"):
         print(f"  {line.strip()}")
-    print(f"  the lags and solves over the run: {latency_figure(out / 'run')}")
     speed = "n/a (GTSAM or its Victoria Park file missing)"
     if before is not None and after is not None:
         speed = f"{before:.2f} s before the run, {after:.2f} s after"

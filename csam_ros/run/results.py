@@ -14,6 +14,7 @@ from csam_ros.run.errors import RunError, warn
 if TYPE_CHECKING:
     from csam_ros.core.joining.result import RunSummary
     from csam_ros.figures.worker import FigureWorker
+    from csam_ros.run.lag import Timeline
 
 RUNS_DIR = Path("runs")
 
@@ -66,19 +67,30 @@ def write_results(out: Path, summary: RunSummary, worker: FigureWorker | None = 
     return draw_all(summary.result, out, scenario=summary.scenario)
 
 
-def latency_lines(bag: Path, summary: RunSummary, parts: int = 0) -> list[str]:
-    """How long a live run's local maps took to reach the joined map, and how long the
-    merger's solves took (from the run's bag; the merger's count from its summary), then
-    (``parts`` > 0) the same over that many equal spans of the run; no line if the bag cannot
-    be read (a warning says why)."""
+def latency_lines(bag: Path, summary: RunSummary) -> list[str]:
+    """:func:`timeline_lines` of a live run's bag; no line if the bag cannot be read (a warning
+    says why)."""
+    timeline = run_timeline(bag)
+    return [] if timeline is None else timeline_lines(timeline, summary)
+
+
+def run_timeline(bag: Path) -> Timeline | None:
+    """The timeline of a live run's bag (:func:`~csam_ros.run.lag.read_timeline`), or None
+    when it cannot be read (a warning says why)."""
     from csam_ros.bag import BagError
     from csam_ros.run.lag import read_timeline
 
     try:
-        timeline = read_timeline(bag, on_damage=warn)
+        return read_timeline(bag, on_damage=warn)
     except BagError as err:
         warn(f"no lag figures: {err}")
-        return []
+        return None
+
+
+def timeline_lines(timeline: Timeline, summary: RunSummary, parts: int = 0) -> list[str]:
+    """How long a live run's local maps took to reach the joined map, and how long the
+    merger's solves took (the merger's count from its summary), then (``parts`` > 0) the same
+    over that many equal spans of the run."""
     lines = [str(timeline.lag_stats())]
     provisional = timeline.provisional_lag_stats()
     if provisional is not None:
